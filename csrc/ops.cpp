@@ -1,0 +1,62 @@
+// Every schema of the `floxels` op namespace lives here; implementations register per
+// device in cpu/*.cpp and cuda/*_binding.cpp (TORCH_LIBRARY_IMPL), fake/autograd
+// registrations live in python/floxels_ext/ops/*.py.
+//
+// Conventions shared by all ops (see README "Op reference"):
+//  * points are (N, 3) float32/float64 in (x, y, z) order;
+//  * a grid is a regular lattice of SAMPLES: sample (iz, iy, ix) sits at
+//    origin + (ix, iy, iz) * spacing; dense grids are stored (C, Z, Y, X) or (Z, Y, X);
+//  * origin lists are [x0, y0, z0].
+#include <Python.h>
+#include <torch/library.h>
+
+extern "C" {
+// `import floxels_ext._C` only needs a module object; the ops register through the
+// static TORCH_LIBRARY initialisers below when the shared object is loaded.
+PyObject* PyInit__C(void) {
+  static struct PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_C", nullptr, -1, nullptr};
+  return PyModule_Create(&module_def);
+}
+}
+
+TORCH_LIBRARY(floxels, m) {
+  // --- trilinear family (csrc/kernels/trilinear.h) ---
+  // out (N, C) = grid (C, Z, Y, X) interpolated at points; border clamping.
+  m.def("trilinear_gather(Tensor grid, Tensor points, float[] origin, float spacing) -> Tensor");
+  // Gradients of trilinear_gather: (grad_grid (C,Z,Y,X), grad_points (N,3)); an output not
+  // requested is returned as an empty tensor.
+  m.def("trilinear_gather_backward(Tensor grad_out, Tensor grid, Tensor points, float[] origin, "
+        "float spacing, bool need_grid_grad, bool need_points_grad) -> (Tensor, Tensor)");
+  // Adjoint of the gather: splats values (N, C) onto a zero grid of shape (C, *grid_shape).
+  m.def("trilinear_scatter(Tensor values, Tensor points, float[] origin, float spacing, "
+        "int[] grid_shape) -> Tensor");
+
+  // --- exact Euclidean distance transform (csrc/kernels/edt.h) ---
+  // occupancy (Z, Y, X) bool -> float32 distance (in units of `spacing`) from each sample to
+  // the nearest True sample; +inf everywhere when nothing is occupied.
+  m.def("edt(Tensor occupancy, float spacing) -> Tensor");
+  // Marks the sample nearest to each point (round half up); points outside are ignored.
+  m.def("points_to_occupancy(Tensor points, float[] origin, float spacing, int[] grid_shape) -> Tensor");
+
+  // --- fused multi-scan distance-transform loss (csrc/kernels/dt_loss.h) ---
+  // sum_k weights[k] * mean_i trunc(DT_k(points_i + time_offsets[k] * flow_i)); every DT is
+  // (Z_k, Y_k, X_k) float32 with its own origin (origins = [x0,y0,z0] per DT, flattened),
+  // all with sample spacing `spacing`. Values >= truncation count as 0 with zero gradient.
+  m.def("dt_loss(Tensor points, Tensor flow, Tensor[] dts, float[] origins, float spacing, "
+        "float[] time_offsets, float[] weights, float truncation) -> Tensor");
+  m.def("dt_loss_backward(Tensor grad, Tensor points, Tensor flow, Tensor[] dts, float[] origins, "
+        "float spacing, float[] time_offsets, float[] weights, float truncation) -> Tensor");
+  // (loss, d loss / d flow) in one pass, for the optimiser's hot loop.
+  m.def("dt_loss_fwd_bwd(Tensor points, Tensor flow, Tensor[] dts, float[] origins, float spacing, "
+        "float[] time_offsets, float[] weights, float truncation) -> (Tensor, Tensor)");
+
+  // --- cluster reductions (csrc/kernels/cluster.h) ---
+  // Per-cluster mean (num_clusters, C) of values (N, C); labels (N,) int64 in [-1, num_clusters),
+  // -1 (noise) ignored; empty clusters give 0.
+  m.def("cluster_mean(Tensor values, Tensor labels, int num_clusters) -> Tensor");
+  // mean over ALL N points of ||flow_i - mean flow of cluster(i)||; noise points add 0.
+  m.def("cluster_consistency_loss(Tensor flow, Tensor labels, int num_clusters) -> Tensor");
+  m.def("cluster_consistency_loss_backward(Tensor grad, Tensor flow, Tensor labels, "
+        "int num_clusters) -> Tensor");
+  m.def("cluster_consistency_fwd_bwd(Tensor flow, Tensor labels, int num_clusters) -> (Tensor, Tensor)");
+}

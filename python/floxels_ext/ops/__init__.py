@@ -1,0 +1,21 @@
+"""``floxels_ext.ops``: checked Python wrappers around ``torch.ops.floxels.*``.
+
+Importing this module loads the compiled library and registers the fake (meta) and
+autograd implementations, so the raw ops also work under ``torch.compile``/``opcheck``.
+"""
+
+from ._lib import has_cuda_kernels, ops_ns
+from .cluster import cluster_consistency_fwd_bwd, cluster_consistency_loss, cluster_mean
+from .dt_loss import dt_loss, dt_loss_fwd_bwd
+from .edt import distance_transform, edt, points_to_occupancy
+from .grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
+from .trilinear import trilinear_gather, trilinear_scatter
+
+__all__ = [
+    "ops_ns", "has_cuda_kernels",
+    "trilinear_gather", "trilinear_scatter",
+    "edt", "points_to_occupancy", "distance_transform",
+    "dt_loss", "dt_loss_fwd_bwd",
+    "cluster_mean", "cluster_consistency_loss", "cluster_consistency_fwd_bwd",
+    "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",
+]

@@ -1,0 +1,48 @@
+"""Argument checks for the public Python wrappers (the C++ side re-checks dtype/shape/device).
+
+Finite-ness is checked here, not in the kernels: it costs a reduction (and a host sync on
+CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly on
+already-validated tensors, must not pay every iteration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+
+def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
+    if not isinstance(points, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(points).__name__}")
+    if points.dim() != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
+    if points.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must be float32 or float64, got {points.dtype}")
+    if points.numel() and not bool(torch.isfinite(points).all()):
+        bad = int((~torch.isfinite(points)).any(dim=1).sum())
+        raise ValueError(f"{name} contains {bad} row(s) with NaN or inf coordinates")
+    return points.contiguous()
+
+
+def as_origin(origin: Sequence[float], name: str = "origin") -> list[float]:
+    vals = [float(v) for v in (origin.tolist() if isinstance(origin, torch.Tensor) else origin)]
+    if len(vals) != 3:
+        raise ValueError(f"{name} must have 3 values [x0, y0, z0], got {len(vals)}")
+    if not all(abs(v) < float("inf") for v in vals):
+        raise ValueError(f"{name} must be finite, got {vals}")
+    return vals
+
+
+def as_spacing(spacing: float, name: str = "spacing") -> float:
+    s = float(spacing)
+    if not (s > 0 and s < float("inf")):
+        raise ValueError(f"{name} must be positive and finite, got {spacing}")
+    return s
+
+
+def same_device(*named: tuple[str, torch.Tensor]) -> None:
+    devs = {t.device for _, t in named}
+    if len(devs) > 1:
+        desc = ", ".join(f"{n} on {t.device}" for n, t in named)
+        raise ValueError(f"floxels: tensors must be on one device, got {desc}")

@@ -1,0 +1,85 @@
+"""Fused multi-scan distance-transform loss: fake + autograd registration and public wrappers."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from ._checks import as_points, as_spacing, same_device
+from ._lib import ops_ns
+
+
+@torch.library.register_fake("floxels::dt_loss")
+def _fake(points, flow, dts, origins, spacing, time_offsets, weights, truncation):
+    return flow.new_empty(())
+
+
+@torch.library.register_fake("floxels::dt_loss_backward")
+def _bwd_fake(grad, points, flow, dts, origins, spacing, time_offsets, weights, truncation):
+    return torch.empty_like(flow)
+
+
+@torch.library.register_fake("floxels::dt_loss_fwd_bwd")
+def _fwd_bwd_fake(points, flow, dts, origins, spacing, time_offsets, weights, truncation):
+    return flow.new_empty(()), torch.empty_like(flow)
+
+
+def _setup(ctx, inputs, output):
+    points, flow, dts, origins, spacing, time_offsets, weights, truncation = inputs
+    ctx.save_for_backward(points, flow, *dts)
+    ctx.args = (origins, spacing, time_offsets, weights, truncation)
+
+
+def _backward(ctx, grad):
+    points, flow, *dts = ctx.saved_tensors
+    # The loss is differentiable in the flow only; points and distance transforms are data.
+    if ctx.needs_input_grad[0]:
+        raise RuntimeError("floxels::dt_loss is not differentiable with respect to points")
+    g = ops_ns.dt_loss_backward(grad, points, flow, dts, *ctx.args) if ctx.needs_input_grad[1] else None
+    return None, g, None, None, None, None, None, None
+
+
+torch.library.register_autograd("floxels::dt_loss", _backward, setup_context=_setup)
+
+
+def _check(points, flow, dts, origins, time_offsets, weights, truncation):
+    points = as_points(points)
+    if flow.shape != points.shape:
+        raise ValueError(f"flow must have the shape of points {tuple(points.shape)}, got {tuple(flow.shape)}")
+    if flow.dtype != points.dtype:
+        raise TypeError(f"flow is {flow.dtype} but points are {points.dtype}")
+    dts = list(dts)
+    if not dts:
+        raise ValueError("dt_loss needs at least one distance transform")
+    named = [("points", points), ("flow", flow)] + [(f"dts[{k}]", d) for k, d in enumerate(dts)]
+    same_device(*named)
+    for k, d in enumerate(dts):
+        if d.dim() != 3 or d.dtype != torch.float32:
+            raise ValueError(f"dts[{k}] must be a float32 (Z, Y, X) grid, got {d.dtype} {tuple(d.shape)}")
+    K = len(dts)
+    origins = [float(v) for v in origins]
+    if len(origins) != 3 * K or len(time_offsets) != K or len(weights) != K:
+        raise ValueError(f"with {K} distance transforms, origins needs {3 * K} values and "
+                         f"time_offsets/weights {K} each; got {len(origins)}, {len(time_offsets)}, {len(weights)}")
+    if not float(truncation) > 0:
+        raise ValueError(f"truncation must be positive, got {truncation}")
+    return points, flow.contiguous(), [d.contiguous() for d in dts], origins, \
+        [float(t) for t in time_offsets], [float(w) for w in weights], float(truncation)
+
+
+def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
+            spacing: float, time_offsets: Sequence[float], weights: Sequence[float], truncation: float = 5.0):
+    """``sum_k weights[k] * mean_i DT_k(points_i + time_offsets[k] * flow_i)``, differentiable in flow.
+
+    Each ``dts[k]`` is a float32 (Z, Y, X) distance transform whose sample (0,0,0) sits at
+    ``origins[3k:3k+3]``; values interpolated to ``>= truncation`` count as 0 with no gradient.
+    """
+    p, f, d, o, t, w, tr = _check(points, flow, dts, origins, time_offsets, weights, truncation)
+    return ops_ns.dt_loss(p, f, d, o, as_spacing(spacing), t, w, tr)
+
+
+def dt_loss_fwd_bwd(points, flow, dts, origins, spacing, time_offsets, weights, truncation=5.0):
+    """(loss, d loss / d flow) of :func:`dt_loss` in one fused pass (no autograd graph)."""
+    p, f, d, o, t, w, tr = _check(points, flow, dts, origins, time_offsets, weights, truncation)
+    return ops_ns.dt_loss_fwd_bwd(p, f, d, o, as_spacing(spacing), t, w, tr)
