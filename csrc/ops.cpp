@@ -31,6 +31,14 @@ TORCH_LIBRARY(floxels, m) {
   m.def("trilinear_scatter(Tensor values, Tensor points, float[] origin, float spacing, "
         "int[] grid_shape) -> Tensor");
 
+  // --- compact voxel parameters (csrc/kernels/corners.h) ---
+  // The optimiser keeps only the voxel corners touched by points, as rows of params (M, C);
+  // corner_idx (N, 8) int32 and corner_w (N, 8) hold each point's 8 trilinear corners.
+  // out (N, C) = sum_j corner_w[i, j] * params[corner_idx[i, j]].
+  m.def("corner_gather(Tensor params, Tensor corner_idx, Tensor corner_w) -> Tensor");
+  // Adjoint: out (num_params, C) = sum over (i, j) with corner_idx[i, j] = m of corner_w[i, j] * values[i].
+  m.def("corner_scatter(Tensor values, Tensor corner_idx, Tensor corner_w, int num_params) -> Tensor");
+
   // --- exact Euclidean distance transform (csrc/kernels/edt.h) ---
   // occupancy (Z, Y, X) bool -> float32 distance (in units of `spacing`) from each sample to
   // the nearest True sample; +inf everywhere when nothing is occupied.

@@ -26,6 +26,8 @@ __all__ = [
     "dt_loss",
     "cluster_mean",
     "cluster_consistency_loss",
+    "corner_gather",
+    "corner_scatter",
 ]
 
 
@@ -184,3 +186,15 @@ def cluster_consistency_loss(flow: torch.Tensor, labels: torch.Tensor, num_clust
     nz = sq > 0
     norms = torch.where(nz, torch.sqrt(torch.where(nz, sq, torch.ones_like(sq))), torch.zeros_like(sq))
     return norms.sum() / n
+
+
+def corner_gather(params: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor) -> torch.Tensor:
+    """(N, C) = sum_j corner_w[:, j] * params[corner_idx[:, j]] (compact trilinear gather)."""
+    return (params[corner_idx.long()] * corner_w[..., None]).sum(dim=1)
+
+
+def corner_scatter(values: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor,
+                   num_params: int) -> torch.Tensor:
+    """Adjoint of :func:`corner_gather`: (num_params, C) sums of corner_w-weighted values."""
+    contrib = (values[:, None, :] * corner_w[..., None]).reshape(-1, values.shape[1])
+    return values.new_zeros(num_params, values.shape[1]).index_add(0, corner_idx.long().reshape(-1), contrib)

@@ -1,0 +1,74 @@
+// Torch binding of the CUDA compact corner gather/scatter.
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <torch/library.h>
+
+#include "common/check.h"
+#include "cuda/corners_launch.h"
+
+namespace floxels {
+namespace {
+
+void check_corners_cuda(const at::Tensor& idx, const at::Tensor& w, int64_t n, const at::Tensor& data,
+                        const char* data_name) {
+  TORCH_CHECK(idx.dim() == 2 && idx.size(0) == n && idx.size(1) == 8,
+              "floxels: corner_idx must be (N, 8) with N=", n, ", got ", idx.sizes());
+  TORCH_CHECK(idx.scalar_type() == at::kInt, "floxels: corner_idx must be int32, got ", idx.scalar_type());
+  TORCH_CHECK(w.sizes() == idx.sizes(), "floxels: corner_w must have the shape of corner_idx");
+  check_same_dtype(w, data, "corner_w", data_name);
+  check_same_device(idx, data, "corner_idx", data_name);
+  check_same_device(w, data, "corner_w", data_name);
+  TORCH_CHECK(data.scalar_type() == at::kFloat || data.scalar_type() == at::kDouble, "floxels: ", data_name,
+              " must be float32 or float64, got ", data.scalar_type());
+}
+
+at::Tensor corner_gather_cuda(const at::Tensor& params, const at::Tensor& idx_in, const at::Tensor& w_in) {
+  TORCH_CHECK(params.dim() == 2, "floxels: params must be (M, C), got ", params.sizes());
+  const int64_t n = idx_in.dim() == 2 ? idx_in.size(0) : -1;
+  check_corners_cuda(idx_in, w_in, n, params, "params");
+  c10::cuda::CUDAGuard guard(params.device());
+  auto p = params.contiguous();
+  auto idx = idx_in.contiguous();
+  auto w = w_in.contiguous();
+  auto out = at::empty({n, p.size(1)}, p.options());
+  auto stream = at::cuda::getCurrentCUDAStream();
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "corner_gather_cuda", [&] {
+    cuda::corner_gather<scalar_t>(p.data_ptr<scalar_t>(), idx.data_ptr<int32_t>(), w.data_ptr<scalar_t>(), n,
+                                  p.size(1), out.data_ptr<scalar_t>(), stream);
+  });
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
+at::Tensor corner_scatter_cuda(const at::Tensor& values, const at::Tensor& idx_in, const at::Tensor& w_in,
+                               int64_t num_params) {
+  TORCH_CHECK(values.dim() == 2, "floxels: values must be (N, C), got ", values.sizes());
+  TORCH_CHECK(num_params >= 0, "floxels: num_params must be >= 0, got ", num_params);
+  const int64_t n = values.size(0);
+  check_corners_cuda(idx_in, w_in, n, values, "values");
+  c10::cuda::CUDAGuard guard(values.device());
+  auto v = values.contiguous();
+  auto idx = idx_in.contiguous();
+  auto w = w_in.contiguous();
+  auto out = at::zeros({num_params, v.size(1)}, v.options());
+  auto stream = at::cuda::getCurrentCUDAStream();
+  AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "corner_scatter_cuda", [&] {
+    cuda::corner_scatter<scalar_t>(v.data_ptr<scalar_t>(), idx.data_ptr<int32_t>(), w.data_ptr<scalar_t>(), n,
+                                   v.size(1), out.data_ptr<scalar_t>(), stream);
+  });
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(floxels, CUDA, m) {
+  m.impl("corner_gather", &corner_gather_cuda);
+  m.impl("corner_scatter", &corner_scatter_cuda);
+}
+
+}  // namespace floxels

@@ -1,0 +1,118 @@
+"""Compact voxel parameters: only the flow-grid vertices touched by points are optimised.
+
+The points of the target scan never move during the optimisation, so their 8 trilinear
+corners and weights are computed once (:func:`compact_corners`); the optimiser then keeps
+a (M, 3) table of the M touched vertices. Vertices no point touches would receive zero
+gradient, and Adam leaves a parameter with only zero gradients at exactly zero, so this
+is exactly dense Adam on the full grid, at a fraction of the cost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from ._lib import ops_ns
+
+
+@torch.library.register_fake("floxels::corner_gather")
+def _gather_fake(params, corner_idx, corner_w):
+    return params.new_empty((corner_idx.shape[0], params.shape[1]))
+
+
+@torch.library.register_fake("floxels::corner_scatter")
+def _scatter_fake(values, corner_idx, corner_w, num_params):
+    return values.new_empty((num_params, values.shape[1]))
+
+
+def _gather_setup(ctx, inputs, output):
+    params, idx, w = inputs
+    ctx.save_for_backward(idx, w)
+    ctx.num_params = params.shape[0]
+
+
+def _gather_backward(ctx, grad):
+    idx, w = ctx.saved_tensors
+    if ctx.needs_input_grad[2]:
+        raise RuntimeError("floxels::corner_gather is not differentiable with respect to corner_w")
+    return ops_ns.corner_scatter(grad.contiguous(), idx, w, ctx.num_params), None, None
+
+
+def _scatter_setup(ctx, inputs, output):
+    values, idx, w, num_params = inputs
+    ctx.save_for_backward(idx, w)
+
+
+def _scatter_backward(ctx, grad):
+    idx, w = ctx.saved_tensors
+    if ctx.needs_input_grad[2]:
+        raise RuntimeError("floxels::corner_scatter is not differentiable with respect to corner_w")
+    return ops_ns.corner_gather(grad.contiguous(), idx, w), None, None, None
+
+
+torch.library.register_autograd("floxels::corner_gather", _gather_backward, setup_context=_gather_setup)
+torch.library.register_autograd("floxels::corner_scatter", _scatter_backward, setup_context=_scatter_setup)
+
+
+@dataclass
+class CompactCorners:
+    corner_idx: torch.Tensor   # (N, 8) int32 rows into the compact table
+    corner_w: torch.Tensor     # (N, 8) trilinear weights
+    vertices: torch.Tensor     # (M,) int64 linear index (z * Y + y) * X + x of each compact row
+    grid_shape: list[int]      # [Z, Y, X] of the dense lattice the vertices live on
+
+    @property
+    def num_params(self) -> int:
+        return int(self.vertices.shape[0])
+
+    def to_dense(self, params: torch.Tensor) -> torch.Tensor:
+        """Dense (C, Z, Y, X) grid holding ``params`` (M, C) at their vertices, 0 elsewhere."""
+        Z, Y, X = self.grid_shape
+        dense = params.new_zeros(params.shape[1], Z * Y * X)
+        dense[:, self.vertices] = params.T
+        return dense.view(params.shape[1], Z, Y, X)
+
+
+def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: float,
+                    grid_shape: Sequence[int]) -> CompactCorners:
+    """Trilinear corners of ``points`` on the lattice (same clamping as trilinear_gather),
+    renumbered densely over the vertices actually touched."""
+    Z, Y, X = (int(s) for s in grid_shape)
+    o = torch.as_tensor(list(origin), dtype=points.dtype, device=points.device)
+    size = torch.tensor([X, Y, Z], device=points.device)
+    u = ((points - o) / spacing).clamp(min=torch.zeros(3, dtype=points.dtype, device=points.device),
+                                       max=(size - 1).to(points.dtype))
+    i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
+    t = u - i0.to(points.dtype)
+    lin, wts = [], []
+    for cz in (0, 1):
+        for cy in (0, 1):
+            for cx in (0, 1):
+                ix = torch.minimum(i0[:, 0] + cx, size[0] - 1)
+                iy = torch.minimum(i0[:, 1] + cy, size[1] - 1)
+                iz = torch.minimum(i0[:, 2] + cz, size[2] - 1)
+                lin.append((iz * Y + iy) * X + ix)
+                wx = t[:, 0] if cx else 1 - t[:, 0]
+                wy = t[:, 1] if cy else 1 - t[:, 1]
+                wz = t[:, 2] if cz else 1 - t[:, 2]
+                wts.append(wx * wy * wz)
+    lin = torch.stack(lin, dim=1)
+    vertices, inverse = torch.unique(lin, return_inverse=True)
+    if vertices.numel() >= 2**31:
+        raise ValueError("too many touched voxel corners for int32 indexing")
+    return CompactCorners(inverse.to(torch.int32).contiguous(), torch.stack(wts, dim=1).contiguous(),
+                          vertices, [Z, Y, X])
+
+
+def corner_gather(params: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor) -> torch.Tensor:
+    """(N, C) = sum_j corner_w[:, j] * params[corner_idx[:, j]]; differentiable in params."""
+    return ops_ns.corner_gather(params.contiguous(), corner_idx.contiguous(), corner_w.contiguous())
+
+
+def corner_scatter(values: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor,
+                   num_params: int) -> torch.Tensor:
+    """Adjoint of :func:`corner_gather`: (num_params, C) sums of weighted values."""
+    return ops_ns.corner_scatter(values.contiguous(), corner_idx.contiguous(), corner_w.contiguous(),
+                                 int(num_params))
