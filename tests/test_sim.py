@@ -1,0 +1,154 @@
+import math
+
+import numpy as np
+import pytest
+
+from floxels_ext import sim
+from floxels_ext.seqio import load_sequence, read_frame, write_frame
+from floxels_ext.sim import Frame, LidarConfig, Scene, Track, simulate_sequence
+from floxels_ext.sim.lidar import BoxSet, cast_scan
+from floxels_ext.sim.scene import CAR, PEDESTRIAN
+
+SCENES = ["urban", "highway", "crossing", "parking"]
+
+
+@pytest.fixture(scope="module")
+def urban():
+    return simulate_sequence("urban", num_frames=3, seed=3, small=True)
+
+
+def test_frame_fields_and_types(urban):
+    assert len(urban.frames) == 3
+    for f in urban.frames:
+        n = len(f)
+        assert n > 1000
+        assert f.points.shape == (n, 3) and f.points.dtype == np.float32
+        assert f.flow.shape == (n, 3) and f.flow.dtype == np.float32
+        assert f.classes.shape == (n,) and f.classes.min() >= 0 and f.classes.max() <= 4
+        assert f.instance.shape == (n,)
+        assert f.dynamic.dtype == bool and f.ground.dtype == bool
+        assert f.pose.shape == (4, 4)
+        np.testing.assert_array_equal(f.dynamic, np.linalg.norm(f.flow, axis=1) > 0.05)
+        # background has no instance and never moves (ego-motion compensated world frame)
+        bg = f.classes == 0
+        assert np.all(f.instance[bg] == -1) and np.all(f.instance[~bg] >= 0)
+        assert np.all(f.flow[bg] == 0)
+        # ground points lie on z = 0 up to range noise and are background
+        assert np.all(f.classes[f.ground] == 0)
+        assert np.abs(f.points[f.ground, 2]).max() < 0.15
+
+
+def test_geometry_is_plausible(urban):
+    f = urban.frames[0]
+    origin = f.pose[:3, 3]
+    assert origin[2] == pytest.approx(1.8)
+    r = np.linalg.norm(f.points - origin, axis=1)
+    assert r.min() >= 2.0 - 0.1 and r.max() <= 70.0 + 0.1
+    assert f.dynamic.sum() > 50  # some moving objects are visible
+    assert set(np.unique(f.classes)) >= {0, 1}
+
+
+def test_deterministic_and_seed_dependent():
+    a = simulate_sequence("crossing", 2, seed=5, small=True)
+    b = simulate_sequence("crossing", 2, seed=5, small=True)
+    c = simulate_sequence("crossing", 2, seed=6, small=True)
+    for fa, fb in zip(a.frames, b.frames):
+        np.testing.assert_array_equal(fa.points, fb.points)
+        np.testing.assert_array_equal(fa.flow, fb.flow)
+    assert len(a.frames[0]) != len(c.frames[0]) or not np.array_equal(a.frames[0].points, c.frames[0].points)
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_all_scenes_have_motion(scene):
+    seq = simulate_sequence(scene, 2, seed=0, small=True)
+    f = seq.frames[0]
+    assert len(f) > 1000
+    assert f.dynamic.any()
+    assert (f.classes > 0).any()
+
+
+def test_flow_is_rigid_and_consistent_with_next_frame():
+    """Flow of an object's points equals its box motion: a point's instance-local coordinates stay fixed."""
+    scene = Scene("t", Track(0, 0, 0, 0))
+    # car 15 m ahead driving a left arc; it stays inside the field of view
+    scene.add((4.5, 1.9, 1.6), CAR, 15.0, 3.0, 0.3, 8.0, 0.5)
+    seq = simulate_sequence(scene, 2, seed=0, small=True, range_noise=0, dropout=0)
+    dt = 0.1
+    tr = scene.actors[0].track
+    f = seq.frames[0]
+    car = f.classes == CAR
+    assert car.sum() > 20
+    m0, m1 = tr.matrix(0.0, 0.8), tr.matrix(dt, 0.8)
+    p = f.points[car].astype(np.float64)
+    moved = p + f.flow[car]
+    local0 = (p - m0[:3, 3]) @ m0[:3, :3]
+    local1 = (moved - m1[:3, 3]) @ m1[:3, :3]
+    np.testing.assert_allclose(local0, local1, atol=1e-4)
+    # speed 8 m/s at 10 Hz: about 0.8 m per frame, and the car rotates (non-uniform flow)
+    speeds = np.linalg.norm(f.flow[car], axis=1)
+    assert np.all(np.abs(speeds - 0.8) < 0.1) and speeds.std() > 1e-4
+    # the points lie on the box surface
+    assert np.all(np.abs(local0) <= np.array([2.25, 0.95, 0.8]) + 1e-4)
+
+
+def test_last_frame_has_flow_and_world_frame_is_shared():
+    scene = Scene("t", Track(0, 0, 0, 10.0))  # ego drives, a wall stays put
+    scene.add((2.0, 30.0, 5.0), 0, 20.0, 0.0)
+    seq = simulate_sequence(scene, 3, seed=0, small=True, range_noise=0, dropout=0)
+    for f in seq.frames:
+        wall = ~f.ground
+        # the wall's near face is at x = 19 in the world frame, whatever the ego position
+        np.testing.assert_allclose(f.points[wall, 0], 19.0, atol=1e-4)
+        assert np.all(f.flow == 0)
+    np.testing.assert_allclose(seq.frames[2].pose[0, 3], 2.0)
+
+
+def test_pedestrian_walks():
+    scene = Scene("t", Track(0, 0, 0, 0))
+    scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 6.0, 0.0, math.pi / 2, 1.5)
+    f = simulate_sequence(scene, 1, seed=0, small=True, range_noise=0, dropout=0).frames[0]
+    ped = f.classes == PEDESTRIAN
+    assert ped.sum() > 5
+    np.testing.assert_allclose(f.flow[ped], np.tile([0, 0.15, 0], (ped.sum(), 1)), atol=1e-5)
+    assert np.all(f.dynamic[ped])
+
+
+def test_ray_box_slab_hits_nearest_face():
+    cfg = LidarConfig(beams=3, azimuth_steps=8, fov_down=-1, fov_up=1, min_range=0)
+    boxes = BoxSet(np.array([[10.0, 0, 1.8], [5.0, 0, 1.8]]), np.array([[1.0, 1, 1], [0.5, 0.5, 0.5]]), np.zeros(2))
+    t, hit, dirs = cast_scan(cfg, np.array([0, 0, 1.8]), 0.0, boxes)
+    assert hit[1, 0] == 1 and t[1, 0] == pytest.approx(4.5)  # nearer box occludes the farther
+    # looking backwards: the level and upward beams see nothing, the downward one the ground
+    assert hit[1, 4] == -1 and hit[2, 4] == -1
+    assert hit[0, 4] == -2 and t[0, 4] == pytest.approx(1.8 / math.sin(math.radians(1)))
+
+
+def test_options_validation():
+    with pytest.raises(TypeError, match="unknown"):
+        simulate_sequence("urban", 1, bogus=3)
+    with pytest.raises(ValueError, match="unknown scene"):
+        simulate_sequence("moon", 1)
+    with pytest.raises(ValueError):
+        simulate_sequence("urban", 0)
+    with pytest.raises(ValueError):
+        LidarConfig(beams=0)
+
+
+def test_save_load_roundtrip(tmp_path, urban):
+    urban.save(tmp_path / "seq")
+    files = sorted(p.name for p in (tmp_path / "seq").iterdir())
+    assert files == ["000000.npz", "000001.npz", "000002.npz", "sequence.json"]
+    back = load_sequence(tmp_path / "seq")
+    assert back.meta["scene"] == "urban" and back.meta["seed"] == 3
+    for a, b in zip(urban.frames, back.frames):
+        for key in ("points", "flow", "classes", "instance", "dynamic", "ground", "pose"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+    f = read_frame(tmp_path / "seq" / "000001.npz")
+    assert isinstance(f, Frame)
+    write_frame(tmp_path / "pred" / "000000.npz", flow=np.zeros((4, 3)))
+    assert set(read_frame(tmp_path / "pred" / "000000.npz", require=("flow",))) == {"flow"}
+
+
+def test_public_names():
+    for name in ("simulate_sequence", "Frame", "Sequence", "LidarConfig", "SMALL_LIDAR", "SCENES"):
+        assert hasattr(sim, name)
