@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from floxels_ext import cli, seqio
+from floxels_ext import cli
 from floxels_ext.seqio import Frame, SequenceFormatError, frame_path, load_sequence, read_frame, write_frame
 from floxels_ext.viz import bev_image, bev_png, hsv_to_rgb, write_png
 
@@ -142,8 +142,8 @@ def test_eval_numbers_and_subprocess(tmp_path):
     _write_gt(gt, sizes=(4,))
     write_frame(frame_path(pred, 0), flow=np.array([[0.5, 0.1, 0], [0.5, 0, 0], [0, 0, 0], [0, 0.2, 0]]))
     env = {**os.environ, "PYTHONPATH": PYTHON_DIR + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    r = subprocess.run([sys.executable, "-m", "floxels_ext", "eval", str(pred), str(gt), "--json", str(tmp_path / "m.json")],
-                       capture_output=True, text=True, env=env, timeout=120)
+    cmd = [sys.executable, "-m", "floxels_ext", "eval", str(pred), str(gt), "--json", str(tmp_path / "m.json")]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["dynamic_epe"] == pytest.approx(0.05)

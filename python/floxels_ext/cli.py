@@ -113,7 +113,8 @@ def load_eval_pair(pred_dir, gt_dir):
 
     for d, what in ((pred_dir, "prediction"), (gt_dir, "ground-truth")):
         if not Path(d).is_dir():
-            raise CLIError(f"{what} directory {d} does not exist" if not Path(d).exists() else f"{d} is not a directory")
+            exists = Path(d).exists()
+            raise CLIError(f"{d} is not a directory" if exists else f"{what} directory {d} does not exist")
     gt_paths = seqio.list_frames(gt_dir)
     pred_paths = seqio.list_frames(pred_dir)
     if len(pred_paths) > len(gt_paths):
@@ -147,10 +148,11 @@ def format_metrics(m: dict) -> str:
     lines.append(f"{'subset':<10}{'EPE (m)':>10}{'Acc5':>10}{'Acc10':>10}{'Outliers':>10}{'Angle(rad)':>12}")
     for s in ("dynamic", "static"):
         lines.append(f"{s:<10}{_fmt(m[s + '_epe']):>10}{_fmt(m[s + '_acc5'], True):>10}"
-                     f"{_fmt(m[s + '_acc10'], True):>10}{_fmt(m[s + '_outliers'], True):>10}{_fmt(m[s + '_angle']):>12}")
+                     f"{_fmt(m[s + '_acc10'], True):>10}{_fmt(m[s + '_outliers'], True):>10}"
+                     f"{_fmt(m[s + '_angle']):>12}")
     tw = m["threeway_epe"]
-    lines += ["", "three-way EPE (m): " + ", ".join(
-        f"{k.replace('_', ' ')} {_fmt(tw[k])}" for k in ("foreground_dynamic", "foreground_static", "background", "mean"))]
+    groups = ("foreground_dynamic", "foreground_static", "background", "mean")
+    lines += ["", "three-way EPE (m): " + ", ".join(f"{k.replace('_', ' ')} {_fmt(tw[k])}" for k in groups)]
     lines += ["", f"{'class (AV2 2024)':<18}{'static EPE':>12}{'dyn. norm. EPE':>16}"]
     for c, dn in m["dynamic_normalized_epe"].items():
         lines.append(f"{c:<18}{_fmt(m['static_epe_per_class'][c]):>12}{_fmt(dn):>16}")
