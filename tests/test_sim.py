@@ -158,8 +158,8 @@ def test_scene_add_rejects_colliding_actors():
     scene = Scene("t", Track(0, 0, 0, 5.0), horizon=1.0)
     assert scene.add((4.5, 1.9, 1.6), CAR, 6.0, 0.0) is None  # parked where the ego drives into it
     assert scene.add((4.5, 1.9, 1.6), CAR, 12.0, 0.0) is not None
-    assert scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 12.0, -5.0, math.pi / 2, 1.5) is None  # walks into it
-    assert scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 12.0, -5.0, -math.pi / 2, 1.5).instance == 1
+    assert scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 12.0, -2.5, math.pi / 2, 1.5) is None  # walks into it
+    assert scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 12.0, -2.5, -math.pi / 2, 1.5).instance == 1
     assert scene.add((50, 10, 10), 0, 0.0, 0.0) is not None  # background is never checked
 
 
