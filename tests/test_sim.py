@@ -152,3 +152,28 @@ def test_save_load_roundtrip(tmp_path, urban):
 def test_public_names():
     for name in ("simulate_sequence", "Frame", "Sequence", "LidarConfig", "SMALL_LIDAR", "SCENES"):
         assert hasattr(sim, name)
+
+
+def test_scene_add_rejects_colliding_actors():
+    scene = Scene("t", Track(0, 0, 0, 5.0), horizon=1.0)
+    assert scene.add((4.5, 1.9, 1.6), CAR, 6.0, 0.0) is None  # parked where the ego drives into it
+    assert scene.add((4.5, 1.9, 1.6), CAR, 12.0, 0.0) is not None
+    assert scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 12.0, -2.5, math.pi / 2, 1.5) is None  # walks into it
+    assert scene.add((0.6, 0.6, 1.75), PEDESTRIAN, 12.0, -2.5, -math.pi / 2, 1.5).instance == 1
+    assert scene.add((50, 10, 10), 0, 0.0, 0.0) is not None  # background is never checked
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_scene_layouts_are_collision_free(scene):
+    from floxels_ext.sim.scene import _obb_overlap
+
+    for seed in range(3):
+        s = sim.build_scene(scene, np.random.default_rng(seed), horizon=1.4)
+        fg = [a for a in s.actors if a.cls != 0]
+        ts = np.linspace(0, 1.4, 15)
+        poses = np.stack([a.track.poses(ts) for a in fg] + [s.ego.poses(ts)])
+        sizes = np.array([a.size[:2] for a in fg] + [(4.6, 1.9)])
+        hit = _obb_overlap(poses[:, None], sizes[:, None, None], poses[None], sizes[None, :, None]).any(-1)
+        np.fill_diagonal(hit, False)
+        assert not hit.any()
+        assert len({a.instance for a in fg}) == len(fg)

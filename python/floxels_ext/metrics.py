@@ -186,7 +186,8 @@ class BucketedEPE:
             name = CLASS_NAMES[c] if c < len(CLASS_NAMES) else str(c)
             static[name] = float(mean_epe[c, 0]) if self.count[c, 0] else float("nan")
             moving = self.count[c, 1:] > 0
-            dynamic[name] = float(np.mean(mean_epe[c, 1:][moving] / mean_speed[c, 1:][moving])) if moving.any() else float("nan")
+            ratio = mean_epe[c, 1:][moving] / mean_speed[c, 1:][moving]
+            dynamic[name] = float(np.mean(ratio)) if moving.any() else float("nan")
         return {
             "static_epe": static,
             "dynamic_normalized_epe": dynamic,

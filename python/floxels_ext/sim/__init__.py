@@ -51,21 +51,6 @@ DYNAMIC_THRESHOLD = 0.05  # metres per frame
 _LIDAR_FIELDS = {f.name for f in dataclasses.fields(LidarConfig)}
 
 
-def _drop_overlaps(scene: Scene) -> Scene:
-    """Remove static actors whose footprint overlaps a moving actor at t = 0 (layouts are random)."""
-    movers = [a for a in scene.actors if a.track.moving]
-    m_xy = np.array([[a.track.x, a.track.y] for a in movers]).reshape(-1, 2)
-    m_r = np.array([math.hypot(a.size[0], a.size[1]) / 2 for a in movers])
-    keep = []
-    for a in scene.actors:
-        if not a.track.moving and a.cls != 0 and len(movers):
-            d = np.hypot(m_xy[:, 0] - a.track.x, m_xy[:, 1] - a.track.y)
-            if np.any(d < 0.8 * (m_r + math.hypot(a.size[0], a.size[1]) / 2)):
-                continue
-        keep.append(a)
-    return dataclasses.replace(scene, actors=keep)
-
-
 def _boxes_at(actors: list[Actor], t: float) -> tuple[BoxSet, np.ndarray]:
     """Box set at time t and the (B, 4, 4) actor poses (box centre at the box's mid-height)."""
     mats = np.stack([a.track.matrix(t, a.z + a.size[2] / 2) for a in actors]) if actors else np.zeros((0, 4, 4))
@@ -133,14 +118,17 @@ def simulate_sequence(scene: str | Scene = "urban", num_frames: int = 13, seed: 
         raise ValueError("num_frames must be >= 1")
     unknown = set(options) - _LIDAR_FIELDS
     if unknown:
-        raise TypeError(f"unknown simulate_sequence option(s) {sorted(unknown)}; lidar options: {sorted(_LIDAR_FIELDS)}")
+        raise TypeError(f"unknown simulate_sequence option(s) {sorted(unknown)}; "
+                        f"lidar options: {sorted(_LIDAR_FIELDS)}")
     cfg = LidarConfig(**{**(SMALL_LIDAR if small else {}), **options})
     seed = int(seed)
+    dt = 1.0 / cfg.rate_hz
     if isinstance(scene, str):
-        scene_obj = _drop_overlaps(build_scene(scene, np.random.default_rng([seed, 0])))
+        # keep actors collision-free a little beyond the last flow target
+        horizon = (num_frames + 1) * dt
+        scene_obj = build_scene(scene, np.random.default_rng([seed, 0]), horizon)
     else:
         scene_obj = scene
-    dt = 1.0 / cfg.rate_hz
     frames = [
         simulate_frame(scene_obj, cfg, i * dt, dt, np.random.default_rng([seed, 1, i])) for i in range(num_frames)
     ]

@@ -63,7 +63,8 @@ def _parked_row(scene, rng, y, x0, x1, yaw, spacing, occupancy=0.6, van_prob=0.1
             is_van = rng.random() < van_prob
             size = _van(rng) if is_van else _car(rng)
             jitter_yaw = yaw + rng.normal(0, 0.03)
-            scene.add(size, OTHER_VEHICLE if is_van else CAR, x + rng.normal(0, 0.2), y + rng.normal(0, 0.1), jitter_yaw)
+            cls = OTHER_VEHICLE if is_van else CAR
+            scene.add(size, cls, x + rng.normal(0, 0.2), y + rng.normal(0, 0.1), jitter_yaw)
 
 
 def _lane_traffic(scene, rng, y, heading, xs, speed, size_fn=_car, cls=CAR):
@@ -71,14 +72,13 @@ def _lane_traffic(scene, rng, y, heading, xs, speed, size_fn=_car, cls=CAR):
         scene.add(size_fn(rng), cls, x, y, heading, speed + rng.uniform(-1.0, 1.0))
 
 
-def urban(rng) -> Scene:
+def urban(rng, horizon) -> Scene:
     ego_speed = rng.uniform(6, 10)
-    s = Scene("urban", Track(0.0, -1.75, 0.0, ego_speed))
+    s = Scene("urban", horizon=horizon, ego=Track(0.0, -1.75, 0.0, ego_speed))
     for side in (-1, 1):
         _building_row(s, rng, 11.0, side, -90, 130)
         for x in np.arange(-60, 100, rng.uniform(12, 20)):  # street lights / signs on the sidewalk
             s.add(_pole(rng), BACKGROUND, x + rng.uniform(-1, 1), side * 6.9)
-        _parked_row(s, rng, side * 5.0, -60, 100, 0.0 if side < 0 else PI, 6.5)
     # traffic in the ego lane (same speed range, spaced so nobody catches up) and oncoming
     ahead = np.cumsum(rng.uniform(14, 24, size=2)) + 6
     _lane_traffic(s, rng, -1.75, 0.0, [*ahead, -rng.uniform(14, 20)], ego_speed)
@@ -98,12 +98,14 @@ def urban(rng) -> Scene:
               rng.choice([0.0, PI]) + rng.normal(0, 0.05), speed)
     # a cyclist between the ego lane and the parked cars
     s.add(_cyclist(rng), WHEELED_VRU, rng.uniform(8, 25), -3.4, 0.0, rng.uniform(4, 6))
+    for side in (-1, 1):  # parked cars last: a slot whose car would hit a mover stays empty
+        _parked_row(s, rng, side * 5.0, -60, 100, 0.0 if side < 0 else PI, 6.5)
     return s
 
 
-def highway(rng) -> Scene:
+def highway(rng, horizon) -> Scene:
     ego_speed = rng.uniform(22, 27)
-    s = Scene("highway", Track(0.0, -5.5, 0.0, ego_speed))
+    s = Scene("highway", horizon=horizon, ego=Track(0.0, -5.5, 0.0, ego_speed))
     s.add((320, 0.6, 0.9), BACKGROUND, 60, 0.0)  # median barrier
     for side in (-1, 1):
         s.add((320, 0.5, 1.0), BACKGROUND, 60, side * 11.5)
@@ -127,16 +129,14 @@ def highway(rng) -> Scene:
     return s
 
 
-def crossing(rng) -> Scene:
+def crossing(rng, horizon) -> Scene:
     ego_speed = rng.choice([0.0, rng.uniform(2, 5)])  # waiting at or creeping up to the stop line
-    s = Scene("crossing", Track(-22.0, -1.75, 0.0, ego_speed))
+    s = Scene("crossing", horizon=horizon, ego=Track(-22.0, -1.75, 0.0, ego_speed))
     for qx in (-1, 1):
         for qy in (-1, 1):  # one building block per corner
             w, d = rng.uniform(20, 40), rng.uniform(20, 40)
             s.add((w, d, rng.uniform(8, 25)), BACKGROUND, qx * (12 + w / 2), qy * (12 + d / 2))
             s.add(_pole(rng), BACKGROUND, qx * 8.0, qy * 8.0)  # traffic lights
-    _parked_row(s, rng, 5.0, 16, 60, PI, 6.5)
-    _parked_row(s, rng, -5.0, 16, 60, 0.0, 6.5)
     # turning cars inside the intersection (constant yaw rate arcs)
     s.add(_car(rng), CAR, 6.0, 1.75, PI, rng.uniform(4, 6), rng.uniform(0.45, 0.6))  # left turn
     s.add(_car(rng), CAR, -9.0, -1.75, 0.0, rng.uniform(3, 5), -rng.uniform(0.5, 0.7))  # right turn
@@ -155,14 +155,14 @@ def crossing(rng) -> Scene:
             s.add(_ped(rng), PEDESTRIAN, rng.uniform(-7, 7), rng.choice([-9.5, 9.5]) + rng.normal(0, 0.5),
                   rng.choice([0.0, PI]), speed)
     s.add(_cyclist(rng), WHEELED_VRU, 4.5, rng.uniform(-30, -20), PI / 2, rng.uniform(4, 6))
+    _parked_row(s, rng, 5.0, 16, 60, PI, 6.5)
+    _parked_row(s, rng, -5.0, 16, 60, 0.0, 6.5)
     return s
 
 
-def parking(rng) -> Scene:
-    s = Scene("parking", Track(-20.0, -1.5, 0.0, rng.uniform(2, 4)))
+def parking(rng, horizon) -> Scene:
+    s = Scene("parking", horizon=horizon, ego=Track(-20.0, -1.5, 0.0, rng.uniform(2, 4)))
     for side in (-1, 1):
-        for y in (5.5, 10.3, 21.3):  # rows of perpendicular parking (back-to-back at 5.5 / 10.3)
-            _parked_row(s, rng, side * y, -45, 45, side * PI / 2, 2.7, occupancy=0.75)
         s.add((120, 10, rng.uniform(6, 12)), BACKGROUND, 0, side * 31)  # shop fronts
         for x in np.arange(-40, 45, 20):
             s.add(_pole(rng), BACKGROUND, x, side * 7.9)  # lamps between the back-to-back rows
@@ -178,15 +178,19 @@ def parking(rng) -> Scene:
         s.add(_ped(rng), PEDESTRIAN, rng.uniform(-8, 25), rng.uniform(-2.5, 2.5),
               rng.choice([PI / 2, -PI / 2]) + rng.normal(0, 0.2), rng.uniform(0.8, 1.5))
     s.add(_cyclist(rng), WHEELED_VRU, rng.uniform(27, 35), 1.6, PI, rng.uniform(3.5, 4.5))
+    for side in (-1, 1):
+        for y in (5.5, 10.3, 21.3):  # rows of perpendicular parking (back-to-back at 5.5 / 10.3)
+            _parked_row(s, rng, side * y, -45, 45, side * PI / 2, 2.7, occupancy=0.75)
     return s
 
 
 SCENES = {"urban": urban, "highway": highway, "crossing": crossing, "parking": parking}
 
 
-def build_scene(name: str, rng: np.random.Generator) -> Scene:
+def build_scene(name: str, rng: np.random.Generator, horizon: float = 2.0) -> Scene:
+    """Random layout of scene ``name``; actors are collision-free for ``horizon`` seconds."""
     try:
         fn = SCENES[name]
     except KeyError:
         raise ValueError(f"unknown scene {name!r}; choose from {sorted(SCENES)}") from None
-    return fn(rng)
+    return fn(rng, horizon)

@@ -1,0 +1,219 @@
+"""``floxels`` command line: ``floxels simulate ...``, ``floxels eval ...`` and more.
+
+Subcommands come from a registry so other modules can add theirs without touching this
+file's logic: list the module in ``SUBCOMMAND_MODULES`` (or call ``register``). A subcommand
+module exposes ``add_parser(subparsers)``, which creates its parser with
+``subparsers.add_parser(name, help=...)`` and sets ``func`` via ``set_defaults(func=run)``;
+``run(args)`` returns an exit code (or None for 0). Keep such modules' top-level imports light
+and import heavy things inside ``run``. User mistakes (missing files, bad arguments, malformed
+data) should raise ``CLIError`` or ``seqio.SequenceFormatError``: ``main`` prints
+``floxels: error: <message>`` to stderr and exits with status 2, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+__all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
+
+# Modules with an ``add_parser(subparsers)`` function, added after the built-in commands.
+SUBCOMMAND_MODULES: list[str] = []
+_EXTRA: list[Callable] = []
+
+
+class CLIError(Exception):
+    """A user error: reported as ``floxels: error: ...`` with exit status 2."""
+
+
+def register(add_parser: Callable | str) -> None:
+    """Register a subcommand: an ``add_parser(subparsers)`` callable or a module path having one."""
+    if isinstance(add_parser, str):
+        if add_parser not in SUBCOMMAND_MODULES:
+            SUBCOMMAND_MODULES.append(add_parser)
+    elif add_parser not in _EXTRA:
+        _EXTRA.append(add_parser)
+
+
+# ----------------------------------------------------------------------------- simulate
+def _add_simulate(sub) -> None:
+    from .sim.scenes import SCENES  # light: numpy only
+
+    p = sub.add_parser("simulate", help="write a synthetic lidar sequence with ground-truth flow",
+                       description="Simulate a spinning lidar in a synthetic scene and write one .npz per frame "
+                                   "(points, pose, flow, classes, instance, ground, dynamic).")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="output sequence directory")
+    p.add_argument("--scene", choices=sorted(SCENES), default="urban")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--frames", type=int, default=13, help="number of frames (default 13)")
+    p.add_argument("--small", action="store_true", help="32 beams x 512 azimuth steps (fast)")
+    p.add_argument("--beams", type=int, help="number of lidar beams (default 64)")
+    p.add_argument("--azimuth-steps", type=int, help="firings per revolution (default 2048)")
+    p.add_argument("--max-range", type=float, help="metres (default 70)")
+    p.add_argument("--range-noise", type=float, help="range noise std-dev in metres (default 0.015)")
+    p.add_argument("--dropout", type=float, help="probability of losing a return (default 0.05)")
+    p.add_argument("--force", action="store_true", help="replace frames already in OUT_DIR")
+    p.set_defaults(func=_run_simulate)
+
+
+def _run_simulate(args) -> int:
+    from . import seqio
+    from .sim import simulate_sequence
+
+    if args.frames < 1:
+        raise CLIError("--frames must be >= 1")
+    out = Path(args.out_dir)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"{out} exists and is not a directory")
+    old = sorted(out.glob("[0-9][0-9][0-9][0-9][0-9][0-9].npz")) if out.is_dir() else []
+    if old and not args.force:
+        raise CLIError(f"{out} already holds {len(old)} frame file(s); use --force to replace them")
+    opts = {k: v for k, v in (("beams", args.beams), ("azimuth_steps", args.azimuth_steps),
+                              ("max_range", args.max_range), ("range_noise", args.range_noise),
+                              ("dropout", args.dropout)) if v is not None}
+    t0 = time.perf_counter()
+    try:
+        seq = simulate_sequence(args.scene, args.frames, args.seed, small=args.small, **opts)
+    except ValueError as e:  # invalid lidar settings
+        raise CLIError(str(e)) from None
+    for p in old:
+        p.unlink()
+    seqio.save_sequence(out, seq)
+    n = [len(f) for f in seq.frames]
+    dyn = sum(int(f.dynamic.sum()) for f in seq.frames)
+    print(f"wrote {len(n)} frames of scene '{args.scene}' (seed {args.seed}) to {out}: "
+          f"{min(n)}-{max(n)} points/frame, {dyn} dynamic points, {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+# ----------------------------------------------------------------------------- eval
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="score predicted flows against ground truth",
+                       description="Compare PRED_DIR/NNNNNN.npz ('flow', same point order) with GT_DIR/NNNNNN.npz "
+                                   "('flow', optional 'classes', 'dynamic', 'ground') and print all metrics.")
+    p.add_argument("pred_dir", metavar="PRED_DIR")
+    p.add_argument("gt_dir", metavar="GT_DIR")
+    p.add_argument("--json", metavar="FILE", help="also write the metrics as JSON")
+    p.add_argument("--include-ground", action="store_true", help="also score ground points (excluded by default)")
+    p.set_defaults(func=_run_eval)
+
+
+def load_eval_pair(pred_dir, gt_dir):
+    """Ground-truth frames and matching predicted flows; errors name the offending file."""
+    import numpy as np
+
+    from . import seqio
+
+    for d, what in ((pred_dir, "prediction"), (gt_dir, "ground-truth")):
+        if not Path(d).is_dir():
+            exists = Path(d).exists()
+            raise CLIError(f"{d} is not a directory" if exists else f"{what} directory {d} does not exist")
+    gt_paths = seqio.list_frames(gt_dir)
+    pred_paths = seqio.list_frames(pred_dir)
+    if len(pred_paths) > len(gt_paths):
+        raise CLIError(f"{pred_dir} has {len(pred_paths)} frames but {gt_dir} only {len(gt_paths)}; "
+                       f"no ground truth for {pred_paths[len(gt_paths)]}")
+    frames, preds = [], []
+    for i, gp in enumerate(gt_paths):
+        gt = seqio.read_frame(gp, require=("points", "flow"))
+        pp = seqio.frame_path(pred_dir, i)
+        if not pp.is_file():
+            raise CLIError(f"missing predicted frame {pp} (ground truth {gp} exists)")
+        pred = seqio.read_frame(pp, require=("flow",))
+        flow = pred.flow if isinstance(pred, seqio.Frame) else pred["flow"]
+        if flow.shape[0] != len(gt):
+            raise CLIError(f"{pp}: 'flow' has {flow.shape[0]} points but {gp} has {len(gt)}")
+        frames.append(gt)
+        preds.append(np.asarray(flow, dtype=np.float64))
+    return preds, frames
+
+
+def _fmt(v, pct=False) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{100 * v:.2f}%" if pct else f"{v:.4f}"
+
+
+def format_metrics(m: dict) -> str:
+    """Human-readable tables of ``metrics.evaluate_sequence`` output."""
+    lines = [f"{m['num_frames']} frames, {m['num_points']} points "
+             f"({m['dynamic_count']} dynamic, {m['static_count']} static)", ""]
+    lines.append(f"{'subset':<10}{'EPE (m)':>10}{'Acc5':>10}{'Acc10':>10}{'Outliers':>10}{'Angle(rad)':>12}")
+    for s in ("dynamic", "static"):
+        lines.append(f"{s:<10}{_fmt(m[s + '_epe']):>10}{_fmt(m[s + '_acc5'], True):>10}"
+                     f"{_fmt(m[s + '_acc10'], True):>10}{_fmt(m[s + '_outliers'], True):>10}"
+                     f"{_fmt(m[s + '_angle']):>12}")
+    tw = m["threeway_epe"]
+    groups = ("foreground_dynamic", "foreground_static", "background", "mean")
+    lines += ["", "three-way EPE (m): " + ", ".join(f"{k.replace('_', ' ')} {_fmt(tw[k])}" for k in groups)]
+    lines += ["", f"{'class (AV2 2024)':<18}{'static EPE':>12}{'dyn. norm. EPE':>16}"]
+    for c, dn in m["dynamic_normalized_epe"].items():
+        lines.append(f"{c:<18}{_fmt(m['static_epe_per_class'][c]):>12}{_fmt(dn):>16}")
+    lines.append(f"{'mean':<18}{_fmt(m['mean_static_epe']):>12}{_fmt(m['mean_dynamic_normalized_epe']):>16}")
+    return "\n".join(lines)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, float) and math.isnan(x):
+        return None  # JSON has no NaN
+    return x
+
+
+def _run_eval(args) -> int:
+    from .metrics import evaluate_sequence
+
+    preds, frames = load_eval_pair(args.pred_dir, args.gt_dir)
+    m = evaluate_sequence(preds, frames, include_ground=args.include_ground)
+    print(format_metrics(m))
+    if args.json:
+        path = Path(args.json)
+        if path.parent and not path.parent.is_dir():
+            raise CLIError(f"cannot write {path}: directory {path.parent} does not exist")
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(_jsonable(m), indent=2) + "\n")
+        os.replace(tmp, path)
+        print(f"\nwrote {path}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- main
+_BUILTIN = [_add_simulate, _add_eval]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="floxels", description="Floxels scene flow tools.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for add in _BUILTIN + _EXTRA:
+        add(sub)
+    for mod in SUBCOMMAND_MODULES:
+        importlib.import_module(mod).add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .seqio import SequenceFormatError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage
+    try:
+        rc = args.func(args)
+    except (CLIError, SequenceFormatError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
+        print(f"floxels: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("floxels: interrupted", file=sys.stderr)
+        return 130
+    return 0 if rc is None else int(rc)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
