@@ -84,8 +84,9 @@ void run(const CudaInputs& in, double spacing, double truncation, const at::Tens
 at::Tensor dt_loss_cuda(const at::Tensor& points, const at::Tensor& flow, at::TensorList dts,
                         c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
                         c10::ArrayRef<double> weights, double truncation) {
-  const c10::cuda::CUDAGuard guard(points.device());
+  // checks first: a CPU tensor among the inputs must get the device message, not the guard's
   const CudaInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
+  const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor loss = at::empty({}, points.options());
   run(in, spacing, truncation, at::Tensor(), loss, at::Tensor());
   return loss;
@@ -95,8 +96,9 @@ at::Tensor dt_loss_backward_cuda(const at::Tensor& grad, const at::Tensor& point
                                  at::TensorList dts, c10::ArrayRef<double> origins, double spacing,
                                  c10::ArrayRef<double> time_offsets, c10::ArrayRef<double> weights,
                                  double truncation) {
-  const c10::cuda::CUDAGuard guard(points.device());
+  // checks first: a CPU tensor among the inputs must get the device message, not the guard's
   const CudaInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
+  const c10::cuda::CUDAGuard guard(points.device());
   check_dt_loss_grad(grad, points);
   // The kernel reads the upstream gradient on the device: no host sync.
   const at::Tensor scale = grad.to(points.scalar_type()).contiguous();
@@ -109,8 +111,9 @@ std::tuple<at::Tensor, at::Tensor> dt_loss_fwd_bwd_cuda(const at::Tensor& points
                                                         at::TensorList dts, c10::ArrayRef<double> origins,
                                                         double spacing, c10::ArrayRef<double> time_offsets,
                                                         c10::ArrayRef<double> weights, double truncation) {
-  const c10::cuda::CUDAGuard guard(points.device());
+  // checks first: a CPU tensor among the inputs must get the device message, not the guard's
   const CudaInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
+  const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor loss = at::empty({}, points.options());
   at::Tensor grad_flow = at::empty({points.size(0), 3}, points.options());
   run(in, spacing, truncation, at::Tensor(), loss, grad_flow);

@@ -109,15 +109,16 @@ FLX_HD T point_loss(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, 
     const T uz = (pz + s.t * fz - s.oz) * inv_spacing;
     T gx = T(0), gy = T(0), gz = T(0);
     const T v = trilinear_value_grad<kGrad, T, Index>(s.data, s.nx, s.ny, s.nz, ux, uy, uz, gx, gy, gz);
-    if (v < truncation) {
-      loss += s.coef * v;
-      if constexpr (kGrad) {
-        // chain rule: d u / d flow = t / spacing
-        const T c = s.coef * s.t * inv_spacing;
-        gfx += c * gx;
-        gfy += c * gy;
-        gfz += c * gz;
-      }
+    // Branch-free selects (the test is unpredictable on real data); unlike a multiplication
+    // by 0, a select also drops the NaN/inf values and slopes of truncated samples.
+    const bool keep = v < truncation;
+    loss += keep ? s.coef * v : T(0);
+    if constexpr (kGrad) {
+      // chain rule: d u / d flow = t / spacing
+      const T c = s.coef * s.t * inv_spacing;
+      gfx += keep ? c * gx : T(0);
+      gfy += keep ? c * gy : T(0);
+      gfz += keep ? c * gz : T(0);
     }
   }
   if constexpr (kGrad) {
