@@ -277,8 +277,11 @@ def test_mismatched_devices():
     c = make_case(2, 20, torch.float32, seed=1)
     with pytest.raises(RuntimeError, match="is on"):
         ops.dt_loss(*_bad(c, flow=c["flow"].cuda()))
-    with pytest.raises(RuntimeError, match=r"dts\[1\] is on"):
-        ops.dt_loss(*_bad(c, points=c["points"].cuda(), flow=c["flow"].cuda()))
+    with pytest.raises(RuntimeError, match=r"dts\[1\] is on cpu"):
+        ops.dt_loss(*_bad(c, points=c["points"].cuda(), flow=c["flow"].cuda(), dts=[c["dts"][0].cuda(), c["dts"][1]]))
+    with pytest.raises(RuntimeError, match="grad is on"):
+        ops.dt_loss_backward(torch.ones(()), *_bad(c, points=c["points"].cuda(), flow=c["flow"].cuda(),
+                                                   dts=[d.cuda() for d in c["dts"]]))
     with pytest.raises(ValueError, match="one device"):
         dt_loss(*_bad(c, dts=[c["dts"][0], c["dts"][1].cuda()]))
 
