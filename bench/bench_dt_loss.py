@@ -114,7 +114,10 @@ def main():
     ap.add_argument("--quick", action="store_true", help="one small size, few repeats")
     ap.add_argument("--json", default=None, help="output JSON (default bench/results/dt_loss_<device>.json)")
     ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     a = ap.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
     device = a.device
     if device == "cuda" and not torch.cuda.is_available():
         sys.exit("--device cuda: no CUDA device available")
