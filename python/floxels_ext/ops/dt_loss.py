@@ -9,6 +9,8 @@ import torch
 from ._checks import as_points, as_spacing, same_device
 from ._lib import ops_ns
 
+MAX_SCANS = 32  # csrc/kernels/dt_loss.h kMaxScans: per-scan metadata travels in the kernel parameters
+
 
 @torch.library.register_fake("floxels::dt_loss")
 def _fake(points, flow, dts, origins, spacing, time_offsets, weights, truncation):
@@ -37,7 +39,8 @@ def _backward(ctx, grad):
     if ctx.needs_input_grad[0]:
         raise RuntimeError("floxels::dt_loss is not differentiable with respect to points")
     g = ops_ns.dt_loss_backward(grad, points, flow, dts, *ctx.args) if ctx.needs_input_grad[1] else None
-    return None, g, None, None, None, None, None, None
+    # Tensor[] inputs need one (None) gradient per element.
+    return None, g, [None] * (len(ctx.saved_tensors) - 2), None, None, None, None, None
 
 
 torch.library.register_autograd("floxels::dt_loss", _backward, setup_context=_setup)
@@ -49,14 +52,18 @@ def _check(points, flow, dts, origins, time_offsets, weights, truncation):
         raise ValueError(f"flow must have the shape of points {tuple(points.shape)}, got {tuple(flow.shape)}")
     if flow.dtype != points.dtype:
         raise TypeError(f"flow is {flow.dtype} but points are {points.dtype}")
+    flow = as_points(flow, "flow")
     dts = list(dts)
     if not dts:
         raise ValueError("dt_loss needs at least one distance transform")
+    if len(dts) > MAX_SCANS:
+        raise ValueError(f"dt_loss supports at most {MAX_SCANS} distance transforms, got {len(dts)}")
     named = [("points", points), ("flow", flow)] + [(f"dts[{k}]", d) for k, d in enumerate(dts)]
     same_device(*named)
     for k, d in enumerate(dts):
-        if d.dim() != 3 or d.dtype != torch.float32:
-            raise ValueError(f"dts[{k}] must be a float32 (Z, Y, X) grid, got {d.dtype} {tuple(d.shape)}")
+        if not isinstance(d, torch.Tensor) or d.dim() != 3 or d.dtype != torch.float32 or d.numel() == 0:
+            raise ValueError(f"dts[{k}] must be a non-empty float32 (Z, Y, X) grid, got "
+                             f"{getattr(d, 'dtype', type(d).__name__)} {tuple(getattr(d, 'shape', ()))}")
     K = len(dts)
     origins = [float(v) for v in origins]
     if len(origins) != 3 * K or len(time_offsets) != K or len(weights) != K:
@@ -64,7 +71,7 @@ def _check(points, flow, dts, origins, time_offsets, weights, truncation):
                          f"time_offsets/weights {K} each; got {len(origins)}, {len(time_offsets)}, {len(weights)}")
     if not float(truncation) > 0:
         raise ValueError(f"truncation must be positive, got {truncation}")
-    return points, flow.contiguous(), [d.contiguous() for d in dts], origins, \
+    return points, flow, [d.contiguous() for d in dts], origins, \
         [float(t) for t in time_offsets], [float(w) for w in weights], float(truncation)
 
 
@@ -74,6 +81,10 @@ def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor
 
     Each ``dts[k]`` is a float32 (Z, Y, X) distance transform whose sample (0,0,0) sits at
     ``origins[3k:3k+3]``; values interpolated to ``>= truncation`` count as 0 with no gradient.
+
+    Speed: the kernels gather 8 DT samples per point and scan; ordering the points
+    spatially (e.g. by voxel index, once per frame) lets neighbouring points share cache
+    lines and is markedly faster than sensor order on large grids.
     """
     p, f, d, o, t, w, tr = _check(points, flow, dts, origins, time_offsets, weights, truncation)
     return ops_ns.dt_loss(p, f, d, o, as_spacing(spacing), t, w, tr)
