@@ -22,6 +22,8 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdlib>
+#include <cstring>
+#include <mutex>
 #include <memory>
 #include <vector>
 
@@ -151,28 +153,96 @@ void scatter_into(T* out, const T* values, int64_t C, const T* pts, int64_t N, c
     }
 }
 
-// A zero-filled CPU tensor for the scatter output. at::zeros memsets every page of a large
-// grid, and on a fresh allocation that also faults in every 4 KiB page: for a (3, 40, 400, 400)
-// float grid that alone costs 10-50 ms, more than the scatter itself. A fresh anonymous
-// mapping is already zero (the kernel guarantees it), so we skip the memset, and we ask for
-// transparent huge pages so that the pages the scatter does touch (a LiDAR frame covers a
-// few z-slabs) fault in 2 MiB at a time instead of 4 KiB. Small outputs use calloc.
+// Zero-filled CPU output grids. at::zeros on a fresh large allocation faults in every 4 KiB
+// page and memsets it: for a (3, 40, 400, 400) float grid that costs more than the scatter.
+// Two tricks, in the spirit of torch's CUDA caching allocator:
+//  * a small process-wide cache keeps the last freed big grids; reusing one costs a
+//    (parallel) memset of memory that is already mapped, much cheaper than faulting it in;
+//  * otherwise a fresh anonymous mapping (already zero: no memset) with transparent huge
+//    pages, so the pages that do get touched fault in 2 MiB at a time.
+// Small outputs use calloc.
+class GridCache {
+ public:
+  struct Block {
+    void* base = nullptr;
+    size_t len = 0;
+  };
+  static GridCache& get() {
+    static GridCache* c = new GridCache();  // leaked on purpose: outlives tensors freed at exit
+    return *c;
+  }
+  bool take(size_t len, Block& out) {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (size_t i = 0; i < n_; ++i)
+      if (blocks_[i].len == len) {
+        out = blocks_[i];
+        blocks_[i] = blocks_[--n_];
+        return true;
+      }
+    return false;
+  }
+  void give(Block b) {
+    std::unique_lock<std::mutex> lock(mu_);
+    if (n_ == kMax) {  // evict the oldest
+      Block old = blocks_[0];
+      for (size_t i = 1; i < n_; ++i) blocks_[i - 1] = blocks_[i];
+      blocks_[n_ - 1] = b;
+      lock.unlock();
+      release(old);
+      return;
+    }
+    blocks_[n_++] = b;
+  }
+  static void release(Block b);
+
+ private:
+  static constexpr size_t kMax = 2;
+  std::mutex mu_;
+  Block blocks_[kMax];
+  size_t n_ = 0;
+};
+
+#if defined(__linux__)
+void GridCache::release(Block b) { munmap(b.base, b.len); }
+#else
+void GridCache::release(Block b) { std::free(b.base); }
+#endif
+
+constexpr size_t kHugePage = size_t(2) << 20;
+
+char* aligned_data(void* base) {
+  const uintptr_t b = reinterpret_cast<uintptr_t>(base);
+  return reinterpret_cast<char*>((b + kHugePage - 1) / kHugePage * kHugePage);
+}
+
 at::Tensor fresh_zeros(at::IntArrayRef sizes, const at::TensorOptions& opts) {
   int64_t numel = 1;
   for (auto s : sizes) numel *= s;
   const size_t nbytes = static_cast<size_t>(numel) * c10::elementSize(c10::typeMetaToScalarType(opts.dtype()));
+  if (nbytes >= 2 * kHugePage) {
+    const size_t len = (nbytes + kHugePage - 1) / kHugePage * kHugePage + kHugePage;  // + slack to align
+    GridCache::Block blk;
+    char* data;
+    if (GridCache::get().take(len, blk)) {
+      data = aligned_data(blk.base);
+      at::parallel_for(0, static_cast<int64_t>(nbytes), int64_t(1) << 22, [&](int64_t b, int64_t e) {
+        std::memset(data + b, 0, static_cast<size_t>(e - b));
+      });
+    } else {
 #if defined(__linux__)
-  constexpr size_t kHuge = size_t(2) << 20;
-  if (nbytes >= 2 * kHuge) {
-    const size_t len = (nbytes + kHuge - 1) / kHuge * kHuge + kHuge;  // + slack to align
-    void* base = mmap(nullptr, len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-    TORCH_CHECK(base != MAP_FAILED, "floxels: out of memory mapping ", nbytes, " bytes");
-    const uintptr_t b = reinterpret_cast<uintptr_t>(base);
-    char* data = reinterpret_cast<char*>((b + kHuge - 1) / kHuge * kHuge);
-    madvise(data, len - (data - static_cast<char*>(base)), MADV_HUGEPAGE);  // a hint; may be ignored
-    return at::from_blob(data, sizes, [base, len](void*) { munmap(base, len); }, opts);
-  }
+      blk.base = mmap(nullptr, len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+      TORCH_CHECK(blk.base != MAP_FAILED, "floxels: out of memory mapping ", nbytes, " bytes");
+      data = aligned_data(blk.base);
+      madvise(data, len - (data - static_cast<char*>(blk.base)), MADV_HUGEPAGE);  // a hint only
+#else
+      blk.base = std::calloc(len, 1);
+      TORCH_CHECK(blk.base != nullptr, "floxels: out of memory allocating ", nbytes, " bytes");
+      data = aligned_data(blk.base);
 #endif
+      blk.len = len;
+    }
+    return at::from_blob(data, sizes, [blk](void*) { GridCache::get().give(blk); }, opts);
+  }
   void* ptr = std::calloc(std::max<size_t>(nbytes, 1), 1);
   TORCH_CHECK(ptr != nullptr, "floxels: out of memory allocating ", nbytes, " bytes");
   return at::from_blob(ptr, sizes, [](void* q) { std::free(q); }, opts);

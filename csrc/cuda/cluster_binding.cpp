@@ -5,6 +5,7 @@
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
 #include <ATen/ops/zeros.h>
 #include <ATen/ops/zeros_like.h>
 #include <c10/cuda/CUDAException.h>
@@ -57,7 +58,10 @@ at::Tensor mean_cuda(const at::Tensor& values_in, const at::Tensor& labels_in, i
 void consistency(const at::Tensor& f, const at::Tensor& lab, int64_t K, at::Tensor* loss, at::Tensor* grad,
                  const at::Tensor* grad_scale) {
   const int64_t N = f.size(0), C = f.size(1);
-  if (N == 0) return;
+  if (N == 0 || C == 0) {
+    if (grad) grad->zero_();
+    return;
+  }
   auto ws = workspace_for(f, K);
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "cluster_consistency_cuda", [&] {
     cuda::cluster_consistency<scalar_t>(
@@ -88,7 +92,7 @@ at::Tensor loss_backward_cuda(const at::Tensor& grad, const at::Tensor& flow, co
   const auto f = flow.contiguous();
   const auto lab = labels.contiguous();
   const auto g = grad.contiguous();
-  auto out = at::zeros_like(f);
+  auto out = at::empty_like(f);  // every row is written by the kernels
   consistency(f, lab, K, nullptr, &out, &g);
   return out;
 }
@@ -99,7 +103,7 @@ std::tuple<at::Tensor, at::Tensor> fwd_bwd_cuda(const at::Tensor& flow, const at
   const auto f = flow.contiguous();
   const auto lab = labels.contiguous();
   auto loss = at::zeros({}, f.options());
-  auto out = at::zeros_like(f);
+  auto out = at::empty_like(f);  // every row is written by the kernels
   consistency(f, lab, K, &loss, &out, nullptr);
   return {loss, out};
 }
