@@ -1,0 +1,134 @@
+// Torch binding of the CUDA trilinear ops: checks inputs, allocates outputs and launches on
+// the current stream (no host synchronisation, no scratch allocations).
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <torch/library.h>
+
+#include <tuple>
+
+#include "common/check.h"
+#include "cuda/trilinear_launch.h"
+
+namespace floxels {
+namespace {
+
+cuda::TriGeom geom(c10::ArrayRef<double> origin, double spacing, int64_t Z, int64_t Y, int64_t X) {
+  return cuda::TriGeom{Z, Y, X, origin[0], origin[1], origin[2], spacing};
+}
+
+void check_cuda(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", t.device());
+}
+
+void check_grid(const at::Tensor& grid, const at::Tensor& points) {
+  TORCH_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
+  TORCH_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
+              "floxels: grid spatial sizes must be >= 1, got ", grid.sizes());
+  check_same_dtype(grid, points, "grid", "points");
+  check_same_device(grid, points, "grid", "points");
+  check_cuda(points, "points");
+}
+
+at::Tensor gather_cuda(const at::Tensor& grid_in, const at::Tensor& points_in, c10::ArrayRef<double> origin,
+                       double spacing) {
+  check_points(points_in);
+  check_grid(grid_in, points_in);
+  check_origin(origin);
+  check_spacing(spacing);
+  const c10::cuda::CUDAGuard guard(points_in.device());
+  const auto grid = grid_in.contiguous();
+  const auto points = points_in.contiguous();
+  const int64_t N = points.size(0), C = grid.size(0);
+  auto out = at::empty({N, C}, grid.options());
+  if (N == 0 || C == 0) return out;
+  const auto g = geom(origin, spacing, grid.size(1), grid.size(2), grid.size(3));
+  AT_DISPATCH_FLOATING_TYPES(grid.scalar_type(), "trilinear_gather_cuda", [&] {
+    cuda::trilinear_gather<scalar_t>(grid.const_data_ptr<scalar_t>(), C, points.const_data_ptr<scalar_t>(), N, g,
+                                     out.mutable_data_ptr<scalar_t>(), at::cuda::getCurrentCUDAStream());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return out;
+}
+
+at::Tensor scatter_cuda(const at::Tensor& values_in, const at::Tensor& points_in, c10::ArrayRef<double> origin,
+                        double spacing, c10::ArrayRef<int64_t> grid_shape) {
+  check_points(points_in);
+  check_origin(origin);
+  check_spacing(spacing);
+  check_grid_shape(grid_shape);
+  TORCH_CHECK(values_in.dim() == 2 && values_in.size(0) == points_in.size(0),
+              "floxels: values must be (N, C) with N = points.size(0) = ", points_in.size(0), ", got ",
+              values_in.sizes());
+  check_same_dtype(values_in, points_in, "values", "points");
+  check_same_device(values_in, points_in, "values", "points");
+  check_cuda(points_in, "points");
+  const c10::cuda::CUDAGuard guard(points_in.device());
+  const auto values = values_in.contiguous();
+  const auto points = points_in.contiguous();
+  const int64_t N = points.size(0), C = values.size(1);
+  const auto g = geom(origin, spacing, grid_shape[0], grid_shape[1], grid_shape[2]);
+  auto out = at::zeros({C, g.Z, g.Y, g.X}, values.options());
+  if (N == 0 || C == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(values.scalar_type(), "trilinear_scatter_cuda", [&] {
+    cuda::trilinear_scatter<scalar_t>(values.const_data_ptr<scalar_t>(), C, points.const_data_ptr<scalar_t>(), N,
+                                      g, out.mutable_data_ptr<scalar_t>(), at::cuda::getCurrentCUDAStream());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return out;
+}
+
+std::tuple<at::Tensor, at::Tensor> gather_backward_cuda(const at::Tensor& grad_in, const at::Tensor& grid_in,
+                                                        const at::Tensor& points_in, c10::ArrayRef<double> origin,
+                                                        double spacing, bool need_grid_grad,
+                                                        bool need_points_grad) {
+  check_points(points_in);
+  check_grid(grid_in, points_in);
+  check_origin(origin);
+  check_spacing(spacing);
+  TORCH_CHECK(grad_in.dim() == 2 && grad_in.size(0) == points_in.size(0) && grad_in.size(1) == grid_in.size(0),
+              "floxels: grad_out must be (N, C) = (", points_in.size(0), ", ", grid_in.size(0), "), got ",
+              grad_in.sizes());
+  check_same_dtype(grad_in, grid_in, "grad_out", "grid");
+  check_same_device(grad_in, grid_in, "grad_out", "grid");
+  const c10::cuda::CUDAGuard guard(points_in.device());
+  const auto grad = grad_in.contiguous();
+  const auto grid = grid_in.contiguous();
+  const auto points = points_in.contiguous();
+  const int64_t N = points.size(0), C = grid.size(0);
+  const auto g = geom(origin, spacing, grid.size(1), grid.size(2), grid.size(3));
+  at::Tensor gg = need_grid_grad ? at::zeros_like(grid) : at::empty({0}, grid.options());
+  at::Tensor gp = need_points_grad ? at::empty_like(points) : at::empty({0}, points.options());
+  if (N == 0) return {gg, gp};
+  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  AT_DISPATCH_FLOATING_TYPES(grid.scalar_type(), "trilinear_gather_backward_cuda", [&] {
+    if (need_grid_grad && C > 0) {
+      cuda::trilinear_scatter<scalar_t>(grad.const_data_ptr<scalar_t>(), C, points.const_data_ptr<scalar_t>(), N,
+                                        g, gg.mutable_data_ptr<scalar_t>(), stream);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
+    if (need_points_grad) {
+      cuda::trilinear_points_grad<scalar_t>(grad.const_data_ptr<scalar_t>(), grid.const_data_ptr<scalar_t>(), C,
+                                            points.const_data_ptr<scalar_t>(), N, g,
+                                            gp.mutable_data_ptr<scalar_t>(), stream);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
+  });
+  return {gg, gp};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(floxels, CUDA, m) {
+  m.impl("trilinear_gather", &gather_cuda);
+  m.impl("trilinear_gather_backward", &gather_backward_cuda);
+  m.impl("trilinear_scatter", &scatter_cuda);
+}
+
+}  // namespace floxels
