@@ -70,6 +70,7 @@ void dbscan_impl(const scalar_t* p, int32_t n, double eps, int32_t min_samples, 
   for (int32_t i = 1; i < n; ++i)
     for (int a = 0; a < 3; ++a) {
       const double v = double(p[int64_t(i) * 3 + a]);
+      if (v != v) lo[a] = v;  // std::min would skip NaN; make the check below see it
       lo[a] = std::min(lo[a], v);
       hi[a] = std::max(hi[a], v);
     }
@@ -123,8 +124,9 @@ void dbscan_impl(const scalar_t* p, int32_t n, double eps, int32_t min_samples, 
                                                  eps2, min_samples) >= min_samples;
   });
 
-  // Core-core edges: each unordered pair once (j < i). A neighbour already in i's
-  // component (checked on the cached root first) needs no distance test.
+  // Core-core edges: each unordered pair once (j < i). In dense clusters almost every
+  // neighbour soon hangs directly under i's root: parent[j] == (an ancestor of i) proves
+  // they are already connected, with one sequential load and no distance test.
   UnionFind uf(n);
   at::parallel_for(0, n, 1024, [&](int64_t b, int64_t e) {
     for (int64_t ii = b; ii < e; ++ii) {
@@ -132,12 +134,15 @@ void dbscan_impl(const scalar_t* p, int32_t n, double eps, int32_t min_samples, 
       if (!core[size_t(i)]) continue;
       const int32_t* rg = ranges_of(i);
       const double px = xs[size_t(i)], py = ys[size_t(i)], pz = zs[size_t(i)];
+      int32_t ri = uf.find(i);
       for (int r = 0; r < dbscan::kRanges; ++r) {
         const int32_t end = std::min(rg[2 * r + 1], i);
         for (int32_t j = rg[2 * r]; j < end; ++j) {
           if (!core[size_t(j)]) continue;
+          if (std::atomic_ref<int32_t>(uf.parent[size_t(j)]).load(std::memory_order_relaxed) == ri) continue;
           if (dbscan::rdist(px, py, pz, xs[size_t(j)], ys[size_t(j)], zs[size_t(j)]) > eps2) continue;
-          if (uf.find(i) != uf.find(j)) uf.unite(i, j);
+          uf.unite(i, j);
+          ri = uf.find(i);
         }
       }
     }

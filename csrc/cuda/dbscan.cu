@@ -161,11 +161,16 @@ __global__ void hook_kernel(const double* __restrict__ xs, const double* __restr
   const int32_t i = int32_t(ii);
   const int32_t* rg = ranges + int64_t(cell_incl[i] - 1) * 2 * dbscan::kRanges;
   const double px = xs[i], py = ys[i], pz = zs[i];
+  // parent[j] == an ancestor of i proves j is already connected: no distance test.
+  volatile const int32_t* vp = parent;
+  int32_t ri = find_root(parent, i);
   for (int r = 0; r < dbscan::kRanges; ++r) {
     const int32_t end = min(rg[2 * r + 1], i);  // each unordered pair once
     for (int32_t j = rg[2 * r]; j < end; ++j) {
-      if (!core[j] || dbscan::rdist(px, py, pz, xs[j], ys[j], zs[j]) > eps2) continue;
-      if (find_root(parent, i) != find_root(parent, j)) unite(parent, i, j);
+      if (!core[j] || vp[j] == ri) continue;
+      if (dbscan::rdist(px, py, pz, xs[j], ys[j], zs[j]) > eps2) continue;
+      unite(parent, i, j);
+      ri = find_root(parent, i);
     }
   }
 }
