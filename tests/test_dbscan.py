@@ -6,11 +6,11 @@ import torch
 
 from floxels_ext import ops, reference
 
-sklearn_cluster = pytest.importorskip("sklearn.cluster")
 F = torch.ops.floxels
 
 
 def sklearn_labels(points: torch.Tensor, eps: float, min_samples: int) -> np.ndarray:
+    sklearn_cluster = pytest.importorskip("sklearn.cluster")  # lazily: the CUDA test needs no sklearn
     return sklearn_cluster.DBSCAN(eps=eps, min_samples=min_samples).fit(points.numpy()).labels_
 
 
