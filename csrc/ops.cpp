@@ -67,4 +67,9 @@ TORCH_LIBRARY(floxels, m) {
   m.def("cluster_consistency_loss_backward(Tensor grad, Tensor flow, Tensor labels, "
         "int num_clusters) -> Tensor");
   m.def("cluster_consistency_fwd_bwd(Tensor flow, Tensor labels, int num_clusters) -> (Tensor, Tensor)");
+
+  // --- exact DBSCAN (csrc/kernels/dbscan.h) ---
+  // labels (N,) int64 identical to sklearn.cluster.DBSCAN(eps, min_samples).fit(points).labels_
+  // (Euclidean, neighbourhood includes the point, -1 = noise).
+  m.def("dbscan(Tensor points, float eps, int min_samples) -> Tensor");
 }

@@ -28,6 +28,7 @@ __all__ = [
     "cluster_consistency_loss",
     "corner_gather",
     "corner_scatter",
+    "dbscan",
 ]
 
 
@@ -198,3 +199,40 @@ def corner_scatter(values: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
     """Adjoint of :func:`corner_gather`: (num_params, C) sums of corner_w-weighted values."""
     contrib = (values[:, None, :] * corner_w[..., None]).reshape(-1, values.shape[1])
     return values.new_zeros(num_params, values.shape[1]).index_add(0, corner_idx.long().reshape(-1), contrib)
+
+
+def dbscan(points: torch.Tensor, eps: float, min_samples: int) -> torch.Tensor:
+    """DBSCAN labels (N,) int64, -1 = noise, with scikit-learn's semantics (O(N^2) memory:
+    small inputs only).
+
+    Distances as sklearn's KDTree: float64 coordinates, ``(dx*dx + dy*dy) + dz*dz <= eps*eps``;
+    neighbourhoods include the point itself; core iff ``|neighbourhood| >= min_samples``.
+    Clusters are the connected components of core points, numbered by their smallest core
+    index (sklearn's dbscan_inner visits points in index order); a border point takes the
+    smallest cluster id among its core neighbours (the cluster that reaches it first).
+    """
+    p = points.detach().to("cpu", torch.float64)
+    n = p.shape[0]
+    labels = torch.full((n,), -1, dtype=torch.int64)
+    if n == 0:
+        return labels
+    d = p[:, None, :] - p[None, :, :]
+    r = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
+    adj = r <= float(eps) * float(eps)
+    core = adj.sum(1) >= min_samples
+    # Components of the core-core graph by min-label propagation (converges to the smallest
+    # core index of each component).
+    cc = torch.where(core, torch.arange(n), torch.full((n,), n))
+    core_adj = adj & core[:, None] & core[None, :]
+    while True:
+        new = torch.where(core_adj, cc[None, :], n).amin(1).minimum(cc)
+        if torch.equal(new, cc):
+            break
+        cc = new
+    firsts = torch.unique(cc[core])  # sorted smallest core index per component
+    cid = torch.full((n + 1,), n, dtype=torch.int64)
+    cid[firsts] = torch.arange(firsts.numel())
+    core_label = torch.where(core, cid[cc], torch.full((n,), n))
+    best = torch.where(adj & core[None, :], core_label[None, :], n).amin(1)
+    labels = torch.where(core, core_label, torch.where(best < n, best, -1))
+    return labels.to(points.device)

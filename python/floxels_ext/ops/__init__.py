@@ -7,6 +7,7 @@ autograd implementations, so the raw ops also work under ``torch.compile``/``opc
 from ._lib import has_cuda_kernels, ops_ns
 from .corners import CompactCorners, compact_corners, corner_gather, corner_scatter
 from .cluster import cluster_consistency_fwd_bwd, cluster_consistency_loss, cluster_mean
+from .dbscan import dbscan
 from .dt_loss import dt_loss, dt_loss_fwd_bwd
 from .edt import distance_transform, edt, points_to_occupancy
 from .grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
@@ -17,6 +18,7 @@ __all__ = [
     "trilinear_gather", "trilinear_scatter",
     "edt", "points_to_occupancy", "distance_transform",
     "dt_loss", "dt_loss_fwd_bwd",
+    "dbscan",
     "cluster_mean", "cluster_consistency_loss", "cluster_consistency_fwd_bwd",
     "corner_gather", "corner_scatter", "compact_corners", "CompactCorners",
     "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",
