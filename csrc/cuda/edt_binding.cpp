@@ -7,6 +7,8 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
+#include <string>
+
 #include "common/check.h"
 #include "cuda/edt_launch.h"
 #include "kernels/edt.h"
@@ -15,8 +17,10 @@ namespace floxels {
 namespace {
 
 at::Tensor edt_cuda(const at::Tensor& occupancy, double spacing) {
-  TORCH_CHECK(occupancy.dim() == 3, "floxels: occupancy must be a (Z, Y, X) tensor, got shape ",
-              occupancy.sizes());
+  // Integers go through std::to_string: streaming them into the message segfaulted in the
+  // GPU machine's build (torch 2.11, g++ 13), see the edt family report.
+  TORCH_CHECK(occupancy.dim() == 3, "floxels: occupancy must be a (Z, Y, X) tensor, got ",
+              std::to_string(occupancy.dim()), " dimensions");
   TORCH_CHECK(occupancy.scalar_type() == at::kBool, "floxels: occupancy must be bool, got ",
               occupancy.scalar_type());
   TORCH_CHECK(occupancy.is_cuda(), "floxels: occupancy must be a CUDA tensor");
@@ -25,7 +29,8 @@ at::Tensor edt_cuda(const at::Tensor& occupancy, double spacing) {
   const int64_t Z = occupancy.size(0), Y = occupancy.size(1), X = occupancy.size(2);
   auto out = at::empty({Z, Y, X}, occupancy.options().dtype(at::kFloat));
   if (out.numel() == 0) return out;
-  TORCH_CHECK(edt::max_squared_distance(Z, Y, X) < edt::kInf, "floxels: edt grid ", occupancy.sizes(),
+  TORCH_CHECK(edt::max_squared_distance(Z, Y, X) < edt::kInf, "floxels: edt grid (", std::to_string(Z), ", ", std::to_string(Y), ", ",
+              std::to_string(X), ")",
               " is too large: squared distances would overflow int32");
   auto occ = occupancy.contiguous();
   auto scratch = at::empty({cuda::edt_scratch_elems(Z, Y, X)}, occupancy.options().dtype(at::kInt));
