@@ -21,6 +21,7 @@
 #include <algorithm>
 #include <atomic>
 #include <bit>
+#include <cmath>
 #include <cstring>
 #include <vector>
 
@@ -35,8 +36,11 @@ using edt::kInf;
 // Columns processed side by side: one cache line (or more) of int32 per row read.
 constexpr int64_t kBlock = 32;
 // Z pass: columns relaxed together by the search variant, and the largest Z it is used for.
-constexpr int64_t kWide = 64;
+constexpr int64_t kWide = 128;
 constexpr int64_t kBruteMaxZ = 256;
+// Y pass: average outward-search steps per row a block may use before it switches to the
+// envelope.
+constexpr int64_t kSearchBudget = 8;
 
 // `lanes` independent lower envelopes (one per column of a block), each a stack of
 // (apex, height) with capacity `cap`.
@@ -104,27 +108,6 @@ bool row_pass(const uint8_t* occ, int32_t* out, int64_t X) {
   }
 }
 
-// Passes along X then Y for one (Y, X) slice; returns false (writing nothing) when the
-// slice has no occupied sample.
-bool slice_pass(const uint8_t* occ, int32_t* buf, int64_t Y, int64_t X, std::vector<int32_t>& rows,
-                Envelopes& env) {
-  rows.clear();
-  for (int64_t y = 0; y < Y; ++y)
-    if (row_pass(occ + y * X, buf + y * X, X)) rows.push_back(int32_t(y));
-  if (rows.empty()) return false;
-  for (int64_t x0 = 0; x0 < X; x0 += kBlock) {
-    const int64_t nb = std::min(kBlock, X - x0);
-    env.reset(int64_t(rows.size()));
-    for (int32_t y : rows) {
-      const int32_t* r = buf + y * X + x0;
-      for (int64_t b = 0; b < nb; ++b) env.push(b, y, r[b]);
-    }
-    for (int64_t b = 0; b < nb; ++b)
-      env.write(b, int32_t(Y), buf + x0 + b, X, [](int32_t d2) { return d2; });
-  }
-  return true;
-}
-
 // acc = min(acc, f + d2) elementwise; returns max(acc). The hot loop of the Z pass, built
 // for AVX2 too (picked at load time) since the default x86-64 target has no int32 min.
 __attribute__((target_clones("avx2", "default"))) int32_t relax_row(
@@ -138,8 +121,102 @@ __attribute__((target_clones("avx2", "default"))) int32_t relax_row(
   return mx;
 }
 
+// Relaxes acc[0..n) with the candidate lines at sorted positions `lines` (values of line m at
+// data + m * ld) in order of increasing distance from `pos`, stopping once d^2 reaches
+// max(acc): no farther line can improve any column. `first` = index of the first line at
+// or after pos. Returns the number of lines used, or -1 past max_steps (caller falls back).
+int64_t search_outward(int32_t* acc, int64_t n, const int32_t* data, int64_t ld,
+                       const std::vector<int32_t>& lines, int64_t first, int64_t pos, int64_t max_steps) {
+  std::fill(acc, acc + n, kInf);
+  const int64_t count = int64_t(lines.size());
+  int32_t mx = kInf;
+  int64_t lo = first - 1, hi = first, steps = 0;
+  for (;;) {
+    const int64_t dlo = lo >= 0 ? pos - lines[lo] : kInf;
+    const int64_t dhi = hi < count ? lines[hi] - pos : kInf;
+    const int64_t d = std::min(dlo, dhi);
+    if (d == kInf || d * d >= mx) return steps;
+    if (++steps > max_steps) return -1;
+    const int64_t m = dlo <= dhi ? lo-- : hi++;
+    mx = relax_row(acc, data + m * ld, int32_t(d * d), n);
+  }
+}
+
+// first_ge[p] = index in `lines` of the first line at position >= p, for p in [0, n).
+void first_at_or_after(const std::vector<int32_t>& lines, int64_t n, std::vector<int32_t>& first_ge) {
+  first_ge.resize(n);
+  for (int64_t p = 0, m = 0; p < n; ++p) {
+    while (m < int64_t(lines.size()) && lines[m] < p) ++m;
+    first_ge[p] = int32_t(m);
+  }
+}
+
+// Per-thread buffers of the slice pass.
+struct SliceScratch {
+  std::vector<int32_t> rows, first_ge, local, acc;
+  Envelopes env;
+};
+
+// Passes along X then Y for one (Y, X) slice; returns false (writing nothing) when the
+// slice has no occupied sample.
+bool slice_pass(const uint8_t* occ, int32_t* buf, int64_t Y, int64_t X, SliceScratch& sc) {
+  auto& rows = sc.rows;
+  rows.clear();
+  for (int64_t y = 0; y < Y; ++y)
+    if (row_pass(occ + y * X, buf + y * X, X)) rows.push_back(int32_t(y));
+  if (rows.empty()) return false;
+  const int64_t R = int64_t(rows.size());
+  first_at_or_after(rows, Y, sc.first_ge);
+  sc.local.resize(R * kWide);
+  sc.acc.resize(kWide);
+  for (int64_t x0 = 0; x0 < X; x0 += kWide) {
+    const int64_t nb = std::min(kWide, X - x0);
+    // Inputs of this block, copied: results overwrite them in place.
+    for (int64_t m = 0; m < R; ++m)
+      std::memcpy(sc.local.data() + m * kWide, buf + rows[m] * X + x0, nb * sizeof(int32_t));
+    // Outward search first (cheap when distances are short); far-apart sparse rows make it
+    // long, so past a budget the block is redone with the envelope (linear worst case).
+    // The budget is a running average, so a hopeless block gives up after a few rows.
+    int64_t used = 0;
+    bool done = true;
+    for (int64_t y = 0; y < Y && done; ++y) {
+      const int64_t budget = kSearchBudget * (y + 1) + 4 * kSearchBudget - used;
+      const int64_t steps = search_outward(sc.acc.data(), nb, sc.local.data(), kWide, rows, sc.first_ge[y], y, budget);
+      if (steps < 0) {
+        done = false;
+      } else {
+        used += steps;
+        std::memcpy(buf + y * X + x0, sc.acc.data(), nb * sizeof(int32_t));
+      }
+    }
+    if (done) continue;
+    for (int64_t s0 = 0; s0 < nb; s0 += kBlock) {
+      const int64_t sb = std::min(kBlock, nb - s0);
+      sc.env.reset(R);
+      for (int64_t m = 0; m < R; ++m) {
+        const int32_t* r = sc.local.data() + m * kWide + s0;
+        for (int64_t b = 0; b < sb; ++b) sc.env.push(b, rows[m], r[b]);
+      }
+      for (int64_t b = 0; b < sb; ++b)
+        sc.env.write(b, int32_t(Y), buf + x0 + s0 + b, X, [](int32_t d2) { return d2; });
+    }
+  }
+  return true;
+}
+
 int32_t as_output_bits(int32_t d2, double spacing) {
   return std::bit_cast<int32_t>(edt::to_distance(d2, spacing));
+}
+
+// out[i] = bits of the float distance of squared distance d2[i] (see edt::to_distance),
+// vectorised: the double sqrt per sample is otherwise a large share of the last pass.
+// no-math-errno lets sqrt vectorise; its inputs are never negative.
+__attribute__((target_clones("avx2", "default"), optimize("no-math-errno"))) void to_distance_bits(
+    const int32_t* __restrict d2, int32_t* __restrict out, int64_t n, double spacing) {
+  for (int64_t i = 0; i < n; ++i) {
+    const float dist = static_cast<float>(std::sqrt(static_cast<double>(d2[i])) * spacing);
+    out[i] = std::bit_cast<int32_t>(d2[i] == kInf ? std::numeric_limits<float>::infinity() : dist);
+  }
 }
 
 // Z pass for short Z (the usual lidar grid): for each output slice, relax a block of
@@ -149,11 +226,8 @@ int32_t as_output_bits(int32_t d2, double spacing) {
 void z_pass_search(int32_t* buf, int64_t Z, int64_t Y, int64_t X, const std::vector<int32_t>& slices,
                    double spacing) {
   const int64_t plane = Y * X, nz = int64_t(slices.size());
-  std::vector<int32_t> first_ge(Z);  // index in `slices` of the first non-empty slice >= z
-  for (int64_t z = 0, m = 0; z < Z; ++z) {
-    while (m < nz && slices[m] < z) ++m;
-    first_ge[z] = int32_t(m);
-  }
+  std::vector<int32_t> first_ge;
+  first_at_or_after(slices, Z, first_ge);
   const int64_t xblocks = (X + kWide - 1) / kWide;
   const int64_t grain = std::max<int64_t>(1, 8192 / (Z * kWide));
   at::parallel_for(0, Y * xblocks, grain, [&](int64_t u0, int64_t u1) {
@@ -166,19 +240,8 @@ void z_pass_search(int32_t* buf, int64_t Z, int64_t Y, int64_t X, const std::vec
       for (int64_t m = 0; m < nz; ++m)
         std::memcpy(local.data() + m * kWide, col + slices[m] * plane, nb * sizeof(int32_t));
       for (int64_t z = 0; z < Z; ++z) {
-        std::fill(acc.begin(), acc.end(), kInf);
-        int32_t mx = kInf;
-        int64_t lo = first_ge[z] - 1, hi = first_ge[z];
-        for (;;) {
-          const int64_t dlo = lo >= 0 ? z - slices[lo] : kInf;
-          const int64_t dhi = hi < nz ? slices[hi] - z : kInf;
-          const int64_t d = std::min(dlo, dhi);
-          if (d == kInf || d * d >= mx) break;
-          const int64_t m = dlo <= dhi ? lo-- : hi++;
-          mx = relax_row(acc.data(), local.data() + m * kWide, int32_t(d * d), nb);
-        }
-        int32_t* r = col + z * plane;
-        for (int64_t b = 0; b < nb; ++b) r[b] = as_output_bits(acc[b], spacing);
+        search_outward(acc.data(), nb, local.data(), kWide, slices, first_ge[z], z, INT64_MAX);
+        to_distance_bits(acc.data(), col + z * plane, nb, spacing);
       }
     }
   });
@@ -229,11 +292,9 @@ at::Tensor edt_cpu(const at::Tensor& occupancy, double spacing) {
 
   std::vector<uint8_t> slice_nonempty(Z, 0);
   at::parallel_for(0, Z, 1, [&](int64_t z0, int64_t z1) {
-    std::vector<int32_t> rows;
-    rows.reserve(Y);
-    Envelopes env;
+    SliceScratch scratch;
     for (int64_t z = z0; z < z1; ++z)
-      slice_nonempty[z] = slice_pass(occ + z * plane, buf + z * plane, Y, X, rows, env);
+      slice_nonempty[z] = slice_pass(occ + z * plane, buf + z * plane, Y, X, scratch);
   });
 
   std::vector<int32_t> slices;
