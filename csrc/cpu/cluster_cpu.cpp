@@ -77,7 +77,7 @@ void cluster_sums(const T* v, const int64_t* lab, int64_t N, int64_t C, int64_t 
     }
     if (my_bad) bad = true;
   });
-  TORCH_CHECK(!bad.load(), "floxels: labels must lie in [-1, num_clusters = ", K, ")");
+  FLX_CHECK(!bad.load(), "floxels: labels must lie in [-1, num_clusters = ", K, ")");
   sums.resize(K * C);
   cnt.resize(K);
   reduce_partials(ps, P, K * C, sums.data());
@@ -150,14 +150,14 @@ void consistency(const T* f, const int64_t* lab, int64_t N, int64_t C, int64_t K
 }
 
 void check_inputs(const at::Tensor& v, const at::Tensor& labels, int64_t K, const char* name) {
-  TORCH_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
-  TORCH_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
+  FLX_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
+  FLX_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
               " must be float32 or float64, got ", v.scalar_type());
-  TORCH_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
+  FLX_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
               v.size(0), ", got shape ", labels.sizes());
-  TORCH_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
+  FLX_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
   check_same_device(v, labels, name, "labels");
-  TORCH_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
+  FLX_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
 }
 
 at::Tensor mean_cpu(const at::Tensor& values_in, const at::Tensor& labels_in, int64_t K) {
@@ -190,7 +190,7 @@ at::Tensor loss_cpu(const at::Tensor& flow_in, const at::Tensor& labels_in, int6
 at::Tensor loss_backward_cpu(const at::Tensor& grad, const at::Tensor& flow_in, const at::Tensor& labels_in,
                              int64_t K) {
   check_inputs(flow_in, labels_in, K, "flow");
-  TORCH_CHECK(grad.numel() == 1, "floxels: grad must be a scalar, got shape ", grad.sizes());
+  FLX_CHECK(grad.numel() == 1, "floxels: grad must be a scalar, got shape ", grad.sizes());
   check_same_device(grad, flow_in, "grad", "flow");
   const auto f = flow_in.contiguous();
   const auto lab = labels_in.contiguous();

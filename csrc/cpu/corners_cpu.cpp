@@ -16,20 +16,20 @@ namespace {
 
 void check_corners(const at::Tensor& idx, const at::Tensor& w, int64_t n, const at::Tensor& data,
                    const char* data_name) {
-  TORCH_CHECK(idx.dim() == 2 && idx.size(0) == n && idx.size(1) == 8,
+  FLX_CHECK(idx.dim() == 2 && idx.size(0) == n && idx.size(1) == 8,
               "floxels: corner_idx must be (N, 8) with N=", n, ", got ", idx.sizes());
-  TORCH_CHECK(idx.scalar_type() == at::kInt, "floxels: corner_idx must be int32, got ", idx.scalar_type());
-  TORCH_CHECK(w.sizes() == idx.sizes(), "floxels: corner_w must have the shape of corner_idx ", idx.sizes(),
+  FLX_CHECK(idx.scalar_type() == at::kInt, "floxels: corner_idx must be int32, got ", idx.scalar_type());
+  FLX_CHECK(w.sizes() == idx.sizes(), "floxels: corner_w must have the shape of corner_idx ", idx.sizes(),
               ", got ", w.sizes());
   check_same_dtype(w, data, "corner_w", data_name);
   check_same_device(idx, data, "corner_idx", data_name);
   check_same_device(w, data, "corner_w", data_name);
-  TORCH_CHECK(data.scalar_type() == at::kFloat || data.scalar_type() == at::kDouble, "floxels: ", data_name,
+  FLX_CHECK(data.scalar_type() == at::kFloat || data.scalar_type() == at::kDouble, "floxels: ", data_name,
               " must be float32 or float64, got ", data.scalar_type());
 }
 
 at::Tensor corner_gather_cpu(const at::Tensor& params, const at::Tensor& idx_in, const at::Tensor& w_in) {
-  TORCH_CHECK(params.dim() == 2, "floxels: params must be (M, C), got ", params.sizes());
+  FLX_CHECK(params.dim() == 2, "floxels: params must be (M, C), got ", params.sizes());
   const int64_t n = idx_in.dim() == 2 ? idx_in.size(0) : -1;
   check_corners(idx_in, w_in, n, params, "params");
   auto p = params.contiguous();
@@ -45,7 +45,7 @@ at::Tensor corner_gather_cpu(const at::Tensor& params, const at::Tensor& idx_in,
     at::parallel_for(0, n, 2048, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {
         for (int j = 0; j < 8; ++j)
-          TORCH_CHECK(ip[i * 8 + j] >= 0 && ip[i * 8 + j] < M, "floxels: corner_idx[", i, ", ", j, "] = ",
+          FLX_CHECK(ip[i * 8 + j] >= 0 && ip[i * 8 + j] < M, "floxels: corner_idx[", i, ", ", j, "] = ",
                       ip[i * 8 + j], " is outside [0, ", M, ")");
         corners::gather_point(pp, ip + i * 8, wp + i * 8, C, op + i * C);
       }
@@ -56,8 +56,8 @@ at::Tensor corner_gather_cpu(const at::Tensor& params, const at::Tensor& idx_in,
 
 at::Tensor corner_scatter_cpu(const at::Tensor& values, const at::Tensor& idx_in, const at::Tensor& w_in,
                               int64_t num_params) {
-  TORCH_CHECK(values.dim() == 2, "floxels: values must be (N, C), got ", values.sizes());
-  TORCH_CHECK(num_params >= 0, "floxels: num_params must be >= 0, got ", num_params);
+  FLX_CHECK(values.dim() == 2, "floxels: values must be (N, C), got ", values.sizes());
+  FLX_CHECK(num_params >= 0, "floxels: num_params must be >= 0, got ", num_params);
   const int64_t n = values.size(0), C = values.size(1);
   check_corners(idx_in, w_in, n, values, "values");
   auto v = values.contiguous();
@@ -80,7 +80,7 @@ at::Tensor corner_scatter_cpu(const at::Tensor& values, const at::Tensor& idx_in
       for (int64_t i = b; i < e; ++i) {
         for (int j = 0; j < 8; ++j) {
           const int32_t m = ip[i * 8 + j];
-          TORCH_CHECK(m >= 0 && m < num_params, "floxels: corner_idx[", i, ", ", j, "] = ", m,
+          FLX_CHECK(m >= 0 && m < num_params, "floxels: corner_idx[", i, ", ", j, "] = ", m,
                       " is outside [0, ", num_params, ")");
           const scalar_t wj = wp[i * 8 + j];
           for (int64_t c = 0; c < C; ++c) dst[int64_t(m) * C + c] += wj * vp[i * C + c];

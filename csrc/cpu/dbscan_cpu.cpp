@@ -75,7 +75,7 @@ void dbscan_impl(const scalar_t* p, int32_t n, double eps, int32_t min_samples, 
       hi[a] = std::max(hi[a], v);
     }
   for (int a = 0; a < 3; ++a)
-    TORCH_CHECK(std::isfinite(lo[a]) && std::isfinite(hi[a]) && std::isfinite(hi[a] - lo[a]),
+    FLX_CHECK(std::isfinite(lo[a]) && std::isfinite(hi[a]) && std::isfinite(hi[a] - lo[a]),
                 "floxels: dbscan points must be finite (found NaN/inf or an overflowing extent)");
   const Grid g = dbscan::make_grid(lo, hi, eps);
 
@@ -189,10 +189,10 @@ void dbscan_impl(const scalar_t* p, int32_t n, double eps, int32_t min_samples, 
 
 at::Tensor dbscan_cpu(const at::Tensor& points, double eps, int64_t min_samples) {
   check_points(points);
-  TORCH_CHECK(std::isfinite(eps) && eps > 0.0, "floxels: dbscan eps must be positive and finite, got ", eps);
-  TORCH_CHECK(min_samples >= 1, "floxels: dbscan min_samples must be >= 1, got ", min_samples);
+  FLX_CHECK(std::isfinite(eps) && eps > 0.0, "floxels: dbscan eps must be positive and finite, got ", eps);
+  FLX_CHECK(min_samples >= 1, "floxels: dbscan min_samples must be >= 1, got ", min_samples);
   const int64_t n = points.size(0);
-  TORCH_CHECK(n < std::numeric_limits<int32_t>::max(), "floxels: dbscan supports < 2^31 points, got ", n);
+  FLX_CHECK(n < std::numeric_limits<int32_t>::max(), "floxels: dbscan supports < 2^31 points, got ", n);
   auto labels = at::empty({n}, points.options().dtype(at::kLong));
   if (n == 0) return labels;
   auto p = points.contiguous();

@@ -273,15 +273,15 @@ void z_pass_envelope(int32_t* buf, int64_t Z, int64_t Y, int64_t X, const std::v
 at::Tensor edt_cpu(const at::Tensor& occupancy, double spacing) {
   // Integers go through std::to_string: streaming them into the message segfaulted in the
   // GPU machine's build (torch 2.11, g++ 13), see the edt family report.
-  TORCH_CHECK(occupancy.dim() == 3, "floxels: occupancy must be a (Z, Y, X) tensor, got ",
+  FLX_CHECK(occupancy.dim() == 3, "floxels: occupancy must be a (Z, Y, X) tensor, got ",
               std::to_string(occupancy.dim()), " dimensions");
-  TORCH_CHECK(occupancy.scalar_type() == at::kBool, "floxels: occupancy must be bool, got ",
+  FLX_CHECK(occupancy.scalar_type() == at::kBool, "floxels: occupancy must be bool, got ",
               occupancy.scalar_type());
   check_spacing(spacing);
   const int64_t Z = occupancy.size(0), Y = occupancy.size(1), X = occupancy.size(2);
   auto out = at::empty({Z, Y, X}, occupancy.options().dtype(at::kFloat));
   if (out.numel() == 0) return out;
-  TORCH_CHECK(edt::max_squared_distance(Z, Y, X) < kInf,
+  FLX_CHECK(edt::max_squared_distance(Z, Y, X) < kInf,
               "floxels: edt grid (", std::to_string(Z), ", ", std::to_string(Y), ", ",
               std::to_string(X), ")",
               " is too large: squared distances would overflow int32");

@@ -79,7 +79,7 @@ void scatter_into(T* out, const T* values, int64_t C, const T* pts, int64_t N, c
     return;
   }
   const int64_t nrows = g.Z * g.Y;
-  TORCH_CHECK(nrows < (int64_t(1) << 31) && N < (int64_t(1) << 31),
+  FLX_CHECK(nrows < (int64_t(1) << 31) && N < (int64_t(1) << 31),
               "floxels: trilinear_scatter supports < 2^31 points and rows");
   const int64_t P = nthreads;  // sort chunks
   auto chunk_lo = [&](int64_t p) { return N * p / P; };
@@ -231,12 +231,12 @@ at::Tensor fresh_zeros(at::IntArrayRef sizes, const at::TensorOptions& opts) {
     } else {
 #if defined(__linux__)
       blk.base = mmap(nullptr, len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-      TORCH_CHECK(blk.base != MAP_FAILED, "floxels: out of memory mapping ", nbytes, " bytes");
+      FLX_CHECK(blk.base != MAP_FAILED, "floxels: out of memory mapping ", nbytes, " bytes");
       data = aligned_data(blk.base);
       madvise(data, len - (data - static_cast<char*>(blk.base)), MADV_HUGEPAGE);  // a hint only
 #else
       blk.base = std::calloc(len, 1);
-      TORCH_CHECK(blk.base != nullptr, "floxels: out of memory allocating ", nbytes, " bytes");
+      FLX_CHECK(blk.base != nullptr, "floxels: out of memory allocating ", nbytes, " bytes");
       data = aligned_data(blk.base);
 #endif
       blk.len = len;
@@ -244,7 +244,7 @@ at::Tensor fresh_zeros(at::IntArrayRef sizes, const at::TensorOptions& opts) {
     return at::from_blob(data, sizes, [blk](void*) { GridCache::get().give(blk); }, opts);
   }
   void* ptr = std::calloc(std::max<size_t>(nbytes, 1), 1);
-  TORCH_CHECK(ptr != nullptr, "floxels: out of memory allocating ", nbytes, " bytes");
+  FLX_CHECK(ptr != nullptr, "floxels: out of memory allocating ", nbytes, " bytes");
   return at::from_blob(ptr, sizes, [](void* q) { std::free(q); }, opts);
 }
 
@@ -253,8 +253,8 @@ GridGeom geom(c10::ArrayRef<double> origin, double spacing, int64_t Z, int64_t Y
 }
 
 void check_grid(const at::Tensor& grid, const at::Tensor& points) {
-  TORCH_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
-  TORCH_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
+  FLX_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
+  FLX_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
               "floxels: grid spatial sizes must be >= 1, got ", grid.sizes());
   check_same_dtype(grid, points, "grid", "points");
   check_same_device(grid, points, "grid", "points");
@@ -290,7 +290,7 @@ at::Tensor scatter_cpu(const at::Tensor& values_in, const at::Tensor& points_in,
   check_origin(origin);
   check_spacing(spacing);
   check_grid_shape(grid_shape);
-  TORCH_CHECK(values_in.dim() == 2 && values_in.size(0) == points_in.size(0),
+  FLX_CHECK(values_in.dim() == 2 && values_in.size(0) == points_in.size(0),
               "floxels: values must be (N, C) with N = points.size(0) = ", points_in.size(0), ", got ",
               values_in.sizes());
   check_same_dtype(values_in, points_in, "values", "points");
@@ -315,7 +315,7 @@ std::tuple<at::Tensor, at::Tensor> gather_backward_cpu(const at::Tensor& grad_in
   check_grid(grid_in, points_in);
   check_origin(origin);
   check_spacing(spacing);
-  TORCH_CHECK(grad_in.dim() == 2 && grad_in.size(0) == points_in.size(0) && grad_in.size(1) == grid_in.size(0),
+  FLX_CHECK(grad_in.dim() == 2 && grad_in.size(0) == points_in.size(0) && grad_in.size(1) == grid_in.size(0),
               "floxels: grad_out must be (N, C) = (", points_in.size(0), ", ", grid_in.size(0), "), got ",
               grad_in.sizes());
   check_same_dtype(grad_in, grid_in, "grad_out", "grid");

@@ -21,15 +21,15 @@ namespace floxels {
 namespace {
 
 void check_inputs(const at::Tensor& v, const at::Tensor& labels, int64_t K, const char* name) {
-  TORCH_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
-  TORCH_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
+  FLX_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
+  FLX_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
               " must be float32 or float64, got ", v.scalar_type());
-  TORCH_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
+  FLX_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
               v.size(0), ", got shape ", labels.sizes());
-  TORCH_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
+  FLX_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
   check_same_device(v, labels, name, "labels");
-  TORCH_CHECK(v.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", v.device());
-  TORCH_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
+  FLX_CHECK(v.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", v.device());
+  FLX_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
 }
 
 at::Tensor workspace_for(const at::Tensor& v, int64_t K) {
@@ -85,7 +85,7 @@ at::Tensor loss_cuda(const at::Tensor& flow, const at::Tensor& labels, int64_t K
 at::Tensor loss_backward_cuda(const at::Tensor& grad, const at::Tensor& flow, const at::Tensor& labels,
                               int64_t K) {
   check_inputs(flow, labels, K, "flow");
-  TORCH_CHECK(grad.numel() == 1, "floxels: grad must be a scalar, got shape ", grad.sizes());
+  FLX_CHECK(grad.numel() == 1, "floxels: grad must be a scalar, got shape ", grad.sizes());
   check_same_device(grad, flow, "grad", "flow");
   check_same_dtype(grad, flow, "grad", "flow");
   const c10::cuda::CUDAGuard guard(flow.device());

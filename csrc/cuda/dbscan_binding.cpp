@@ -18,10 +18,10 @@ namespace {
 
 at::Tensor dbscan_cuda(const at::Tensor& points, double eps, int64_t min_samples) {
   check_points(points);
-  TORCH_CHECK(std::isfinite(eps) && eps > 0.0, "floxels: dbscan eps must be positive and finite, got ", eps);
-  TORCH_CHECK(min_samples >= 1, "floxels: dbscan min_samples must be >= 1, got ", min_samples);
+  FLX_CHECK(std::isfinite(eps) && eps > 0.0, "floxels: dbscan eps must be positive and finite, got ", eps);
+  FLX_CHECK(min_samples >= 1, "floxels: dbscan min_samples must be >= 1, got ", min_samples);
   const int64_t n = points.size(0);
-  TORCH_CHECK(n < std::numeric_limits<int32_t>::max(), "floxels: dbscan supports < 2^31 points, got ", n);
+  FLX_CHECK(n < std::numeric_limits<int32_t>::max(), "floxels: dbscan supports < 2^31 points, got ", n);
   c10::cuda::CUDAGuard guard(points.device());
   auto labels = at::empty({n}, points.options().dtype(at::kLong));
   if (n == 0) return labels;
@@ -36,9 +36,9 @@ at::Tensor dbscan_cuda(const at::Tensor& points, double eps, int64_t min_samples
                                     workspace.data_ptr(), ws_bytes, stream);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  TORCH_CHECK(status != cuda::kDbscanNonFinite,
+  FLX_CHECK(status != cuda::kDbscanNonFinite,
               "floxels: dbscan points must be finite (found NaN/inf or an overflowing extent)");
-  TORCH_CHECK(status == cuda::kDbscanOk, "floxels: dbscan CUDA failure (status ", status, ")");
+  FLX_CHECK(status == cuda::kDbscanOk, "floxels: dbscan CUDA failure (status ", status, ")");
   return labels;
 }
 

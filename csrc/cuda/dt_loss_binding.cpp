@@ -38,8 +38,8 @@ CudaInputs prepare(const at::Tensor& points, const at::Tensor& flow, at::TensorL
                    c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
                    c10::ArrayRef<double> weights, double truncation) {
   check_dt_loss_args(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
-  TORCH_CHECK(points.is_cuda(), "floxels: dt_loss CUDA kernel called with points on ", points.device());
-  TORCH_CHECK(points.size(0) <= kMaxInt32, "floxels: dt_loss supports at most 2^31-1 points on CUDA, got ",
+  FLX_CHECK(points.is_cuda(), "floxels: dt_loss CUDA kernel called with points on ", points.device());
+  FLX_CHECK(points.size(0) <= kMaxInt32, "floxels: dt_loss supports at most 2^31-1 points on CUDA, got ",
               points.size(0));
   CudaInputs in;
   in.points = points.contiguous();
@@ -48,7 +48,7 @@ CudaInputs prepare(const at::Tensor& points, const at::Tensor& flow, at::TensorL
   in.dts.reserve(dts.size());
   for (int k = 0; k < in.num_scans; ++k) {
     // 32-bit indexing inside the kernel
-    TORCH_CHECK(dts[k].numel() <= kMaxInt32, "floxels: dts[", k, "] has ", dts[k].numel(),
+    FLX_CHECK(dts[k].numel() <= kMaxInt32, "floxels: dts[", k, "] has ", dts[k].numel(),
                 " samples; the CUDA kernel supports at most 2^31-1 per grid");
     in.dts.push_back(dts[k].contiguous());
     const at::Tensor& d = in.dts.back();

@@ -19,17 +19,17 @@ namespace {
 at::Tensor edt_cuda(const at::Tensor& occupancy, double spacing) {
   // Integers go through std::to_string: streaming them into the message segfaulted in the
   // GPU machine's build (torch 2.11, g++ 13), see the edt family report.
-  TORCH_CHECK(occupancy.dim() == 3, "floxels: occupancy must be a (Z, Y, X) tensor, got ",
+  FLX_CHECK(occupancy.dim() == 3, "floxels: occupancy must be a (Z, Y, X) tensor, got ",
               std::to_string(occupancy.dim()), " dimensions");
-  TORCH_CHECK(occupancy.scalar_type() == at::kBool, "floxels: occupancy must be bool, got ",
+  FLX_CHECK(occupancy.scalar_type() == at::kBool, "floxels: occupancy must be bool, got ",
               occupancy.scalar_type());
-  TORCH_CHECK(occupancy.is_cuda(), "floxels: occupancy must be a CUDA tensor");
+  FLX_CHECK(occupancy.is_cuda(), "floxels: occupancy must be a CUDA tensor");
   check_spacing(spacing);
   const c10::cuda::CUDAGuard guard(occupancy.device());
   const int64_t Z = occupancy.size(0), Y = occupancy.size(1), X = occupancy.size(2);
   auto out = at::empty({Z, Y, X}, occupancy.options().dtype(at::kFloat));
   if (out.numel() == 0) return out;
-  TORCH_CHECK(edt::max_squared_distance(Z, Y, X) < edt::kInf, "floxels: edt grid (", std::to_string(Z), ", ", std::to_string(Y), ", ",
+  FLX_CHECK(edt::max_squared_distance(Z, Y, X) < edt::kInf, "floxels: edt grid (", std::to_string(Z), ", ", std::to_string(Y), ", ",
               std::to_string(X), ")",
               " is too large: squared distances would overflow int32");
   auto occ = occupancy.contiguous();
@@ -37,7 +37,7 @@ at::Tensor edt_cuda(const at::Tensor& occupancy, double spacing) {
   const cudaError_t err = cuda::edt_launch(reinterpret_cast<const uint8_t*>(occ.data_ptr<bool>()),
                                            out.data_ptr<float>(), scratch.data_ptr<int32_t>(), Z, Y, X,
                                            spacing, at::cuda::getCurrentCUDAStream());
-  TORCH_CHECK(err == cudaSuccess, "floxels: edt CUDA launch failed: ", cudaGetErrorString(err));
+  FLX_CHECK(err == cudaSuccess, "floxels: edt CUDA launch failed: ", cudaGetErrorString(err));
   return out;
 }
 
@@ -47,7 +47,7 @@ at::Tensor points_to_occupancy_cuda(const at::Tensor& points, c10::ArrayRef<doub
   check_origin(origin);
   check_spacing(spacing);
   check_grid_shape(grid_shape);
-  TORCH_CHECK(points.is_cuda(), "floxels: points must be a CUDA tensor");
+  FLX_CHECK(points.is_cuda(), "floxels: points must be a CUDA tensor");
   const c10::cuda::CUDAGuard guard(points.device());
   const int64_t Z = grid_shape[0], Y = grid_shape[1], X = grid_shape[2];
   auto out = at::zeros({Z, Y, X}, points.options().dtype(at::kBool));
@@ -63,7 +63,7 @@ at::Tensor points_to_occupancy_cuda(const at::Tensor& points, c10::ArrayRef<doub
   else
     err = cuda::points_to_occupancy_launch(pts.data_ptr<double>(), n, origin.data(), spacing, Z, Y, X, occ,
                                            stream);
-  TORCH_CHECK(err == cudaSuccess, "floxels: points_to_occupancy CUDA launch failed: ",
+  FLX_CHECK(err == cudaSuccess, "floxels: points_to_occupancy CUDA launch failed: ",
               cudaGetErrorString(err));
   return out;
 }

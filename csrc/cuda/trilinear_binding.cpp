@@ -24,12 +24,12 @@ cuda::TriGeom geom(c10::ArrayRef<double> origin, double spacing, int64_t Z, int6
 }
 
 void check_cuda(const at::Tensor& t, const char* name) {
-  TORCH_CHECK(t.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", t.device());
+  FLX_CHECK(t.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", t.device());
 }
 
 void check_grid(const at::Tensor& grid, const at::Tensor& points) {
-  TORCH_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
-  TORCH_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
+  FLX_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
+  FLX_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
               "floxels: grid spatial sizes must be >= 1, got ", grid.sizes());
   check_same_dtype(grid, points, "grid", "points");
   check_same_device(grid, points, "grid", "points");
@@ -63,7 +63,7 @@ at::Tensor scatter_cuda(const at::Tensor& values_in, const at::Tensor& points_in
   check_origin(origin);
   check_spacing(spacing);
   check_grid_shape(grid_shape);
-  TORCH_CHECK(values_in.dim() == 2 && values_in.size(0) == points_in.size(0),
+  FLX_CHECK(values_in.dim() == 2 && values_in.size(0) == points_in.size(0),
               "floxels: values must be (N, C) with N = points.size(0) = ", points_in.size(0), ", got ",
               values_in.sizes());
   check_same_dtype(values_in, points_in, "values", "points");
@@ -92,7 +92,7 @@ std::tuple<at::Tensor, at::Tensor> gather_backward_cuda(const at::Tensor& grad_i
   check_grid(grid_in, points_in);
   check_origin(origin);
   check_spacing(spacing);
-  TORCH_CHECK(grad_in.dim() == 2 && grad_in.size(0) == points_in.size(0) && grad_in.size(1) == grid_in.size(0),
+  FLX_CHECK(grad_in.dim() == 2 && grad_in.size(0) == points_in.size(0) && grad_in.size(1) == grid_in.size(0),
               "floxels: grad_out must be (N, C) = (", points_in.size(0), ", ", grid_in.size(0), "), got ",
               grad_in.sizes());
   check_same_dtype(grad_in, grid_in, "grad_out", "grid");

@@ -3,7 +3,7 @@
 One frame:
 1. an exact distance transform (0.1 m samples) of every support scan, cached per scan so
    sliding windows (:func:`estimate_sequence`) build each one once;
-2. DBSCAN clusters of the target scan;
+2. DBSCAN clusters of the target scan (our exact op: labels identical to scikit-learn);
 3. Adam over the flow-grid vertices touched by the target points (see
    ``floxels_ext.ops.corners``: exactly dense Adam, at a fraction of the cost), each
    iteration being: compact gather of the point flow, fused multi-scan DT loss +
@@ -22,9 +22,9 @@ import torch
 
 from .config import FloxelsConfig
 from .early_stopping import EarlyStopping
-from .ops import compact_corners, distance_transform, grid_for_points
+from .ops import compact_corners, dbscan, distance_transform, grid_for_points
 from .ops.corners import CompactCorners
-from .scans import PreparedScans, dbscan_labels, prepare_scans, restore_output
+from .scans import PreparedScans, prepare_scans, restore_output
 
 F = torch.ops.floxels
 
@@ -120,7 +120,7 @@ class Floxels:
         timings["dt"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        labels = dbscan_labels(P, cfg.dbscan_eps, cfg.dbscan_min_samples) if cfg.cluster_loss else None
+        labels = dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples) if cfg.cluster_loss else None
         timings["dbscan"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

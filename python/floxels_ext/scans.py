@@ -122,13 +122,3 @@ def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):
         return full.detach().cpu().numpy().astype(np.float32, copy=False)
     return full.detach().to(device=prep.in_device, dtype=prep.in_dtype)
 
-
-def dbscan_labels(points: torch.Tensor, eps: float, min_samples: int) -> torch.Tensor:
-    """DBSCAN cluster labels (int64, -1 = noise) of ``points`` with scikit-learn, on the points' device."""
-    n = points.shape[0]
-    if n == 0:
-        return torch.empty(0, dtype=torch.int64, device=points.device)
-    from sklearn.cluster import DBSCAN  # imported lazily: sklearn import costs ~0.5 s
-
-    lab = DBSCAN(eps=eps, min_samples=min_samples, algorithm="auto").fit(points.detach().cpu().numpy()).labels_
-    return torch.from_numpy(lab.astype(np.int64)).to(points.device)
