@@ -14,10 +14,10 @@ from floxels_ext.sim import simulate_sequence
 FAST = FloxelsConfig(max_iters=150, patience=100)
 
 
-@pytest.fixture(scope="module")
-def scene():
-    """5 scans of a small simulated crossing (moving cars/pedestrians, exact flow), cropped."""
-    seq = simulate_sequence("crossing", num_frames=5, seed=3, beams=32, azimuth_steps=512)
+def _simulated(**lidar):
+    """5 scans of a simulated crossing (moving cars/pedestrians, exact flow), cropped to 30 m
+    with ground removed as in the paper's protocol."""
+    seq = simulate_sequence("crossing", num_frames=5, seed=3, **lidar)
     scans, gts, dyns = [], [], []
     for fr in seq.frames:
         keep = protocol_mask(fr.points, fr.pose[:3, 3], max_range=30.0, ground=fr.ground)
@@ -27,13 +27,25 @@ def scene():
     return scans, gts, dyns
 
 
+@pytest.fixture(scope="module")
+def scene():
+    """A sparse 32-beam lidar: fast, for API tests."""
+    return _simulated(beams=32, azimuth_steps=512)
+
+
+@pytest.fixture(scope="module")
+def dense_scene():
+    """The default 64-beam lidar (~28k points per scan after cropping), for accuracy."""
+    return _simulated()
+
+
 def _epe(pred, gt, mask):
     return float(np.linalg.norm(pred[mask] - gt[mask], axis=1).mean())
 
 
 @pytest.mark.slow
-def test_end_to_end_accuracy(scene):
-    scans, gts, dyns = scene
+def test_end_to_end_accuracy(dense_scene):
+    scans, gts, dyns = dense_scene
     res = Floxels().fit(scans, target=2)
     gt, dyn = gts[2], dyns[2]
     assert dyn.sum() > 50, "the scene must contain moving points"
@@ -73,16 +85,19 @@ def test_target_at_either_end(scene, target):
     assert out.shape == scans[target].shape and np.isfinite(out).all()
 
 
-def test_matches_reference_implementation_early_iterations(scene):
-    """Same losses as the straightforward implementation for the first iterations (before
-    float rounding makes the two optimisation paths drift apart)."""
+def test_matches_reference_implementation_first_iterations(scene):
+    """Same loss as the straightforward implementation at the zero initialisation and after
+    the first Adam step. (Adam's first step moves every parameter by lr * sign(gradient), so
+    components whose gradient is zero up to rounding make the two paths drift apart after
+    that; end-to-end accuracy is compared in bench/bench_estimator.py.)"""
     from floxels_ext.reference_estimator import reference_estimate_flow
 
     scans, _, _ = scene
-    cfg = FloxelsConfig(max_iters=5)
+    cfg = FloxelsConfig(max_iters=2)
     res = Floxels(cfg).fit(scans, target=2)
     _, info = reference_estimate_flow(scans, target=2, config=cfg, return_info=True)
-    np.testing.assert_allclose(res.losses, info["losses"], rtol=2e-4)
+    np.testing.assert_allclose(res.losses[0], info["losses"][0], rtol=1e-6)
+    np.testing.assert_allclose(res.losses[1], info["losses"][1], rtol=1e-4)
 
 
 @pytest.mark.parametrize("change", [dict(cluster_loss=False), dict(flow_norm_loss=False),

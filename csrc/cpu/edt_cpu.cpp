@@ -323,8 +323,7 @@ at::Tensor points_to_occupancy_cpu(const at::Tensor& points, c10::ArrayRef<doubl
   uint8_t* occ = reinterpret_cast<uint8_t*>(out.data_ptr<bool>());
   AT_DISPATCH_FLOATING_TYPES(pts.scalar_type(), "points_to_occupancy_cpu", [&] {
     const scalar_t* p = pts.data_ptr<scalar_t>();
-    const scalar_t ox = scalar_t(origin[0]), oy = scalar_t(origin[1]), oz = scalar_t(origin[2]);
-    const scalar_t s = scalar_t(spacing);
+    const double ox = origin[0], oy = origin[1], oz = origin[2], s = spacing;
     at::parallel_for(0, N, 16384, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
         const int64_t ix = edt::snap_index(p[3 * i], ox, s, X);

@@ -135,7 +135,7 @@ __global__ void edt_lines_kernel(const int32_t* __restrict__ in, int32_t* __rest
 }
 
 template <class T>
-__global__ void points_to_occupancy_kernel(const T* __restrict__ p, int64_t n, T ox, T oy, T oz, T s,
+__global__ void points_to_occupancy_kernel(const T* __restrict__ p, int64_t n, double ox, double oy, double oz, double s,
                                            int64_t Z, int64_t Y, int64_t X, uint8_t* __restrict__ out) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
@@ -153,7 +153,7 @@ cudaError_t occupancy_impl(const T* points, int64_t n, const double* origin, dou
   const int threads = 256;
   const int64_t blocks = (n + threads - 1) / threads;
   points_to_occupancy_kernel<T><<<unsigned(blocks), threads, 0, stream>>>(
-      points, n, T(origin[0]), T(origin[1]), T(origin[2]), T(spacing), Z, Y, X, out);
+      points, n, origin[0], origin[1], origin[2], spacing, Z, Y, X, out);
   return cudaGetLastError();
 }
 

@@ -50,13 +50,13 @@ FLX_HD float to_distance(int32_t d2, double spacing) {
                     : static_cast<float>(sqrt(static_cast<double>(d2)) * spacing);
 }
 
-// Nearest-sample index of coordinate p along one axis: floor((p - o) / s + 0.5) computed in
-// the points' precision like reference.points_to_occupancy. Returns -1 when outside [0, n)
-// (or NaN).
-template <class T>
-FLX_HD int64_t snap_index(T p, T o, T s, int64_t n) {
-  const T u = floor((p - o) / s + T(0.5));
-  return (u >= T(0) && u < static_cast<T>(n)) ? static_cast<int64_t>(u) : -1;
+// Nearest-sample index of coordinate p along one axis: floor((p - o) / s + 0.5), always in
+// double (like reference.points_to_occupancy): float32 arithmetic would snap points lying
+// within rounding of a half-sample boundary, and the origin itself, differently from a
+// float64 implementation. Returns -1 when outside [0, n) (or NaN).
+FLX_HD int64_t snap_index(double p, double o, double s, int64_t n) {
+  const double u = floor((p - o) / s + 0.5);
+  return (u >= 0.0 && u < static_cast<double>(n)) ? static_cast<int64_t>(u) : -1;
 }
 
 }  // namespace floxels::edt

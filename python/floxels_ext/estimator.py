@@ -150,8 +150,8 @@ class Floxels:
         n = P.shape[0]
         M = corners.num_params
         idx, cw = corners.corner_idx, corners.corner_w
-        theta = torch.zeros(M, 3, dtype=P.dtype, device=P.device, requires_grad=True)
-        opt = _adam(theta, cfg)
+        theta = torch.zeros(M, 3, dtype=P.dtype, device=P.device)
+        adam = _Adam(theta, cfg)
         scale = cfg.regulariser_scale(num_support)
         ncl = 0
         if labels is not None and labels.numel():
@@ -162,7 +162,7 @@ class Floxels:
         losses: list[float] = []
         for it in range(cfg.max_iters):
             with torch.no_grad():
-                f = F.corner_gather(theta.detach(), idx, cw)
+                f = F.corner_gather(theta, idx, cw)
                 if dts:
                     loss, g = F.dt_loss_fwd_bwd(P, f, dts, origins, cfg.dt_cell, offsets, weights, cfg.truncation)
                 else:
@@ -184,17 +184,28 @@ class Floxels:
                     best.copy_(theta)
                 if stop or it == cfg.max_iters - 1:
                     break
-                theta.grad = F.corner_scatter(g, idx, cw, M)
-            opt.step()
+                adam.step(F.corner_scatter(g, idx, cw, M))
         return best, losses, stopper.best_iter
 
 
-def _adam(theta: torch.Tensor, cfg: FloxelsConfig) -> torch.optim.Adam:
-    kw = dict(lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps)
-    try:
-        return torch.optim.Adam([theta], fused=True, **kw)
-    except (RuntimeError, ValueError):  # fused Adam unavailable for this device/dtype
-        return torch.optim.Adam([theta], foreach=True, **kw)
+class _Adam:
+    """Adam (no weight decay, no amsgrad) with torch.optim.Adam's exact update formula,
+    written out in place: the first ``torch.optim.Adam.step`` costs ~1 s of lazy imports,
+    more than a whole CPU frame's optimisation."""
+
+    def __init__(self, param: torch.Tensor, cfg: FloxelsConfig) -> None:
+        self.p, self.lr, self.eps = param, cfg.lr, cfg.adam_eps
+        self.b1, self.b2 = cfg.adam_betas
+        self.m = torch.zeros_like(param)
+        self.v = torch.zeros_like(param)
+        self.t = 0
+
+    def step(self, grad: torch.Tensor) -> None:
+        self.t += 1
+        self.m.lerp_(grad, 1 - self.b1)
+        self.v.mul_(self.b2).addcmul_(grad, grad, value=1 - self.b2)
+        denom = (self.v.sqrt() / math.sqrt(1 - self.b2 ** self.t)).add_(self.eps)
+        self.p.addcdiv_(self.m, denom, value=-self.lr / (1 - self.b1 ** self.t))
 
 
 def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:

@@ -101,7 +101,8 @@ def points_to_occupancy(points: torch.Tensor, origin: Sequence[float], spacing: 
     points whose index falls outside the grid are ignored.
     """
     Z, Y, X = grid_shape
-    idx = torch.floor(_continuous_index(points, origin, spacing) + 0.5).long()
+    # always in float64: float32 would snap points near half-sample boundaries differently
+    idx = torch.floor(_continuous_index(points.double(), origin, spacing) + 0.5).long()
     lim = torch.tensor([X, Y, Z], device=points.device)
     ok = ((idx >= 0) & (idx < lim)).all(dim=1)
     idx = idx[ok]
