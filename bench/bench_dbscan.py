@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 import floxels_ext  # noqa: E402,F401  (registers torch.ops.floxels.*)
 from floxels_ext.sim import simulate_sequence  # noqa: E402
 

@@ -25,7 +25,6 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 import floxels_ext  # noqa: E402,F401  (registers torch.ops.floxels.*)
 
 SPACING = 0.1

@@ -17,7 +17,6 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "python"))
 import floxels_ext.ops as F  # noqa: E402
 
 SIZES = {"small": (20, 120, 120), "medium": (40, 500, 500), "large": (60, 1000, 1000)}

@@ -7,13 +7,16 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+
+import floxels_ext
 import pytest
 
 from floxels_ext import cli
 from floxels_ext.seqio import Frame, SequenceFormatError, frame_path, load_sequence, read_frame, write_frame
 from floxels_ext.viz import bev_image, bev_png, hsv_to_rgb, write_png
 
-PYTHON_DIR = str(Path(__file__).resolve().parents[1] / "python")
+# the subprocess must import the same floxels_ext as the tests (installed or in-place build)
+PYTHON_DIR = str(Path(floxels_ext.__file__).resolve().parents[1])
 
 
 def _frame(n, seed=0):
