@@ -27,13 +27,15 @@ if has test; then
   grep -E "^(FAILED|ERROR)" "$OUT/tests.log" | head -30 | tee -a "$OUT/summary.log"
 fi
 if has bench; then
-  for b in edt dt_loss trilinear cluster dbscan; do
+  for b in ${BENCHES:-edt dt_loss trilinear cluster dbscan}; do
     t0=$SECONDS
     timeout ${BENCH_TIMEOUT:-90} python3 bench/bench_$b.py --device cuda >>"$OUT/bench.log" 2>&1
     log "bench $b rc=$? in $((SECONDS - t0)) s"
   done
-  t0=$SECONDS
-  timeout ${EST_TIMEOUT:-150} python3 bench/bench_estimator.py --device cuda ${EST_ARGS:-} >>"$OUT/bench.log" 2>&1
-  log "bench estimator rc=$? in $((SECONDS - t0)) s"
+  if [ "${EST:-1}" = 1 ]; then
+    t0=$SECONDS
+    timeout ${EST_TIMEOUT:-150} python3 bench/bench_estimator.py --device cuda ${EST_ARGS:-} >>"$OUT/bench.log" 2>&1
+    log "bench estimator rc=$? in $((SECONDS - t0)) s"
+  fi
   tar czf "$OUT/results.tgz" bench/results 2>/dev/null
 fi
