@@ -197,3 +197,14 @@ def test_huge_extent_is_refused_not_allocated():
     far[0] = [50_000.0, 0.0, 0.0]  # one point 50 km away: a 0.1 m grid would need ~TBs
     with pytest.raises(ValueError, match="cap"):
         estimate_flow([a, far], target=0, config=FAST)
+
+
+def test_scans_far_apart_do_not_allocate_a_joint_grid():
+    """Each support scan's DT covers that scan only: a support scan 20 km away costs no more
+    memory than a near one and simply provides no evidence (the flow stays ~0)."""
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 10, (500, 3)).astype(np.float32)
+    far = a + np.float32(20_000.0)
+    out = estimate_flow([a, far], target=0, config=FAST)
+    assert out.shape == a.shape and np.isfinite(out).all()
+    assert np.abs(out).max() < 0.5
