@@ -9,34 +9,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import time
 
 import torch
 
 import floxels_ext  # noqa: F401
+from _timing import timeit  # noqa: E402
 from floxels_ext import reference as R
 
 OPS = torch.ops.floxels
-
-
-def timeit(fn, device, reps):
-    fn()
-    fn()
-    ts = []
-    for _ in range(reps):
-        if device == "cuda":
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            torch.cuda.synchronize()
-            ts.append(a.elapsed_time(b))
-        else:
-            t = time.perf_counter()
-            fn()
-            ts.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(ts)
 
 
 def main():

@@ -15,15 +15,14 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 import floxels_ext  # noqa: E402,F401  (registers torch.ops.floxels.*)
+from _timing import timeit  # noqa: E402
 from floxels_ext.sim import simulate_sequence  # noqa: E402
 
 try:
@@ -45,21 +44,6 @@ def lidar_points(n, seed=0):
     rng = np.random.default_rng(seed)
     pick = rng.choice(pts.shape[0], size=min(n, pts.shape[0]), replace=False)
     return torch.from_numpy(pts[pick].astype(np.float32))
-
-
-def timeit(fn, device, repeats, warmup=1):
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        if device == "cuda":
-            torch.cuda.synchronize()
-        t = time.perf_counter()
-        fn()
-        if device == "cuda":
-            torch.cuda.synchronize()
-        times.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(times)
 
 
 def main():

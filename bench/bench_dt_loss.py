@@ -17,15 +17,14 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
 import floxels_ext  # noqa: E402,F401  (registers torch.ops.floxels.*)
+from _timing import timeit  # noqa: E402
 
 SPACING = 0.1
 TRUNC = 2.0
@@ -84,27 +83,6 @@ def baseline_fwd_bwd(points, flow, dts, origins, time_offsets, weights):
 
 def ours_fwd_bwd(points, flow, dts, origins, time_offsets, weights):
     return torch.ops.floxels.dt_loss_fwd_bwd(points, flow, dts, origins, SPACING, time_offsets, weights, TRUNC)
-
-
-def timeit(fn, device, repeats, warmup=2):
-    for _ in range(warmup):
-        fn()
-    times = []
-    if device == "cuda":
-        torch.cuda.synchronize()
-        for _ in range(repeats):
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            b.synchronize()
-            times.append(a.elapsed_time(b))
-    else:
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            times.append(1e3 * (time.perf_counter() - t0))
-    return statistics.median(times)
 
 
 def graph_time(fn, calls=50, replays=20):

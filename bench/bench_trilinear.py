@@ -11,13 +11,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import time
 
 import torch
 import torch.nn.functional as F
 
 import floxels_ext  # noqa: F401
+from _timing import timeit  # noqa: E402
 
 OPS = torch.ops.floxels
 
@@ -27,25 +26,6 @@ def lidar_points(n, extent, z_range, device, gen):
     a = 2 * torch.pi * torch.rand(n, generator=gen)
     z = z_range[0] + (z_range[1] - z_range[0]) * torch.rand(n, generator=gen) ** 3
     return torch.stack([r * torch.cos(a), r * torch.sin(a), z], dim=1).to(device)
-
-
-def timeit(fn, device, reps):
-    fn()
-    fn()
-    ts = []
-    for _ in range(reps):
-        if device == "cuda":
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            torch.cuda.synchronize()
-            ts.append(a.elapsed_time(b))
-        else:
-            t = time.perf_counter()
-            fn()
-            ts.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(ts)
 
 
 def main():

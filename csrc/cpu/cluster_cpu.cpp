@@ -20,7 +20,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "common/check.h"
+#include "common/op_args.h"
 #include "kernels/cluster.h"
 
 namespace floxels {
@@ -149,19 +149,8 @@ void consistency(const T* f, const int64_t* lab, int64_t N, int64_t C, int64_t K
   });
 }
 
-void check_inputs(const at::Tensor& v, const at::Tensor& labels, int64_t K, const char* name) {
-  FLX_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
-  FLX_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
-              " must be float32 or float64, got ", v.scalar_type());
-  FLX_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
-              v.size(0), ", got shape ", labels.sizes());
-  FLX_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
-  check_same_device(v, labels, name, "labels");
-  FLX_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
-}
-
 at::Tensor mean_cpu(const at::Tensor& values_in, const at::Tensor& labels_in, int64_t K) {
-  check_inputs(values_in, labels_in, K, "values");
+  args::cluster(values_in, labels_in, K, "values");
   const auto v = values_in.contiguous();
   const auto lab = labels_in.contiguous();
   const int64_t N = v.size(0), C = v.size(1);
@@ -176,7 +165,7 @@ at::Tensor mean_cpu(const at::Tensor& values_in, const at::Tensor& labels_in, in
 }
 
 at::Tensor loss_cpu(const at::Tensor& flow_in, const at::Tensor& labels_in, int64_t K) {
-  check_inputs(flow_in, labels_in, K, "flow");
+  args::cluster(flow_in, labels_in, K, "flow");
   const auto f = flow_in.contiguous();
   const auto lab = labels_in.contiguous();
   auto loss = at::empty({}, f.options());
@@ -189,7 +178,7 @@ at::Tensor loss_cpu(const at::Tensor& flow_in, const at::Tensor& labels_in, int6
 
 at::Tensor loss_backward_cpu(const at::Tensor& grad, const at::Tensor& flow_in, const at::Tensor& labels_in,
                              int64_t K) {
-  check_inputs(flow_in, labels_in, K, "flow");
+  args::cluster(flow_in, labels_in, K, "flow");
   FLX_CHECK(grad.numel() == 1, "floxels: grad must be a scalar, got shape ", grad.sizes());
   check_same_device(grad, flow_in, "grad", "flow");
   const auto f = flow_in.contiguous();
@@ -204,7 +193,7 @@ at::Tensor loss_backward_cpu(const at::Tensor& grad, const at::Tensor& flow_in, 
 }
 
 std::tuple<at::Tensor, at::Tensor> fwd_bwd_cpu(const at::Tensor& flow_in, const at::Tensor& labels_in, int64_t K) {
-  check_inputs(flow_in, labels_in, K, "flow");
+  args::cluster(flow_in, labels_in, K, "flow");
   const auto f = flow_in.contiguous();
   const auto lab = labels_in.contiguous();
   auto loss = at::empty({}, f.options());

@@ -14,30 +14,19 @@
 
 #include <tuple>
 
-#include "common/check.h"
+#include "common/op_args.h"
 #include "cuda/cluster_launch.h"
 
 namespace floxels {
 namespace {
-
-void check_inputs(const at::Tensor& v, const at::Tensor& labels, int64_t K, const char* name) {
-  FLX_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
-  FLX_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
-              " must be float32 or float64, got ", v.scalar_type());
-  FLX_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
-              v.size(0), ", got shape ", labels.sizes());
-  FLX_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
-  check_same_device(v, labels, name, "labels");
-  FLX_CHECK(v.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", v.device());
-  FLX_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
-}
 
 at::Tensor workspace_for(const at::Tensor& v, int64_t K) {
   return at::zeros({cuda::cluster_workspace_elems(K, v.size(1))}, v.options());
 }
 
 at::Tensor mean_cuda(const at::Tensor& values_in, const at::Tensor& labels_in, int64_t K) {
-  check_inputs(values_in, labels_in, K, "values");
+  args::cluster(values_in, labels_in, K, "values");
+  args::require_cuda(values_in, "values");
   const c10::cuda::CUDAGuard guard(values_in.device());
   const auto v = values_in.contiguous();
   const auto lab = labels_in.contiguous();
@@ -73,7 +62,8 @@ void consistency(const at::Tensor& f, const at::Tensor& lab, int64_t K, at::Tens
 }
 
 at::Tensor loss_cuda(const at::Tensor& flow, const at::Tensor& labels, int64_t K) {
-  check_inputs(flow, labels, K, "flow");
+  args::cluster(flow, labels, K, "flow");
+  args::require_cuda(flow, "flow");
   const c10::cuda::CUDAGuard guard(flow.device());
   const auto f = flow.contiguous();
   const auto lab = labels.contiguous();
@@ -84,7 +74,8 @@ at::Tensor loss_cuda(const at::Tensor& flow, const at::Tensor& labels, int64_t K
 
 at::Tensor loss_backward_cuda(const at::Tensor& grad, const at::Tensor& flow, const at::Tensor& labels,
                               int64_t K) {
-  check_inputs(flow, labels, K, "flow");
+  args::cluster(flow, labels, K, "flow");
+  args::require_cuda(flow, "flow");
   FLX_CHECK(grad.numel() == 1, "floxels: grad must be a scalar, got shape ", grad.sizes());
   check_same_device(grad, flow, "grad", "flow");
   check_same_dtype(grad, flow, "grad", "flow");
@@ -98,7 +89,8 @@ at::Tensor loss_backward_cuda(const at::Tensor& grad, const at::Tensor& flow, co
 }
 
 std::tuple<at::Tensor, at::Tensor> fwd_bwd_cuda(const at::Tensor& flow, const at::Tensor& labels, int64_t K) {
-  check_inputs(flow, labels, K, "flow");
+  args::cluster(flow, labels, K, "flow");
+  args::require_cuda(flow, "flow");
   const c10::cuda::CUDAGuard guard(flow.device());
   const auto f = flow.contiguous();
   const auto lab = labels.contiguous();

@@ -7,29 +7,16 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
-#include "common/check.h"
+#include "common/op_args.h"
 #include "cuda/corners_launch.h"
 
 namespace floxels {
 namespace {
 
-void check_corners_cuda(const at::Tensor& idx, const at::Tensor& w, int64_t n, const at::Tensor& data,
-                        const char* data_name) {
-  FLX_CHECK(idx.dim() == 2 && idx.size(0) == n && idx.size(1) == 8,
-              "floxels: corner_idx must be (N, 8) with N=", n, ", got ", idx.sizes());
-  FLX_CHECK(idx.scalar_type() == at::kInt, "floxels: corner_idx must be int32, got ", idx.scalar_type());
-  FLX_CHECK(w.sizes() == idx.sizes(), "floxels: corner_w must have the shape of corner_idx");
-  check_same_dtype(w, data, "corner_w", data_name);
-  check_same_device(idx, data, "corner_idx", data_name);
-  check_same_device(w, data, "corner_w", data_name);
-  FLX_CHECK(data.scalar_type() == at::kFloat || data.scalar_type() == at::kDouble, "floxels: ", data_name,
-              " must be float32 or float64, got ", data.scalar_type());
-}
-
 at::Tensor corner_gather_cuda(const at::Tensor& params, const at::Tensor& idx_in, const at::Tensor& w_in) {
   FLX_CHECK(params.dim() == 2, "floxels: params must be (M, C), got ", params.sizes());
   const int64_t n = idx_in.dim() == 2 ? idx_in.size(0) : -1;
-  check_corners_cuda(idx_in, w_in, n, params, "params");
+  args::corners(idx_in, w_in, n, params, "params");
   c10::cuda::CUDAGuard guard(params.device());
   auto p = params.contiguous();
   auto idx = idx_in.contiguous();
@@ -49,7 +36,7 @@ at::Tensor corner_scatter_cuda(const at::Tensor& values, const at::Tensor& idx_i
   FLX_CHECK(values.dim() == 2, "floxels: values must be (N, C), got ", values.sizes());
   FLX_CHECK(num_params >= 0, "floxels: num_params must be >= 0, got ", num_params);
   const int64_t n = values.size(0);
-  check_corners_cuda(idx_in, w_in, n, values, "values");
+  args::corners(idx_in, w_in, n, values, "values");
   c10::cuda::CUDAGuard guard(values.device());
   auto v = values.contiguous();
   auto idx = idx_in.contiguous();

@@ -13,7 +13,7 @@
 
 #include <tuple>
 
-#include "common/check.h"
+#include "common/op_args.h"
 #include "cuda/trilinear_launch.h"
 
 namespace floxels {
@@ -23,25 +23,10 @@ cuda::TriGeom geom(c10::ArrayRef<double> origin, double spacing, int64_t Z, int6
   return cuda::TriGeom{Z, Y, X, origin[0], origin[1], origin[2], spacing};
 }
 
-void check_cuda(const at::Tensor& t, const char* name) {
-  FLX_CHECK(t.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", t.device());
-}
-
-void check_grid(const at::Tensor& grid, const at::Tensor& points) {
-  FLX_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
-  FLX_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
-              "floxels: grid spatial sizes must be >= 1, got ", grid.sizes());
-  check_same_dtype(grid, points, "grid", "points");
-  check_same_device(grid, points, "grid", "points");
-  check_cuda(points, "points");
-}
-
 at::Tensor gather_cuda(const at::Tensor& grid_in, const at::Tensor& points_in, c10::ArrayRef<double> origin,
                        double spacing) {
-  check_points(points_in);
-  check_grid(grid_in, points_in);
-  check_origin(origin);
-  check_spacing(spacing);
+  args::gather(grid_in, points_in, origin, spacing);
+  args::require_cuda(points_in, "points");
   const c10::cuda::CUDAGuard guard(points_in.device());
   const auto grid = grid_in.contiguous();
   const auto points = points_in.contiguous();
@@ -59,16 +44,8 @@ at::Tensor gather_cuda(const at::Tensor& grid_in, const at::Tensor& points_in, c
 
 at::Tensor scatter_cuda(const at::Tensor& values_in, const at::Tensor& points_in, c10::ArrayRef<double> origin,
                         double spacing, c10::ArrayRef<int64_t> grid_shape) {
-  check_points(points_in);
-  check_origin(origin);
-  check_spacing(spacing);
-  check_grid_shape(grid_shape);
-  FLX_CHECK(values_in.dim() == 2 && values_in.size(0) == points_in.size(0),
-              "floxels: values must be (N, C) with N = points.size(0) = ", points_in.size(0), ", got ",
-              values_in.sizes());
-  check_same_dtype(values_in, points_in, "values", "points");
-  check_same_device(values_in, points_in, "values", "points");
-  check_cuda(points_in, "points");
+  args::scatter(values_in, points_in, origin, spacing, grid_shape);
+  args::require_cuda(points_in, "points");
   const c10::cuda::CUDAGuard guard(points_in.device());
   const auto values = values_in.contiguous();
   const auto points = points_in.contiguous();
@@ -88,15 +65,8 @@ std::tuple<at::Tensor, at::Tensor> gather_backward_cuda(const at::Tensor& grad_i
                                                         const at::Tensor& points_in, c10::ArrayRef<double> origin,
                                                         double spacing, bool need_grid_grad,
                                                         bool need_points_grad) {
-  check_points(points_in);
-  check_grid(grid_in, points_in);
-  check_origin(origin);
-  check_spacing(spacing);
-  FLX_CHECK(grad_in.dim() == 2 && grad_in.size(0) == points_in.size(0) && grad_in.size(1) == grid_in.size(0),
-              "floxels: grad_out must be (N, C) = (", points_in.size(0), ", ", grid_in.size(0), "), got ",
-              grad_in.sizes());
-  check_same_dtype(grad_in, grid_in, "grad_out", "grid");
-  check_same_device(grad_in, grid_in, "grad_out", "grid");
+  args::gather_backward(grad_in, grid_in, points_in, origin, spacing);
+  args::require_cuda(points_in, "points");
   const c10::cuda::CUDAGuard guard(points_in.device());
   const auto grad = grad_in.contiguous();
   const auto grid = grid_in.contiguous();

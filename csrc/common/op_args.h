@@ -1,0 +1,78 @@
+// Argument checks of the trilinear, cluster and corner ops, shared by their CPU
+// implementations and CUDA bindings so both devices accept the same inputs and give the
+// same messages. (dt_loss has its own: csrc/cpu/dt_loss_args.h.)
+#pragma once
+#include "common/check.h"
+
+namespace floxels::args {
+
+inline void require_cuda(const at::Tensor& t, const char* name) {
+  FLX_CHECK(t.is_cuda(), "floxels: ", name, " must be a CUDA tensor, got ", t.device());
+}
+
+inline void grid(const at::Tensor& grid, const at::Tensor& points) {
+  FLX_CHECK(grid.dim() == 4, "floxels: grid must be (C, Z, Y, X), got shape ", grid.sizes());
+  FLX_CHECK(grid.size(1) >= 1 && grid.size(2) >= 1 && grid.size(3) >= 1,
+            "floxels: grid spatial sizes must be >= 1, got ", grid.sizes());
+  check_same_dtype(grid, points, "grid", "points");
+  check_same_device(grid, points, "grid", "points");
+}
+
+inline void gather(const at::Tensor& grid_in, const at::Tensor& points, c10::ArrayRef<double> origin,
+                   double spacing) {
+  check_points(points);
+  grid(grid_in, points);
+  check_origin(origin);
+  check_spacing(spacing);
+}
+
+inline void gather_backward(const at::Tensor& grad, const at::Tensor& grid_in, const at::Tensor& points,
+                            c10::ArrayRef<double> origin, double spacing) {
+  gather(grid_in, points, origin, spacing);
+  FLX_CHECK(grad.dim() == 2 && grad.size(0) == points.size(0) && grad.size(1) == grid_in.size(0),
+            "floxels: grad_out must be (N, C) = (", points.size(0), ", ", grid_in.size(0), "), got ",
+            grad.sizes());
+  check_same_dtype(grad, grid_in, "grad_out", "grid");
+  check_same_device(grad, grid_in, "grad_out", "grid");
+}
+
+inline void scatter(const at::Tensor& values, const at::Tensor& points, c10::ArrayRef<double> origin,
+                    double spacing, c10::ArrayRef<int64_t> grid_shape) {
+  check_points(points);
+  check_origin(origin);
+  check_spacing(spacing);
+  check_grid_shape(grid_shape);
+  FLX_CHECK(values.dim() == 2 && values.size(0) == points.size(0),
+            "floxels: values must be (N, C) with N = points.size(0) = ", points.size(0), ", got ",
+            values.sizes());
+  check_same_dtype(values, points, "values", "points");
+  check_same_device(values, points, "values", "points");
+}
+
+inline void cluster(const at::Tensor& v, const at::Tensor& labels, int64_t K, const char* name) {
+  FLX_CHECK(v.dim() == 2, "floxels: ", name, " must be (N, C), got shape ", v.sizes());
+  FLX_CHECK(v.scalar_type() == at::kFloat || v.scalar_type() == at::kDouble, "floxels: ", name,
+            " must be float32 or float64, got ", v.scalar_type());
+  FLX_CHECK(labels.dim() == 1 && labels.size(0) == v.size(0), "floxels: labels must be (N,) with N = ",
+            v.size(0), ", got shape ", labels.sizes());
+  FLX_CHECK(labels.scalar_type() == at::kLong, "floxels: labels must be int64, got ", labels.scalar_type());
+  check_same_device(v, labels, name, "labels");
+  FLX_CHECK(K >= 0, "floxels: num_clusters must be >= 0, got ", K);
+}
+
+// corner_idx (N, 8) int32 and corner_w (N, 8) of data's dtype and device.
+inline void corners(const at::Tensor& idx, const at::Tensor& w, int64_t n, const at::Tensor& data,
+                    const char* data_name) {
+  FLX_CHECK(idx.dim() == 2 && idx.size(0) == n && idx.size(1) == 8,
+            "floxels: corner_idx must be (N, 8) with N=", n, ", got ", idx.sizes());
+  FLX_CHECK(idx.scalar_type() == at::kInt, "floxels: corner_idx must be int32, got ", idx.scalar_type());
+  FLX_CHECK(w.sizes() == idx.sizes(), "floxels: corner_w must have the shape of corner_idx ", idx.sizes(),
+            ", got ", w.sizes());
+  check_same_dtype(w, data, "corner_w", data_name);
+  check_same_device(idx, data, "corner_idx", data_name);
+  check_same_device(w, data, "corner_w", data_name);
+  FLX_CHECK(data.scalar_type() == at::kFloat || data.scalar_type() == at::kDouble, "floxels: ", data_name,
+            " must be float32 or float64, got ", data.scalar_type());
+}
+
+}  // namespace floxels::args
