@@ -1,8 +1,12 @@
-// Argument checks of the trilinear, cluster and corner ops, shared by their CPU
+// Argument checks of the trilinear, cluster, corner and dbscan ops, shared by their CPU
 // implementations and CUDA bindings so both devices accept the same inputs and give the
 // same messages. (dt_loss has its own: csrc/cpu/dt_loss_args.h.)
 #pragma once
 #include "common/check.h"
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
 
 namespace floxels::args {
 
@@ -73,6 +77,14 @@ inline void corners(const at::Tensor& idx, const at::Tensor& w, int64_t n, const
   check_same_device(w, data, "corner_w", data_name);
   FLX_CHECK(data.scalar_type() == at::kFloat || data.scalar_type() == at::kDouble, "floxels: ", data_name,
             " must be float32 or float64, got ", data.scalar_type());
+}
+
+inline void dbscan(const at::Tensor& points, double eps, int64_t min_samples) {
+  check_points(points);
+  FLX_CHECK(std::isfinite(eps) && eps > 0.0, "floxels: dbscan eps must be positive and finite, got ", eps);
+  FLX_CHECK(min_samples >= 1, "floxels: dbscan min_samples must be >= 1, got ", min_samples);
+  FLX_CHECK(points.size(0) < std::numeric_limits<int32_t>::max(), "floxels: dbscan supports < 2^31 points, got ",
+            points.size(0));
 }
 
 }  // namespace floxels::args

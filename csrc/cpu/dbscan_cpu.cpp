@@ -20,7 +20,7 @@
 #include <utility>
 #include <vector>
 
-#include "common/check.h"
+#include "common/op_args.h"
 #include "kernels/dbscan.h"
 
 namespace floxels {
@@ -188,11 +188,8 @@ void dbscan_impl(const scalar_t* p, int32_t n, double eps, int32_t min_samples, 
 }
 
 at::Tensor dbscan_cpu(const at::Tensor& points, double eps, int64_t min_samples) {
-  check_points(points);
-  FLX_CHECK(std::isfinite(eps) && eps > 0.0, "floxels: dbscan eps must be positive and finite, got ", eps);
-  FLX_CHECK(min_samples >= 1, "floxels: dbscan min_samples must be >= 1, got ", min_samples);
+  args::dbscan(points, eps, min_samples);
   const int64_t n = points.size(0);
-  FLX_CHECK(n < std::numeric_limits<int32_t>::max(), "floxels: dbscan supports < 2^31 points, got ", n);
   auto labels = at::empty({n}, points.options().dtype(at::kLong));
   if (n == 0) return labels;
   auto p = points.contiguous();

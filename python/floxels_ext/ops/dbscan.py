@@ -23,7 +23,9 @@ def dbscan(points: torch.Tensor, eps: float = 0.5, min_samples: int = 4) -> torc
     (Euclidean metric): a point's neighbourhood is every point (itself included) with
     distance <= eps, computed in float64; clusters are numbered in order of their smallest
     core-point index and a border point joins the smallest-numbered neighbouring cluster.
-    Not differentiable. Runs on the device of ``points``.
+    Not differentiable. The labels are returned on the device of ``points``; CUDA input is
+    currently clustered by the exact CPU kernel (the GPU kernel fails intermittently and is
+    only used with ``FLOXELS_EXPERIMENTAL_GPU_DBSCAN=1``).
     """
     points = as_points(points)
     eps = float(eps)
