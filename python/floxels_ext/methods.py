@@ -1,0 +1,76 @@
+"""Registry of scene-flow methods that ``floxels run --method NAME`` (and ``bench/compare``) can use.
+
+A method is a :class:`Method`: a name, a one-line description, and
+
+* ``estimate_sequence(scans, frames, device, options, callback)``: estimate the flow of each
+  frame index in ``frames`` of ``scans`` (a list of (N_i, 3) float32 numpy arrays in one
+  ego-motion-compensated frame, consecutive at the sensor rate), calling
+  ``callback(frame, flow)`` with a (N_frame, 3) float32 numpy array as soon as each frame is
+  done (so that callers can write it and stay resumable). ``options`` is a dict of
+  method-specific settings (e.g. ``{"num_scans": 5}``); unknown keys raise ``ValueError``.
+
+Modules register their methods lazily: list the module in ``METHOD_MODULES``; it must call
+:func:`register` at import time. Keeping heavy imports inside the functions keeps
+``floxels --help`` fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+__all__ = ["Method", "METHOD_MODULES", "register", "get_method", "available_methods"]
+
+# Modules that register methods when imported (floxels' own is below).
+METHOD_MODULES: list[str] = []
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    description: str
+    estimate_sequence: Callable[[list, Sequence[int], object, dict, Callable], None]
+
+
+_REGISTRY: dict[str, Method] = {}
+
+
+def register(method: Method) -> None:
+    """Add (or replace) a method under ``method.name``."""
+    _REGISTRY[method.name] = method
+
+
+def _load_all() -> None:
+    for mod in METHOD_MODULES:
+        importlib.import_module(mod)
+
+
+def available_methods() -> list[str]:
+    _load_all()
+    return sorted(_REGISTRY)
+
+
+def get_method(name: str) -> Method:
+    _load_all()
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown method {name!r}; available: {', '.join(sorted(_REGISTRY))}") from None
+
+
+# ----------------------------------------------------------------------------- floxels
+def _floxels_sequence(scans, frames, device, options, callback) -> None:
+    from .config import FloxelsConfig
+    from .estimator import estimate_sequence
+
+    options = dict(options or {})
+    try:
+        cfg = FloxelsConfig(**options)
+    except TypeError as e:  # unknown field name
+        raise ValueError(f"floxels: bad option: {e}") from None
+    estimate_sequence(scans, cfg, device=device, frames=list(frames),
+                      callback=lambda f, res: callback(f, res.flow))
+
+
+register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence))
