@@ -21,10 +21,11 @@ from dataclasses import dataclass, field
 import torch
 
 from .config import FloxelsConfig
-from .early_stopping import EarlyStopping
 from .ops import compact_corners, dbscan, distance_transform, grid_for_points
 from .ops.corners import CompactCorners
-from .scans import PreparedScans, prepare_scans, restore_output
+from .ops.solver import MAX_DTS, MAX_PROBLEMS, PackedProblems, SolverProblem
+from .scans import PreparedScans, prepare_scans, resolve_device, restore_output
+from .solver import run_solver
 
 F = torch.ops.floxels
 
@@ -93,119 +94,132 @@ class Floxels:
         prep = prepare_scans(scans, target, self.device)
         return self._fit_prepared(prep, dt_cache if dt_cache is not None else {})
 
+    def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
+        """Estimate several target frames in one optimisation: ``windows`` is a list of
+        ``(scans, target)``. The problems stay independent (each has its own loss, early
+        stopping and lowest-loss flow, as when fitted alone) but share every kernel
+        launch, which keeps a GPU busy. For sliding windows over one sequence use
+        :func:`estimate_sequence`, which also shares the distance transforms."""
+        preps = [prepare_scans(scans, target, self.device) for scans, target in windows]
+        return self._fit_group([(p, {}) for p in preps])
+
     # -- internals ----------------------------------------------------------------------
     def _fit_prepared(self, prep: PreparedScans, dt_cache: dict) -> FloxelsResult:
+        return self._fit_group([(prep, dt_cache)])[0]
+
+    def _fit_group(self, items: list) -> list[FloxelsResult]:
+        """Optimise the targets of ``items`` ([(PreparedScans, dt cache)]) together."""
         cfg = self.config
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
-        P = prep.points[prep.target]
-        if P.shape[0] == 0:
-            empty = P.new_zeros(0, 3)
-            return FloxelsResult(restore_output(empty, prep), empty, None, timings=timings,
-                                 voxel_size=cfg.voxel_size)
+        device = items[0][0].points[0].device
 
         t0 = time.perf_counter()
-        dts, origins, offsets, weights = [], [], [], []
-        for i, t in zip(prep.supports, prep.offsets):
-            if i not in dt_cache:
-                dt_cache[i] = _build_dt(prep.points[i], cfg)
-            d = dt_cache[i]
-            if d is None:  # empty support scan: no evidence from it
-                continue
-            dts.append(d.values)
-            origins.extend(d.origin)
-            offsets.append(float(t))
-            weights.append(cfg.lambda_d * cfg.time_weight(t))
-        _sync(P)
+        supports = []  # per item: (dts, origins, offsets, weights)
+        for prep, cache in items:
+            dts, origins, offsets, weights = [], [], [], []
+            if prep.points[prep.target].shape[0] > 0:
+                for i, t in zip(prep.supports, prep.offsets):
+                    if i not in cache:
+                        cache[i] = _build_dt(prep.points[i], cfg)
+                    d = cache[i]
+                    if d is None:  # empty support scan: no evidence from it
+                        continue
+                    dts.append(d.values)
+                    origins.append(d.origin)
+                    offsets.append(float(t))
+                    weights.append(cfg.lambda_d * cfg.time_weight(t))
+            supports.append((dts, origins, offsets, weights))
+        _sync_device(device)
         timings["dt"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        labels = dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples) if cfg.cluster_loss else None
+        labels = [dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
+                  if cfg.cluster_loss and prep.points[prep.target].shape[0] else None for prep, _ in items]
+        _sync_device(device)
         timings["dbscan"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        g_origin, g_shape = grid_for_points(P, cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40)
-        # Sort points along the flow grid so neighbouring points touch neighbouring memory
-        # (flow vertices and DT samples) in every kernel.
-        key = _voxel_key(P, g_origin, cfg.voxel_size, g_shape)
-        order = torch.argsort(key)
-        Ps = P[order].contiguous()
-        lab_s = labels[order].contiguous() if labels is not None else None
-        corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
-        params, losses, best_iter = self._optimise(Ps, corners, lab_s, dts, origins, offsets, weights,
-                                                   len(prep.supports))
-        flow_s = F.corner_gather(params, corners.corner_idx, corners.corner_w)
-        flow = torch.empty_like(flow_s)
-        flow[order] = flow_s
-        _sync(P)
+        problems, orders, grids = [], [], []
+        for (prep, _), lab, (dts, origins, offsets, weights) in zip(items, labels, supports):
+            P = prep.points[prep.target]
+            if P.shape[0] == 0:
+                problems.append(None)
+                orders.append(None)
+                grids.append(None)
+                continue
+            g_origin, g_shape = grid_for_points(P, cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40)
+            # Sort points along the flow grid so neighbouring points touch neighbouring memory
+            # (flow vertices and DT samples) in every kernel.
+            order = torch.argsort(_voxel_key(P, g_origin, cfg.voxel_size, g_shape))
+            Ps = P[order].contiguous()
+            corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
+            lab_s = lab[order].contiguous() if lab is not None else None
+            problems.append(SolverProblem(Ps, corners, lab_s, dts, origins, offsets, weights,
+                                          cfg.regulariser_scale(len(prep.supports))))
+            orders.append(order)
+            grids.append(g_origin)
+        timings["setup"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        live = [k for k, p in enumerate(problems) if p is not None]
+        solved: dict[int, tuple] = {}
+        for group in _groups(live, problems):
+            packed = PackedProblems([problems[k] for k in group], cfg)
+            run_solver(packed)
+            for b, k in enumerate(group):
+                solved[k] = (packed.best_params(b).clone(), packed.losses(b), packed.best_iter(b))
         timings["optimise"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
+        if len(items) > 1:
+            timings["group_size"] = float(len(items))
 
-        # keep the grid view consistent with the caller's point order
-        return FloxelsResult(restore_output(flow, prep), flow, labels, losses, best_iter, len(losses), timings,
-                             g_origin, cfg.voxel_size, corners, params)
-
-    def _optimise(self, P, corners, labels, dts, origins, offsets, weights, num_support):
-        cfg = self.config
-        n = P.shape[0]
-        M = corners.num_params
-        idx, cw = corners.corner_idx, corners.corner_w
-        theta = torch.zeros(M, 3, dtype=P.dtype, device=P.device)
-        adam = _Adam(theta, cfg)
-        scale = cfg.regulariser_scale(num_support)
-        ncl = 0
-        if labels is not None and labels.numel():
-            ncl = int(labels.max()) + 1
-        use_cluster = labels is not None and ncl > 0
-        stopper = EarlyStopping(cfg.patience, cfg.min_delta)
-        best = theta.detach().clone()
-        losses: list[float] = []
-        for it in range(cfg.max_iters):
-            with torch.no_grad():
-                f = F.corner_gather(theta, idx, cw)
-                if dts:
-                    loss, g = F.dt_loss_fwd_bwd(P, f, dts, origins, cfg.dt_cell, offsets, weights, cfg.truncation)
-                else:
-                    loss, g = f.new_zeros(()), torch.zeros_like(f)
-                if use_cluster:
-                    lc, gc = F.cluster_consistency_fwd_bwd(f, labels, ncl)
-                    loss = loss + (scale * cfg.lambda_c) * lc
-                    g.add_(gc, alpha=scale * cfg.lambda_c)
-                if cfg.flow_norm_loss:
-                    lam = scale * cfg.lambda_g(it)
-                    norms = torch.linalg.vector_norm(f, dim=1)
-                    loss = loss + lam * norms.sum() / n
-                    # d||f||/df = f/||f||, taken as 0 at f = 0 (the zero initialisation)
-                    g.addcdiv_(f, norms.clamp_min(1e-12).unsqueeze(1), value=lam / n)
-                value = loss.item()
-                losses.append(value)
-                is_best, stop = stopper.update(value, it)
-                if is_best:
-                    best.copy_(theta)
-                if stop or it == cfg.max_iters - 1:
-                    break
-                adam.step(F.corner_scatter(g, idx, cw, M))
-        return best, losses, stopper.best_iter
+        results = []
+        for k, ((prep, _), lab) in enumerate(zip(items, labels)):
+            if problems[k] is None:
+                empty = prep.points[prep.target].new_zeros(0, 3)
+                results.append(FloxelsResult(restore_output(empty, prep), empty, None, timings=dict(timings),
+                                             voxel_size=cfg.voxel_size))
+                continue
+            params, losses, best_iter = solved[k]
+            corners = problems[k].corners
+            flow_s = F.corner_gather(params, corners.corner_idx, corners.corner_w)
+            flow = torch.empty_like(flow_s)
+            flow[orders[k]] = flow_s
+            results.append(FloxelsResult(restore_output(flow, prep), flow, lab, losses, best_iter, len(losses),
+                                         dict(timings), grids[k], cfg.voxel_size, corners, params))
+        return results
 
 
-class _Adam:
-    """Adam (no weight decay, no amsgrad) with torch.optim.Adam's exact update formula,
-    written out in place: the first ``torch.optim.Adam.step`` costs ~1 s of lazy imports,
-    more than a whole CPU frame's optimisation."""
+def _groups(live: list[int], problems: list) -> list[list[int]]:
+    """Split problems into op calls: at most MAX_PROBLEMS each and MAX_DTS distinct DTs."""
+    groups, cur, dts = [], [], set()
+    for k in live:
+        ids = {id(d) for d in problems[k].dts}
+        if cur and (len(cur) == MAX_PROBLEMS or len(dts | ids) > MAX_DTS):
+            groups.append(cur)
+            cur, dts = [], set()
+        cur.append(k)
+        dts |= ids
+    if cur:
+        groups.append(cur)
+    return groups
 
-    def __init__(self, param: torch.Tensor, cfg: FloxelsConfig) -> None:
-        self.p, self.lr, self.eps = param, cfg.lr, cfg.adam_eps
-        self.b1, self.b2 = cfg.adam_betas
-        self.m = torch.zeros_like(param)
-        self.v = torch.zeros_like(param)
-        self.t = 0
 
-    def step(self, grad: torch.Tensor) -> None:
-        self.t += 1
-        self.m.lerp_(grad, 1 - self.b1)
-        self.v.mul_(self.b2).addcmul_(grad, grad, value=1 - self.b2)
-        denom = (self.v.sqrt() / math.sqrt(1 - self.b2 ** self.t)).add_(self.eps)
-        self.p.addcdiv_(self.m, denom, value=-self.lr / (1 - self.b1 ** self.t))
+class _WindowCache:
+    """A window's view (index in the window -> DT) of a sequence-wide cache (frame -> DT)."""
+
+    def __init__(self, cache: dict, start: int) -> None:
+        self.cache, self.start = cache, start
+
+    def __contains__(self, i) -> bool:
+        return self.start + i in self.cache
+
+    def __getitem__(self, i):
+        return self.cache[self.start + i]
+
+    def __setitem__(self, i, value) -> None:
+        self.cache[self.start + i] = value
 
 
 def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:
@@ -215,9 +229,9 @@ def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:
     return (i[:, 2].clamp(0, Z - 1) * Y + i[:, 1].clamp(0, Y - 1)) * X + i[:, 0].clamp(0, X - 1)
 
 
-def _sync(t: torch.Tensor) -> None:
-    if t.is_cuda:
-        torch.cuda.synchronize(t.device)
+def _sync_device(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None):
@@ -242,10 +256,15 @@ def window_for(frame: int, num_frames: int, num_scans: int) -> tuple[int, int]:
 
 def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, device=None,
                       frames: Sequence[int] | None = None,
-                      callback: Callable[[int, FloxelsResult], None] | None = None) -> list:
+                      callback: Callable[[int, FloxelsResult], None] | None = None,
+                      batch_size: int | None = None) -> list:
     """Flow of every frame of a sequence (or of ``frames``) with a sliding window of
     ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
     every window that needs it (and freed once no later window does).
+
+    ``batch_size`` target frames are optimised together (default: 8 on CUDA, where
+    sharing kernel launches raises throughput, 1 on the CPU); each frame's result is the
+    same as optimising it alone.
 
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk).
@@ -260,20 +279,27 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         if not 0 <= f < n:
             raise IndexError(f"frame {f} is out of range for {n} scans")
     est = Floxels(cfg, device)
+    if batch_size is None:
+        dev = resolve_device(device, scans[0])
+        batch_size = 8 if dev.type == "cuda" else 1
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     cache: dict[int, DistanceTransform | None] = {}
     out = []
-    for k, f in enumerate(frames):
-        start, stop = window_for(f, n, cfg.num_scans)
-        window_cache = {i - start: cache[i] for i in range(start, stop) if i in cache}
-        res = est.fit(scans[start:stop], target=f - start, dt_cache=window_cache)
-        for j, d in window_cache.items():
-            cache[start + j] = d
+    for k0 in range(0, len(frames), batch_size):
+        batch = frames[k0:k0 + batch_size]
+        items = []
+        for f in batch:
+            start, stop = window_for(f, n, cfg.num_scans)
+            items.append((prepare_scans(scans[start:stop], f - start, device), _WindowCache(cache, start)))
+        results = est._fit_group(items)
         # free DTs that no later window will use
-        later = [window_for(g, n, cfg.num_scans)[0] for g in frames[k + 1:]]
+        later = [window_for(g, n, cfg.num_scans)[0] for g in frames[k0 + batch_size:]]
         horizon = min(later) if later else math.inf
         for i in [i for i in cache if i < horizon]:
             del cache[i]
-        out.append(res.flow)
-        if callback is not None:
-            callback(f, res)
+        for f, res in zip(batch, results):
+            out.append(res.flow)
+            if callback is not None:
+                callback(f, res)
     return out

@@ -1,0 +1,153 @@
+"""The device-resident optimiser op (``floxels::solver_run``): fake registration and a packer.
+
+:class:`SolverProblem` describes one target frame (sorted points, compact corners,
+cluster labels, support scans); :func:`pack_problems` concatenates several of them into the
+op's flat arguments once per call group; :meth:`PackedProblems.run` enqueues iterations.
+The op mutates its state tensors in place and never synchronises with the host, so the
+CUDA path can capture it into a CUDA graph (``floxels_ext.solver``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from ._lib import ops_ns
+from .corners import CompactCorners
+
+MAX_PROBLEMS = 16  # csrc/kernels/solver.h kMaxProblems
+MAX_SUPPORT = 12   # kMaxSupport
+MAX_DTS = 32       # kMaxDts
+STATE_COLS = 10    # kStateCols
+COL_ACTIVE, COL_ITER, COL_BEST_LOSS, COL_BEST_ITER = 0, 1, 2, 5
+
+
+@torch.library.register_fake("floxels::solver_run")
+def _fake(points, corner_idx, corner_w, vtx_ptr, vtx_entry, labels, cluster_count, dts, dt_origins, point_ranges,
+          vertex_ranges, support_ranges, support_dt, support_t, support_w, reg_scale, hyper, theta, adam_m, adam_v,
+          best, state, history, num_iters):
+    return None
+
+
+@dataclass
+class SolverProblem:
+    """One target frame. ``points`` (n, 3) float32 in the order the corners were built for;
+    ``labels`` (n,) int64 DBSCAN labels (-1 noise) or None (no cluster term); ``dts``: one
+    float32 (Z, Y, X) distance transform per support scan with its ``origins`` [x0, y0, z0],
+    time offset and weight (lambda_d * w(t)); ``reg_scale`` multiplies both regularisers."""
+
+    points: torch.Tensor
+    corners: CompactCorners
+    labels: torch.Tensor | None
+    dts: list[torch.Tensor]
+    origins: list[list[float]]
+    time_offsets: list[float]
+    weights: list[float]
+    reg_scale: float
+
+
+def solver_hyper(cfg) -> list[float]:
+    """``hyper`` of the op from a FloxelsConfig (layout documented in csrc/ops.cpp)."""
+    lg0, lg1 = (cfg.lambda_g_start, cfg.lambda_g_end) if cfg.flow_norm_loss else (0.0, 0.0)
+    return [cfg.dt_cell, cfg.truncation, cfg.lr, cfg.adam_betas[0], cfg.adam_betas[1], cfg.adam_eps,
+            cfg.lambda_c if cfg.cluster_loss else 0.0, lg0, lg1, float(cfg.lambda_g_decay_iters),
+            float(cfg.patience), float(cfg.max_iters), cfg.min_delta]
+
+
+class PackedProblems:
+    """Flat op arguments and the mutable optimiser state of several problems."""
+
+    def __init__(self, problems: Sequence[SolverProblem], cfg) -> None:
+        if not 1 <= len(problems) <= MAX_PROBLEMS:
+            raise ValueError(f"solver: 1 to {MAX_PROBLEMS} problems per call, got {len(problems)}")
+        dev = problems[0].points.device
+        self.cfg = cfg
+        self.num_problems = len(problems)
+        pts, idx, w, labels = [], [], [], []
+        self.point_ranges, self.vertex_ranges = [0], [0]
+        ncl = 0
+        slots: dict[int, int] = {}
+        self.dts: list[torch.Tensor] = []
+        self.dt_origins: list[float] = []
+        self.support_ranges, self.support_dt, self.support_t, self.support_w = [0], [], [], []
+        use_cluster = cfg.cluster_loss and any(p.labels is not None for p in problems)
+        for p in problems:
+            if p.points.device != dev:
+                raise ValueError("solver: all problems must be on one device")
+            n, m = p.points.shape[0], p.corners.num_params
+            pts.append(p.points.to(torch.float32))
+            idx.append(p.corners.corner_idx.to(torch.int64) + self.vertex_ranges[-1])
+            w.append(p.corners.corner_w.to(torch.float32))
+            if use_cluster:
+                lab = p.labels if p.labels is not None else torch.full((n,), -1, dtype=torch.int64, device=dev)
+                k = int(lab.max()) + 1 if n else 0
+                labels.append(torch.where(lab >= 0, lab + ncl, lab))
+                ncl += max(k, 0)
+            self.point_ranges.append(self.point_ranges[-1] + n)
+            self.vertex_ranges.append(self.vertex_ranges[-1] + m)
+            if len(p.dts) > MAX_SUPPORT:
+                raise ValueError(f"solver: at most {MAX_SUPPORT} support scans per problem, got {len(p.dts)}")
+            for d, o, t, wt in zip(p.dts, p.origins, p.time_offsets, p.weights):
+                key = id(d)
+                if key not in slots:
+                    slots[key] = len(self.dts)
+                    self.dts.append(d.contiguous())
+                    self.dt_origins.extend(float(v) for v in o)
+                self.support_dt.append(slots[key])
+                self.support_t.append(float(t))
+                self.support_w.append(float(wt))
+            self.support_ranges.append(len(self.support_dt))
+        if len(self.dts) > MAX_DTS:
+            raise ValueError(f"solver: at most {MAX_DTS} distinct distance transforms per call, got {len(self.dts)}")
+        self.reg_scale = [float(p.reg_scale) for p in problems]
+        self.points = torch.cat(pts).contiguous()
+        N = self.points.shape[0]
+        M = self.vertex_ranges[-1]
+        flat = torch.cat(idx).reshape(-1)
+        self.corner_idx = flat.to(torch.int32).reshape(N, 8).contiguous()
+        self.corner_w = torch.cat(w).contiguous()
+        # Transpose of the corner table (built once): each vertex's (point, corner) entries,
+        # so the gradient of a vertex is a gather and needs no atomics.
+        order = torch.argsort(flat, stable=True)
+        self.vtx_entry = order.to(torch.int32).contiguous()
+        counts = torch.bincount(flat, minlength=M)
+        self.vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32).contiguous()
+        if use_cluster and ncl > 0:
+            lab = torch.cat(labels)
+            self.labels = lab.to(torch.int32).contiguous()
+            self.cluster_count = torch.bincount(lab[lab >= 0], minlength=ncl).to(torch.float32).contiguous()
+        else:
+            self.labels = self.cluster_count = None
+        self.hyper = solver_hyper(cfg)
+        f32 = dict(dtype=torch.float32, device=dev)
+        self.theta = torch.zeros(M, 3, **f32)
+        self.adam_m = torch.zeros(M, 3, **f32)
+        self.adam_v = torch.zeros(M, 3, **f32)
+        self.best = torch.zeros(M, 3, **f32)
+        self.state = torch.zeros(self.num_problems, STATE_COLS, dtype=torch.float64, device=dev)
+        self.state[:, COL_ACTIVE] = 1.0
+        self.state[:, COL_BEST_LOSS] = float("inf")
+        self.state[:, 3] = float("inf")  # early stopping's reference loss
+        self.state[:, COL_BEST_ITER] = -1.0
+        self.history = torch.full((self.num_problems, cfg.max_iters), float("nan"), dtype=torch.float64, device=dev)
+
+    def run(self, num_iters: int) -> None:
+        """Enqueue ``num_iters`` iterations (no host synchronisation on CUDA)."""
+        ops_ns.solver_run(self.points, self.corner_idx, self.corner_w, self.vtx_ptr, self.vtx_entry, self.labels,
+                          self.cluster_count, self.dts, self.dt_origins, self.point_ranges, self.vertex_ranges,
+                          self.support_ranges, self.support_dt, self.support_t, self.support_w, self.reg_scale,
+                          self.hyper, self.theta, self.adam_m, self.adam_v, self.best, self.state, self.history,
+                          int(num_iters))
+
+    # -- results (these synchronise) ------------------------------------------------------
+    def best_params(self, b: int) -> torch.Tensor:
+        return self.best[self.vertex_ranges[b]:self.vertex_ranges[b + 1]]
+
+    def losses(self, b: int) -> list[float]:
+        n = int(self.state[b, COL_ITER].item())
+        return self.history[b, :n].tolist()
+
+    def best_iter(self, b: int) -> int:
+        return int(self.state[b, COL_BEST_ITER].item())

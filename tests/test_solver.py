@@ -1,0 +1,203 @@
+"""floxels::solver_run (the device-resident optimiser loop) against a plain Python loop over
+the single-purpose ops, multi-problem packing, early stopping, CUDA vs CPU, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from floxels_ext import FloxelsConfig
+from floxels_ext.early_stopping import EarlyStopping
+from floxels_ext.ops import compact_corners, dbscan, distance_transform, grid_for_points
+from floxels_ext.ops.solver import PackedProblems, SolverProblem
+from floxels_ext.solver import run_solver
+
+F = torch.ops.floxels
+
+
+def _scene(seed, n=600, shift=(0.3, 0.1, 0.0)):
+    """A few boxes of points; the support scans are the target moved by t * shift."""
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.rand(6, 3, generator=g) * torch.tensor([12.0, 12.0, 2.0])
+    P = (centres[torch.randint(0, 6, (n,), generator=g)] + 0.6 * torch.rand(n, 3, generator=g)).float()
+    moving = P[:, 0] < 6.0
+    supports = {}
+    for t in (-2, -1, 1, 2):
+        Q = P.clone()
+        Q[moving] += t * torch.tensor(shift)
+        supports[t] = Q
+    return P, supports
+
+
+def _problem(P, supports, cfg, labels=True):
+    dts, origins, offsets, weights = [], [], [], []
+    for t, Q in supports.items():
+        d, o = distance_transform(Q, cfg.dt_cell, cfg.dt_padding)
+        dts.append(d)
+        origins.append(o)
+        offsets.append(float(t))
+        weights.append(cfg.lambda_d * cfg.time_weight(t))
+    go, gs = grid_for_points(P, cfg.voxel_size, cfg.voxel_size)
+    corners = compact_corners(P, go, cfg.voxel_size, gs)
+    lab = dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples) if labels else None
+    return SolverProblem(P, corners, lab, dts, origins, offsets, weights, float(len(supports)))
+
+
+def python_loop(pr: SolverProblem, cfg: FloxelsConfig):
+    """The optimiser written plainly with the single-purpose ops (the estimator's loop before
+    the fused op): the definition the fused loop must reproduce."""
+    idx, cw = pr.corners.corner_idx, pr.corners.corner_w
+    n, M = pr.points.shape[0], pr.corners.num_params
+    theta = torch.zeros(M, 3)
+    m, v = torch.zeros_like(theta), torch.zeros_like(theta)
+    best = theta.clone()
+    stopper = EarlyStopping(cfg.patience, cfg.min_delta)
+    ncl = int(pr.labels.max()) + 1 if pr.labels is not None else 0
+    flat_origins = [x for o in pr.origins for x in o]
+    losses = []
+    b1, b2 = cfg.adam_betas
+    for it in range(cfg.max_iters):
+        f = F.corner_gather(theta, idx, cw)
+        loss, g = F.dt_loss_fwd_bwd(pr.points, f, pr.dts, flat_origins, cfg.dt_cell, pr.time_offsets,
+                                    pr.weights, cfg.truncation)
+        loss = loss.double()
+        if cfg.cluster_loss and ncl > 0:
+            lc, gc = F.cluster_consistency_fwd_bwd(f, pr.labels, ncl)
+            loss = loss + pr.reg_scale * cfg.lambda_c * lc.double()
+            g = g + pr.reg_scale * cfg.lambda_c * gc
+        if cfg.flow_norm_loss:
+            lam = pr.reg_scale * cfg.lambda_g(it)
+            norms = torch.linalg.vector_norm(f, dim=1)
+            loss = loss + lam * norms.double().sum() / n
+            g = g + lam / n * f / norms.clamp_min(1e-12)[:, None]
+        losses.append(float(loss))
+        is_best, stop = stopper.update(losses[-1], it)
+        if is_best:
+            best = theta.clone()
+        if stop or it == cfg.max_iters - 1:
+            break
+        grad = F.corner_scatter(g, idx, cw, M)
+        t = it + 1
+        m.lerp_(grad, 1 - b1)
+        v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+        denom = (v.sqrt() / math.sqrt(1 - b2 ** t)).add_(cfg.adam_eps)
+        theta.addcdiv_(m, denom, value=-cfg.lr / (1 - b1 ** t))
+    return best, losses, stopper.best_iter
+
+
+@pytest.mark.parametrize("cluster", [True, False])
+def test_matches_python_loop(cluster):
+    cfg = FloxelsConfig(max_iters=6, cluster_loss=cluster)
+    P, sup = _scene(0)
+    pr = _problem(P, sup, cfg, labels=cluster)
+    best_ref, losses_ref, best_iter_ref = python_loop(pr, cfg)
+    packed = PackedProblems([pr], cfg)
+    run_solver(packed)
+    np.testing.assert_allclose(packed.losses(0), losses_ref, rtol=2e-5)
+    assert packed.best_iter(0) == best_iter_ref
+    torch.testing.assert_close(packed.best_params(0), best_ref, rtol=1e-4, atol=1e-5)
+
+
+def test_early_stopping_and_lowest_loss():
+    cfg = FloxelsConfig(max_iters=80, patience=5, min_delta=1e-3, lr=0.3)
+    P, sup = _scene(1)
+    packed = PackedProblems([_problem(P, sup, cfg)], cfg)
+    run_solver(packed)
+    losses = packed.losses(0)
+    es = EarlyStopping(cfg.patience, cfg.min_delta)
+    for it, l in enumerate(losses):
+        _, stop = es.update(l, it)
+        assert stop == (it == len(losses) - 1) or it == cfg.max_iters - 1
+    assert packed.best_iter(0) == int(np.argmin(losses)) == es.best_iter
+
+
+def test_several_problems_equal_each_alone():
+    """Packed problems do not interact: on the CPU (deterministic) results are identical."""
+    cfg = FloxelsConfig(max_iters=25, patience=10)
+    probs = []
+    for seed, shift in ((2, (0.3, 0.0, 0.0)), (3, (0.0, -0.4, 0.0)), (4, (0.2, 0.2, 0.0))):
+        P, sup = _scene(seed, n=400 + 100 * seed, shift=shift)
+        probs.append(_problem(P, sup, cfg, labels=seed != 3))
+    together = PackedProblems(probs, cfg)
+    run_solver(together)
+    for b, pr in enumerate(probs):
+        alone = PackedProblems([pr], cfg)
+        run_solver(alone)
+        assert together.losses(b) == alone.losses(0)
+        assert torch.equal(together.best_params(b), alone.best_params(0))
+
+
+def test_deterministic_across_thread_counts():
+    cfg = FloxelsConfig(max_iters=15)
+    P, sup = _scene(5, n=5000)
+    pr = _problem(P, sup, cfg)
+    out = []
+    old = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            packed = PackedProblems([pr], cfg)
+            run_solver(packed)
+            out.append((packed.losses(0), packed.best_params(0).clone()))
+    finally:
+        torch.set_num_threads(old)
+    assert out[0][0] == out[1][0] and torch.equal(out[0][1], out[1][1])
+
+
+def test_bad_inputs_raise_clear_errors():
+    cfg = FloxelsConfig(max_iters=3)
+    P, sup = _scene(6, n=200)
+    packed = PackedProblems([_problem(P, sup, cfg)], cfg)
+    packed.corner_idx[3, 2] = packed.theta.shape[0] + 7
+    with pytest.raises(RuntimeError, match="corner_idx"):
+        packed.run(1)
+    packed = PackedProblems([_problem(P, sup, cfg)], cfg)
+    packed.labels = packed.labels.to(torch.int64)
+    with pytest.raises(RuntimeError, match="labels must be Int"):
+        packed.run(1)
+    packed = PackedProblems([_problem(P, sup, cfg)], cfg)
+    packed.point_ranges = [0, 5]
+    with pytest.raises(RuntimeError, match="point_ranges"):
+        packed.run(1)
+    with pytest.raises(ValueError, match="problems"):
+        PackedProblems([], cfg)
+
+
+def test_opcheck():
+    cfg = FloxelsConfig(max_iters=4)
+    P, sup = _scene(7, n=150)
+    p = PackedProblems([_problem(P, sup, cfg)], cfg)
+    args = (p.points, p.corner_idx, p.corner_w, p.vtx_ptr, p.vtx_entry, p.labels, p.cluster_count, p.dts,
+            p.dt_origins, p.point_ranges, p.vertex_ranges, p.support_ranges, p.support_dt, p.support_t,
+            p.support_w, p.reg_scale, p.hyper, p.theta, p.adam_m, p.adam_v, p.best, p.state, p.history, 2)
+    torch.library.opcheck(torch.ops.floxels.solver_run.default, args,
+                          test_utils=("test_schema", "test_faketensor"))
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("graph", [True, False])
+def test_cuda_matches_cpu(graph):
+    cfg = FloxelsConfig(max_iters=120, patience=30)
+    probs_cpu, probs_gpu = [], []
+    for seed in (8, 9):
+        P, sup = _scene(seed, n=3000)
+        pr = _problem(P, sup, cfg)
+        probs_cpu.append(pr)
+        dev = lambda t: t.cuda() if t is not None else None  # noqa: E731
+        c = pr.corners
+        probs_gpu.append(SolverProblem(pr.points.cuda(), type(c)(dev(c.corner_idx), dev(c.corner_w),
+                                                                  dev(c.vertices), c.grid_shape),
+                                       dev(pr.labels), [d.cuda() for d in pr.dts], pr.origins, pr.time_offsets,
+                                       pr.weights, pr.reg_scale))
+    cpu = PackedProblems(probs_cpu, cfg)
+    run_solver(cpu)
+    gpu = PackedProblems(probs_gpu, cfg)
+    run_solver(gpu, chunk=16, use_graph=graph)
+    for b in range(2):
+        lc, lg = cpu.losses(b), gpu.losses(b)
+        # identical rules; float32 sums in another order drift slowly, so compare the start tightly
+        np.testing.assert_allclose(lg[:5], lc[:5], rtol=1e-4)
+        assert abs(len(lg) - len(lc)) <= 10
+        assert min(lg) == pytest.approx(min(lc), rel=2e-2)
+        assert gpu.best_iter(b) == int(np.argmin(lg))
