@@ -76,7 +76,11 @@ def read_kitti_calib(path) -> np.ndarray:
             vals = line.split()[1:]
             if len(vals) != 12:
                 raise PoseFormatError(f"{path}: 'Tr:' needs 12 values, got {len(vals)}")
-            return check_poses(np.array(vals, np.float64).reshape(1, 12), str(path))[0]
+            try:
+                a = np.array(vals, np.float64).reshape(1, 12)
+            except ValueError:
+                raise PoseFormatError(f"{path}: 'Tr:' values are not numbers") from None
+            return check_poses(a, str(path))[0]
     raise PoseFormatError(f"{path}: no 'Tr:' line (KITTI calib.txt expected)")
 
 
