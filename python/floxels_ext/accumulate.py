@@ -126,12 +126,13 @@ def accumulate_run(run_dir, frame: int | str, *, neighbours: int = 2, mode: str 
 
     files = _run_frames(Path(run_dir))
     names = [p.stem for p in files]
-    if isinstance(frame, str) and not frame.lstrip("-").isdigit():
-        if frame not in names:
-            raise CLIError(f"{run_dir} has no output for frame {frame!r}")
+    if isinstance(frame, str) and frame in names:  # a frame name wins over an index
         r = names.index(frame)
     else:
-        r = int(frame)
+        try:
+            r = int(frame)
+        except ValueError:
+            raise CLIError(f"{run_dir} has no output for frame {frame!r}") from None
         r = r + len(files) if r < 0 else r
         if not 0 <= r < len(files):
             raise CLIError(f"frame index {frame} out of range: {run_dir} holds {len(files)} outputs")
@@ -156,7 +157,7 @@ def add_parser(sub) -> None:
                                    "'floxels run' and write the merged cloud as binary PLY (properties: x y z, "
                                    "time_offset (frame - reference), red green blue by time offset).")
     p.add_argument("run_dir", metavar="RUN_DIR", help="an OUT_DIR of 'floxels run'")
-    p.add_argument("frame", metavar="FRAME", help="frame index (in sorted order) or frame name")
+    p.add_argument("frame", metavar="FRAME", help="frame name (e.g. 000042) or index among RUN_DIR's sorted outputs")
     p.add_argument("--out", required=True, metavar="FILE.ply")
     p.add_argument("--neighbours", type=int, default=2, help="scans on each side (default 2: t-2 .. t+2)")
     p.add_argument("--mode", choices=["constant-velocity", "chain"], default="constant-velocity")
