@@ -249,3 +249,25 @@ def test_floxels_end_to_end_then_eval_show_accumulate(seq, tmp_path, capsys):
     capsys.readouterr()
     assert cli.main(["show", str(tmp_path / "nothing")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_show_rerun_missing_and_fake(tmp_path, capsys, monkeypatch):
+    import sys
+    import types
+
+    pts = np.random.default_rng(0).normal(scale=5, size=(50, 3)).astype(np.float32)
+    flow = np.zeros_like(pts)
+    flow[:10] = [1.0, 0, 0]
+    np.savez(tmp_path / "f.npz", points=pts, flow=flow, mask=np.ones(50, bool))
+    monkeypatch.setitem(sys.modules, "rerun", None)  # import rerun -> ImportError
+    rc = cli.main(["show", str(tmp_path / "f.npz"), "--png", str(tmp_path / "a.png"), "--rerun", str(tmp_path / "r.rrd")])
+    assert rc == 2 and "pip install 'floxels_ext[viz]'" in capsys.readouterr().err
+    logged = {}
+    rr = types.SimpleNamespace(init=lambda *a, **k: None, save=lambda p: logged.setdefault("save", p),
+                               log=lambda path, obj: logged.setdefault(path, obj),
+                               Points3D=lambda pts, **k: ("points", len(pts)),
+                               Arrows3D=lambda origins, vectors, **k: ("arrows", len(vectors)))
+    monkeypatch.setitem(sys.modules, "rerun", rr)
+    rc = cli.main(["show", str(tmp_path / "f.npz"), "--png", str(tmp_path / "a.png"), "--rerun", str(tmp_path / "r.rrd")])
+    assert rc == 0
+    assert logged["f/points"] == ("points", 50) and logged["f/flow"] == ("arrows", 10)

@@ -1,9 +1,10 @@
 """``floxels show``: bird's-eye view of one ``floxels run`` output (points + flow arrows), and
 optionally a rerun recording (``pip install 'floxels_ext[viz]'``).
 
+Points that were optimised are coloured by height, the others (ground, cropped) dim grey.
 Arrows go from each moving point p to p + scale * flow; their hue is the heading (legend
-wheel in the top-right corner: east red, north yellow-green, west cyan, south violet) and
-their brightness the speed.
+wheel in the top-right corner: moving east cyan, north blue-violet, west red, south
+yellow-green) and their brightness the speed.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.nd
 def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, center=None,
                  flow_scale: float = 1.0, legend: bool = True) -> np.ndarray:
     """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask)."""
-    from .viz import bev_image
+    from .viz import BACKGROUND, bev_image
 
     pts = np.asarray(data["points"], np.float64)
     ok = np.isfinite(pts).all(1)
@@ -48,7 +49,13 @@ def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, c
         lo, hi = pts[ok, :2].min(0), pts[ok, :2].max(0)
         inside = ok.any() and np.all(lo <= 0) and np.all(hi >= 0)
         center = (0.0, 0.0) if inside else (np.median(pts[ok, :2], 0) if ok.any() else (0.0, 0.0))
-    img = bev_image(pts[ok], flow[ok], center=center, extent=extent, resolution=resolution, flow_scale=flow_scale)
+    mask = np.asarray(data.get("mask", ok), bool) & ok
+    kw = dict(center=center, extent=extent, resolution=resolution)
+    # optimised points coloured by height with their flow; the rest (ground, cropped) dim grey below
+    img = bev_image(pts[mask], flow[mask], flow_scale=flow_scale, **kw)
+    rest = bev_image(pts[ok & ~mask], color_by="grey", **kw)
+    empty = np.all(img == BACKGROUND, axis=2) & ~np.all(rest == BACKGROUND, axis=2)
+    img[empty] = (0.45 * rest[empty] + 0.55 * np.array(BACKGROUND)).astype(np.uint8)
     return direction_wheel(img) if legend else img
 
 
