@@ -214,6 +214,9 @@ def test_user_errors_exit_2(seq, fake, tmp_path, capsys):
     assert rc == 2 and "selects no frame" in cap.err
     rc, cap = _run([d, *out, "--method", "fake", "--odometry", "kiss-icp", "--no-ego-motion"], capsys)
     assert rc == 2 and "contradicts" in cap.err
+    save_sequence(tmp_path / "sim", seq)
+    rc, cap = _run([tmp_path / "sim", *out, "--method", "fake", "--poses", tmp_path / "in_poses.txt"], capsys)
+    assert rc == 2 and "already in one world frame" in cap.err
 
 
 def test_odometry_missing_is_a_clear_error(seq, fake, tmp_path, capsys, monkeypatch):

@@ -95,6 +95,10 @@ def add_parser(sub) -> None:
     p.add_argument("--bin-columns", type=int, choices=[3, 4, 5, 6], help="float32 columns of .bin frames "
                    "(default: from the file size; 4 KITTI, 5 nuScenes)")
     p.add_argument("--ext", help="frame extension to use when INPUT mixes formats")
+    p.add_argument("--points-frame", choices=["auto", "sensor", "world"], default="auto",
+                   help="coordinates of the stored points: each scan's sensor frame, or one world frame "
+                        "(.npz with the sensor 'pose', as 'floxels simulate' writes); auto: world for a "
+                        "'floxels simulate' directory (sequence.json present), else sensor")
     p.add_argument("--chunk", type=int, default=16, help="targets estimated together (shared distance "
                    "transforms; default 16)")
     p.add_argument("--force", action="store_true", help="recompute frames already written")
@@ -233,10 +237,13 @@ def _resolve_poses(seq, args, out: Path, report):
 
     if args.no_ego_motion and (args.poses or args.odometry):
         raise CLIError("--no-ego-motion contradicts --poses/--odometry")
+    if seq.kind == "seqio":
+        if args.poses or args.odometry:
+            raise CLIError(f"{seq.root}: the points are already in one world frame (floxels simulate layout / "
+                           f"--points-frame world); --poses and --odometry do not apply")
+        return "seqio", None
     if seq.poses is not None:
         return "table", seq.poses
-    if seq.kind == "seqio":
-        return "seqio", None
     if args.no_ego_motion:
         return "identity", None
     if seq.frames[0].path.suffix.lower() == ".npz":
@@ -333,7 +340,7 @@ def run(args) -> int:
         raise CLIError(f"--out {out} exists and is not a directory")
     try:
         seq = discover_input(args.input, poses_file=args.poses, calib=args.calib, bin_columns=args.bin_columns,
-                             ext=args.ext)
+                             ext=args.ext, points_frame=args.points_frame)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
     if len(seq) < 2:

@@ -4,8 +4,9 @@ Three kinds of INPUT directory:
 
 * ``av2``: an Argoverse 2 sensor log (``sensors/lidar/<timestamp_ns>.feather`` sweeps in the
   ego-vehicle frame, ``city_SE3_egovehicle.feather`` poses matched by timestamp);
-* ``seqio``: a sequence written by ``floxels simulate`` (``000000.npz`` ...): points already
-  in one world frame, ``pose`` the sensor pose used for cropping and ground removal;
+* ``seqio``: a sequence written by ``floxels simulate`` (``000000.npz`` ... and
+  ``sequence.json``, or any .npz frames with ``--points-frame world``): points already in one
+  world frame, ``pose`` the sensor pose used for cropping and ground removal;
 * ``files``: frame files of one supported format (``.bin``, ``.npy``, ``.npz``, ``.pcd``,
   ``.ply``, ``.feather``) sorted in natural order, points in each scan's sensor frame. An
   ``.npz`` frame's ``pose`` key, when present, gives its sensor-to-world pose.
@@ -74,8 +75,12 @@ def _lidar_files(d: Path, ext: str | None) -> list[Path]:
 
 
 def discover_input(path, *, poses_file=None, calib=None, bin_columns: int | None = None,
-                   ext: str | None = None) -> SequenceInput:
-    """Inspect INPUT and list its frames (nothing is read yet except pose files)."""
+                   ext: str | None = None, points_frame: str = "auto") -> SequenceInput:
+    """Inspect INPUT and list its frames (nothing is read yet except pose files).
+
+    ``points_frame``: ``"world"`` if the frames' points are already in one world frame (seqio
+    convention, .npz with the sensor ``pose``), ``"sensor"`` if each is in its sensor frame,
+    ``"auto"``: world for a seqio directory (000000.npz ... plus sequence.json), else sensor."""
     root = Path(path)
     if not root.exists():
         raise InputError(f"input {root} does not exist")
@@ -104,8 +109,13 @@ def discover_input(path, *, poses_file=None, calib=None, bin_columns: int | None
     if not files:
         raise InputError(f"{root} holds no lidar frames (looked for {', '.join('*' + s for s in SUFFIXES)}; "
                          f"an Argoverse 2 log needs sensors/lidar/)")
+    if points_frame not in ("auto", "sensor", "world"):
+        raise InputError(f"points_frame must be 'auto', 'sensor' or 'world', got {points_frame!r}")
     kind = "files"
-    if all(p.suffix == ".npz" and len(p.stem) == 6 and p.stem.isdigit() for p in files):
+    seqio_names = all(p.suffix == ".npz" and len(p.stem) == 6 and p.stem.isdigit() for p in files)
+    if points_frame == "world" or (points_frame == "auto" and seqio_names and (root / "sequence.json").is_file()):
+        if not all(p.suffix == ".npz" for p in files):
+            raise InputError("--points-frame world needs .npz frames (their 'pose' locates the sensor)")
         kind = "seqio"  # floxels simulate / seqio layout: points in the world frame
     frames = [FrameSource(p.stem, p, int(p.stem) if p.suffix.lower() == ".feather" and p.stem.isdigit() else None)
               for p in files]
