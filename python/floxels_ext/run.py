@@ -56,19 +56,21 @@ def _opt_float(text: str) -> float | None:
 
 def add_parser(sub) -> None:
     import argparse
+    import textwrap
 
     p = sub.add_parser(
         "run", help="estimate scene flow for a whole lidar sequence (resumable)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Estimate the flow of every frame of INPUT and write one .npz per frame to OUT_DIR.\n\n"
-                    "INPUT: a directory of frame files of one format (.bin .npy .npz .pcd .ply .feather, "
-                    "natural order), a 'floxels simulate' sequence, or an Argoverse 2 log directory "
-                    "(sensors/lidar/*.feather + city_SE3_egovehicle.feather).\n\n"
-                    "Ego-motion: --poses FILE, else poses stored with the frames (AV2, .npz 'pose'), else "
-                    "--odometry kiss-icp (estimated; pip install 'floxels_ext[odometry]'), else "
-                    "--no-ego-motion if the scans are already in one frame.\n\n" + OUTPUT)
-    p.add_argument("input", metavar="INPUT")
-    p.add_argument("--out", required=True, metavar="OUT_DIR", help="output directory (created)")
+        description="\n\n".join(textwrap.fill(t, 92) for t in (
+            "Estimate the flow of every frame of INPUT and write one .npz per frame to OUT_DIR.",
+            "INPUT: a directory of frame files of one format (.bin .npy .npz .pcd .ply .feather, natural "
+            "order), a 'floxels simulate' sequence, or an Argoverse 2 log directory "
+            "(sensors/lidar/*.feather + city_SE3_egovehicle.feather).",
+            "Ego-motion: --poses FILE, else poses stored with the frames (AV2, .npz 'pose'), else "
+            "--odometry kiss-icp (estimated; pip install 'floxels_ext[odometry]'), else --no-ego-motion "
+            "if the scans are already in one frame.")) + "\n\n" + OUTPUT)
+    p.add_argument("input", metavar="INPUT", nargs="?")
+    p.add_argument("--out", metavar="OUT_DIR", help="output directory (created; required)")
     p.add_argument("--poses", metavar="FILE", help="poses: KITTI poses.txt (12/line), 4x4 per line, TUM, "
                    ".npy/.npz (F,4,4), or AV2 city_SE3_egovehicle.feather")
     p.add_argument("--calib", metavar="FILE", help="KITTI calib.txt: turn camera poses into velodyne poses")
@@ -310,6 +312,8 @@ def run(args) -> int:
         for name in available_methods():
             print(f"{name:<12} {get_method(name).description}")
         return 0
+    if not args.input or not args.out:
+        raise CLIError("floxels run needs INPUT and --out OUT_DIR")
     if args.method not in available_methods():
         raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
     if not 2 <= args.scans <= 13:
