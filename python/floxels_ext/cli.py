@@ -25,7 +25,7 @@ from typing import Callable
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 
 # Modules with an ``add_parser(subparsers)`` function, added after the built-in commands.
-SUBCOMMAND_MODULES: list[str] = ["floxels_ext.demo"]
+SUBCOMMAND_MODULES: list[str] = ["floxels_ext.demo", "floxels_ext.run", "floxels_ext.accumulate", "floxels_ext.show"]
 _EXTRA: list[Callable] = []
 
 
