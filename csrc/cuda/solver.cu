@@ -116,43 +116,14 @@ __device__ void cluster_accumulate(float* table, int64_t key, const float* v, in
 }
 
 // Adds w_j * g to the accumulator rows of the point's 8 corners. Points are sorted by
-// voxel, so a block's 256 points touch a few dozen vertices, many of them thousands of times
-// (dense voxels near the sensor): the block first sums into a small shared-memory hash table
-// (warp-aggregated shared atomics), then flushes one global atomic per touched vertex. A
-// corner that finds no free slot goes straight to global memory. Every thread of the block
-// must call this (valid = false: adds nothing).
-constexpr int kHashSlots = 512;
-__device__ void scatter_corners(const KParams& P, int i, bool valid, const float* g, int* s_keys, float* s_vals,
-                                float* scratch) {
-  for (int j = threadIdx.x; j < kHashSlots; j += blockDim.x) {
-    s_keys[j] = -1;
-    s_vals[3 * j] = s_vals[3 * j + 1] = s_vals[3 * j + 2] = 0.0f;
-  }
-  __syncthreads();
+// voxel, so the lanes of a warp mostly share corners: warp aggregation turns ~32 atomics
+// per corner into one or two. Must be called by every lane (valid = false: adds nothing).
+__device__ __forceinline__ void scatter_corners(const KParams& P, int i, bool valid, const float* g, float* scratch) {
   const int32_t* idx = P.corner_idx + 8 * int64_t(valid ? i : 0);
   const float* w = P.corner_w + 8 * int64_t(valid ? i : 0);
   for (int j = 0; j < 8; ++j) {
-    const int key = valid && unsigned(idx[j]) < unsigned(P.num_vertices) ? idx[j] : -1;
-    int slot = -1;
-    if (key >= 0) {
-      unsigned h = (unsigned(key) * 2654435761u) & (kHashSlots - 1);
-      for (int probe = 0; probe < 32; ++probe, h = (h + 1) & (kHashSlots - 1)) {
-        const int prev = atomicCAS(s_keys + h, -1, key);
-        if (prev == -1 || prev == key) {
-          slot = int(h);
-          break;
-        }
-      }
-      if (slot < 0)
-        for (int c = 0; c < 3; ++c) atomicAdd(P.acc + 3 * int64_t(key) + c, w[j] * g[c]);
-    }
-    warp_add<float>(s_vals, slot, 3, 1, g, valid ? w[j] : 0.0f, 3, scratch);
-  }
-  __syncthreads();
-  for (int j = threadIdx.x; j < kHashSlots; j += blockDim.x) {
-    const int key = s_keys[j];
-    if (key >= 0)
-      for (int c = 0; c < 3; ++c) atomicAdd(P.acc + 3 * int64_t(key) + c, s_vals[3 * j + c]);
+    const int64_t key = valid && unsigned(idx[j]) < unsigned(P.num_vertices) ? int64_t(idx[j]) : -1;
+    warp_add<float>(P.acc, key, 3, 1, g, valid ? w[j] : 0.0f, 3, scratch);
   }
 }
 
@@ -161,8 +132,6 @@ template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
   __shared__ float scratch[kThreads];
   __shared__ float smem_table[kCluster ? 3 * kSmemClusters : 1];
-  __shared__ int s_keys[kCluster ? 1 : kHashSlots];
-  __shared__ float s_vals[kCluster ? 1 : 3 * kHashSlots];
   if constexpr (kCluster) zero_strided(P.usum, 3 * int64_t(P.num_clusters));
   const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
   const double* st = P.state + p * kStateCols;
@@ -196,7 +165,7 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
       }
     }
   }
-  if constexpr (!kCluster) scatter_corners(P, i, valid, gp, s_keys, s_vals, scratch + (threadIdx.x & ~31u));
+  if constexpr (!kCluster) scatter_corners(P, i, valid, gp, scratch + (threadIdx.x & ~31u));
   if constexpr (kCluster) {
     const int64_t key = valid && unsigned(P.labels[i]) < unsigned(P.num_clusters) ? int64_t(P.labels[i]) : -1;
     cluster_accumulate(P.csum, key, f, P.num_clusters, smem_table, scratch);
@@ -210,8 +179,6 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
 __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant__ KParams P) {
   __shared__ float scratch[kThreads];
   __shared__ float smem_table[3 * kSmemClusters];
-  __shared__ int s_keys[kHashSlots];
-  __shared__ float s_vals[3 * kHashSlots];
   const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
   if (P.state[p * kStateCols + kActive] == 0.0) return;
   const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
@@ -229,7 +196,7 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
     const float coef = P.cluster_coef[p];
     for (int c = 0; c < 3; ++c) gp[c] = P.g[3 * int64_t(i) + c] + coef * u[c];
   }
-  scatter_corners(P, i, valid, gp, s_keys, s_vals, scratch + (threadIdx.x & ~31u));
+  scatter_corners(P, i, valid, gp, scratch + (threadIdx.x & ~31u));
   cluster_accumulate(P.usum, l, u, P.num_clusters, smem_table, scratch);
   const double total = block_sum(double(loss));
   if (threadIdx.x == 0) P.part_cluster[blockIdx.x] = total;
