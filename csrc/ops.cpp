@@ -80,14 +80,12 @@ TORCH_LIBRARY(floxels, m) {
   // history in place. point_ranges / vertex_ranges / support_ranges: B + 1 offsets;
   // support_dt / support_t / support_w: per support scan of each problem, the index into
   // dts, the time offset and lambda_d * w(t); reg_scale: B multipliers of the regularisers.
-  // vc_ptr (M + 1) / vc_cluster / vc_weight: for each vertex, the clusters of its points and
-  // the summed corner weights (used by the CUDA kernels to apply the cluster-mean term).
   // hyper = [dt_cell, truncation, lr, beta1, beta2, eps, lambda_c, lambda_g_start,
   // lambda_g_end, lambda_g_decay_iters, patience, max_iters, min_delta]
   // (python/floxels_ext/ops/solver.py builds all of this). No host synchronisation: the
   // CUDA version can be captured into a CUDA graph.
   m.def("solver_run(Tensor points, Tensor corner_idx, Tensor corner_w, Tensor vtx_ptr, Tensor vtx_entry, "
-        "Tensor? labels, Tensor? cluster_count, Tensor? vc_ptr, Tensor? vc_cluster, Tensor? vc_weight, Tensor[] dts, float[] dt_origins, int[] point_ranges, "
+        "Tensor? labels, Tensor? cluster_count, Tensor[] dts, float[] dt_origins, int[] point_ranges, "
         "int[] vertex_ranges, int[] support_ranges, int[] support_dt, float[] support_t, float[] support_w, "
         "float[] reg_scale, float[] hyper, Tensor(a!) theta, Tensor(b!) adam_m, Tensor(c!) adam_v, "
         "Tensor(d!) best, Tensor(e!) state, Tensor(f!) history, int num_iters) -> ()");

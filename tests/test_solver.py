@@ -168,7 +168,7 @@ def test_opcheck():
     cfg = FloxelsConfig(max_iters=4)
     P, sup = _scene(7, n=150)
     p = PackedProblems([_problem(P, sup, cfg)], cfg)
-    args = (p.points, p.corner_idx, p.corner_w, p.vtx_ptr, p.vtx_entry, p.labels, p.cluster_count, p.vc_ptr, p.vc_cluster, p.vc_weight, p.dts,
+    args = (p.points, p.corner_idx, p.corner_w, p.vtx_ptr, p.vtx_entry, p.labels, p.cluster_count, p.dts,
             p.dt_origins, p.point_ranges, p.vertex_ranges, p.support_ranges, p.support_dt, p.support_t,
             p.support_w, p.reg_scale, p.hyper, p.theta, p.adam_m, p.adam_v, p.best, p.state, p.history, 2)
     torch.library.opcheck(torch.ops.floxels.solver_run.default, args,

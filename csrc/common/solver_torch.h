@@ -43,8 +43,7 @@ constexpr int kHyperValues = 13;
 inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, const at::Tensor& corner_w,
                       const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry,
                       const std::optional<at::Tensor>& labels, const std::optional<at::Tensor>& cluster_count,
-                      const std::optional<at::Tensor>& vc_ptr, const std::optional<at::Tensor>& vc_cluster,
-                      const std::optional<at::Tensor>& vc_weight, at::TensorList dts, c10::ArrayRef<double> dt_origins, c10::ArrayRef<int64_t> point_ranges,
+                      at::TensorList dts, c10::ArrayRef<double> dt_origins, c10::ArrayRef<int64_t> point_ranges,
                       c10::ArrayRef<int64_t> vertex_ranges, c10::ArrayRef<int64_t> support_ranges,
                       c10::ArrayRef<int64_t> support_dt, c10::ArrayRef<double> support_t,
                       c10::ArrayRef<double> support_w, c10::ArrayRef<double> reg_scale,
@@ -81,11 +80,6 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
     C = cluster_count->dim() == 1 ? cluster_count->size(0) : -1;
     check_table(*labels, "labels", at::kInt, {N}, points);
     check_table(*cluster_count, "cluster_count", at::kFloat, {C}, points);
-    FLX_CHECK(vc_ptr && vc_cluster && vc_weight, "floxels: solver_run: labels need vc_ptr, vc_cluster and vc_weight");
-    const int64_t K = vc_cluster->dim() == 1 ? vc_cluster->size(0) : -1;
-    check_table(*vc_ptr, "vc_ptr", at::kInt, {M + 1}, points);
-    check_table(*vc_cluster, "vc_cluster", at::kInt, {K}, points);
-    check_table(*vc_weight, "vc_weight", at::kFloat, {K}, points);
   }
   check_offsets(point_ranges, B, N, "point_ranges");
   check_offsets(vertex_ranges, B, M, "vertex_ranges");
@@ -136,9 +130,6 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
   a.vtx_entry = vtx_entry.data_ptr<int32_t>();
   a.labels = labels ? labels->data_ptr<int32_t>() : nullptr;
   a.cluster_count = cluster_count ? cluster_count->data_ptr<float>() : nullptr;
-  a.vc_ptr = labels ? vc_ptr->data_ptr<int32_t>() : nullptr;
-  a.vc_cluster = labels ? vc_cluster->data_ptr<int32_t>() : nullptr;
-  a.vc_weight = labels ? vc_weight->data_ptr<float>() : nullptr;
   a.num_points = N;
   a.num_vertices = M;
   a.num_clusters = C;

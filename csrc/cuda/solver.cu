@@ -1,16 +1,12 @@
 // CUDA implementation of the device-resident Floxels optimiser (stages in kernels/solver.h).
 //
-// One iteration = four kernels: points (flow, DT loss, flow norm, cluster sums of f),
-// cluster residuals (unit residuals u, their cluster sums), control (one block: losses,
-// early stopping, Adam bias corrections) and vertices (best copy, gradient, Adam).
-// The vertex gradient is accumulated by the point kernels with warp-aggregated atomics
-// (points are sorted by voxel, so a warp's lanes share corners); the cluster-mean part of
-// the gradient, -c * mean_c(u) for every point of cluster c, is applied per vertex through
-// a precomputed table of (cluster, summed corner weight) pairs. Cluster sums go through a
-// per-block shared-memory table. Everything a kernel needs from the host is in the kernel
-// parameters or in device memory and nothing synchronises, so iterations can be captured
-// into a CUDA graph. Float atomics make the last bits depend on scheduling (the CPU
-// version is deterministic).
+// One iteration = four kernels: points (flow, DT loss, flow norm, cluster sums), cluster
+// residuals, control (one block: losses, early stopping, Adam bias corrections) and
+// vertices (best copy, gradient from the vertex's (point, corner) entries, Adam). The
+// vertex gradient is a gather over a CSR list built once per frame, so no atomics touch
+// the parameters; only the per-cluster sums use warp-aggregated atomics. Everything a
+// kernel needs from the host is in the kernel parameters or in device memory, and
+// nothing synchronises, so any number of iterations can be captured into a CUDA graph.
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -29,6 +25,7 @@ using cuda_detail::warp_add;
 using Scan = dt_loss::Scan<float, int>;
 
 constexpr int kThreads = 256;
+constexpr int kVerticesPerBlock = kThreads / 32;  // stage 4: a warp per vertex
 // Stage 1/2 cluster sums go through a per-block shared-memory table when the clusters fit:
 // each block then issues one global atomic per cluster it touched instead of one per warp
 // (big clusters made thousands of warps hit the same three addresses).
@@ -55,9 +52,6 @@ struct KParams {
   const int32_t* vtx_entry;
   const int32_t* labels;
   const float* cluster_count;
-  const int32_t* vc_ptr;
-  const int32_t* vc_cluster;
-  const float* vc_weight;
   float* theta;
   float* adam_m;
   float* adam_v;
@@ -69,7 +63,6 @@ struct KParams {
   float* g;     // (N, 3) d loss / d f_i
   float* csum;  // (C, 3) sums of f per cluster
   float* usum;  // (C, 3) sums of the unit residuals per cluster
-  float* acc;   // (M, 3) sum over entries of w * (point gradient without the cluster-mean part)
   double* part_points;   // per point block: DT + flow-norm loss
   double* part_cluster;  // per point block: cluster loss
 };
@@ -115,18 +108,6 @@ __device__ void cluster_accumulate(float* table, int64_t key, const float* v, in
   }
 }
 
-// Adds w_j * g to the accumulator rows of the point's 8 corners. Points are sorted by
-// voxel, so the lanes of a warp mostly share corners: warp aggregation turns ~32 atomics
-// per corner into one or two. Must be called by every lane (valid = false: adds nothing).
-__device__ __forceinline__ void scatter_corners(const KParams& P, int i, bool valid, const float* g, float* scratch) {
-  const int32_t* idx = P.corner_idx + 8 * int64_t(valid ? i : 0);
-  const float* w = P.corner_w + 8 * int64_t(valid ? i : 0);
-  for (int j = 0; j < 8; ++j) {
-    const int64_t key = valid && unsigned(idx[j]) < unsigned(P.num_vertices) ? int64_t(idx[j]) : -1;
-    warp_add<float>(P.acc, key, 3, 1, g, valid ? w[j] : 0.0f, 3, scratch);
-  }
-}
-
 // Stage 1. Also clears the u sums of the previous iteration (nothing reads them now).
 template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
@@ -139,7 +120,6 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
   const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
   const bool valid = i < P.point_end[p];
   float f[3] = {0.0f, 0.0f, 0.0f};
-  float gp[3] = {0.0f, 0.0f, 0.0f};
   float loss = 0.0f;
   if (valid) {
     const int32_t* idx = P.corner_idx + 8 * int64_t(i);
@@ -156,16 +136,11 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
     const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
     float unit[3];
     loss += lam * norm_and_unit(f, unit);
-    for (int c = 0; c < 3; ++c) gp[c] = g[c] + lam * unit[c];
-    if constexpr (kCluster) {
-      float* gi = P.g + 3 * int64_t(i);
-      for (int c = 0; c < 3; ++c) {
-        gi[c] = gp[c];
-        P.f[3 * int64_t(i) + c] = f[c];
-      }
-    }
+    float* gi = P.g + 3 * int64_t(i);
+    for (int c = 0; c < 3; ++c) gi[c] = g[c] + lam * unit[c];
+    if constexpr (kCluster)
+      for (int c = 0; c < 3; ++c) P.f[3 * int64_t(i) + c] = f[c];
   }
-  if constexpr (!kCluster) scatter_corners(P, i, valid, gp, scratch + (threadIdx.x & ~31u));
   if constexpr (kCluster) {
     const int64_t key = valid && unsigned(P.labels[i]) < unsigned(P.num_clusters) ? int64_t(P.labels[i]) : -1;
     cluster_accumulate(P.csum, key, f, P.num_clusters, smem_table, scratch);
@@ -189,14 +164,11 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
   if (l >= 0) {
     const float inv = 1.0f / P.cluster_count[l];
     const float mean[3] = {P.csum[3 * l] * inv, P.csum[3 * l + 1] * inv, P.csum[3 * l + 2] * inv};
-    loss = P.cluster_coef[p] * cluster::residual_unit<float>(P.f + 3 * int64_t(i), mean, 3, u);
-  }
-  float gp[3] = {0.0f, 0.0f, 0.0f};
-  if (valid) {
     const float coef = P.cluster_coef[p];
-    for (int c = 0; c < 3; ++c) gp[c] = P.g[3 * int64_t(i) + c] + coef * u[c];
+    loss = coef * cluster::residual_unit<float>(P.f + 3 * int64_t(i), mean, 3, u);
+    float* gi = P.g + 3 * int64_t(i);
+    for (int c = 0; c < 3; ++c) gi[c] += coef * u[c];
   }
-  scatter_corners(P, i, valid, gp, scratch + (threadIdx.x & ~31u));
   cluster_accumulate(P.usum, l, u, P.num_clusters, smem_table, scratch);
   const double total = block_sum(double(loss));
   if (threadIdx.x == 0) P.part_cluster[blockIdx.x] = total;
@@ -219,42 +191,58 @@ __global__ void control_kernel(const __grid_constant__ KParams P) {
   if (lane == 0) control_update(st, s, P.history + int64_t(p) * P.hyper.max_iters, P.hyper);
 }
 
-// Stage 4, a thread per vertex: gradient = accumulated sum - cluster_coef * sum over the
-// vertex's clusters of (summed corner weight) * mean unit residual; Adam. Clears the
-// accumulator row and (grid-strided) the cluster sums of f for the next iteration.
+// Stage 4, one warp per vertex: vertices near the sensor gather thousands of (point,
+// corner) entries, so the lanes split the entry list and combine with shuffles. Also
+// clears the cluster sums of f for the next iteration.
 template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
   if constexpr (kCluster) zero_strided(P.csum, 3 * int64_t(P.num_clusters));
   const int p = problem_of(blockIdx.x, P.vblock_begin, P.num_problems);
   const double* st = P.state + p * kStateCols;
   const bool step = st[kStep] != 0.0, copy = st[kCopyBest] != 0.0;
-  const int v = P.vertex_begin[p] + (int(blockIdx.x) - P.vblock_begin[p]) * kThreads + int(threadIdx.x);
-  if (v >= P.vertex_end[p]) return;
+  if (!step && !copy) return;
+  const int lane = threadIdx.x & 31;
+  const int v = P.vertex_begin[p] + (int(blockIdx.x) - P.vblock_begin[p]) * kVerticesPerBlock + int(threadIdx.x >> 5);
+  if (v >= P.vertex_end[p]) return;  // uniform per warp
   float* th = P.theta + 3 * int64_t(v);
-  float* acc = P.acc + 3 * int64_t(v);
-  float G[3] = {acc[0], acc[1], acc[2]};
-  acc[0] = acc[1] = acc[2] = 0.0f;
-  if (copy)
-    for (int c = 0; c < 3; ++c) P.best[3 * int64_t(v) + c] = th[c];
+  if (copy && lane < 3) P.best[3 * int64_t(v) + lane] = th[lane];
   if (!step) return;
-  if constexpr (kCluster) {
-    const float ccoef = P.cluster_coef[p];
-    for (int k = P.vc_ptr[v], k_end = P.vc_ptr[v + 1]; k < k_end; ++k) {
-      const int l = P.vc_cluster[k];
-      if (unsigned(l) >= unsigned(P.num_clusters)) continue;  // validated in Python
-      const float s = ccoef * P.vc_weight[k] / P.cluster_count[l];
-      for (int c = 0; c < 3; ++c) G[c] -= s * P.usum[3 * l + c];
+  float G[3] = {0.0f, 0.0f, 0.0f};
+  const float ccoef = P.cluster_coef[p];
+  const int e_end = min(P.vtx_ptr[v + 1], P.num_entries);
+  for (int e = max(P.vtx_ptr[v], 0) + lane; e < e_end; e += 32) {
+    const int ent = P.vtx_entry[e];
+    if (unsigned(ent) >= unsigned(P.num_entries)) continue;  // validated in Python; never read outside
+    const int i = ent >> 3;
+    const float w = P.corner_w[ent];
+    const float* gi = P.g + 3 * int64_t(i);
+    float gx = gi[0], gy = gi[1], gz = gi[2];
+    if constexpr (kCluster) {
+      const int l = P.labels[i];
+      if (unsigned(l) < unsigned(P.num_clusters)) {
+        const float s = ccoef / P.cluster_count[l];
+        gx -= s * P.usum[3 * l];
+        gy -= s * P.usum[3 * l + 1];
+        gz -= s * P.usum[3 * l + 2];
+      }
     }
+    G[0] += w * gx;
+    G[1] += w * gy;
+    G[2] += w * gz;
   }
-  const float step_size = float(st[kStepSize]), bc2 = float(st[kBc2Sqrt]);
-  float* m = P.adam_m + 3 * int64_t(v);
-  float* vv = P.adam_v + 3 * int64_t(v);
-  for (int c = 0; c < 3; ++c) adam_update(th[c], m[c], vv[c], G[c], P.hyper, step_size, bc2);
+  for (int c = 0; c < 3; ++c)
+    for (int off = 16; off > 0; off >>= 1) G[c] += __shfl_xor_sync(0xffffffffu, G[c], off);
+  if (lane < 3) {
+    const float step_size = float(st[kStepSize]), bc2 = float(st[kBc2Sqrt]);
+    adam_update(th[lane], P.adam_m[3 * int64_t(v) + lane], P.adam_v[3 * int64_t(v) + lane], G[lane], P.hyper,
+                step_size, bc2);
+  }
 }
 
 int64_t align256(int64_t bytes) { return (bytes + 255) / 256 * 256; }
 
 int64_t blocks_for(int64_t n) { return (n + kThreads - 1) / kThreads; }
+int64_t vertex_blocks_for(int64_t m) { return (m + kVerticesPerBlock - 1) / kVerticesPerBlock; }
 
 int64_t total_point_blocks(const Args& a) {
   int64_t b = 0;
@@ -268,8 +256,7 @@ bool use_cluster(const Args& a) { return a.labels != nullptr && a.num_clusters >
 
 int64_t solver_workspace_bytes(const Args& a) {
   const int64_t n = a.num_points, c = a.num_clusters, blocks = total_point_blocks(a);
-  return 2 * align256(3 * n * 4) + 2 * align256(3 * c * 4) + align256(3 * a.num_vertices * 4) +
-         2 * align256(blocks * 8);
+  return 2 * align256(3 * n * 4) + 2 * align256(3 * c * 4) + 2 * align256(blocks * 8);
 }
 
 cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStream_t stream) {
@@ -284,7 +271,7 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
     P.block_begin[p] = pb;
     P.vblock_begin[p] = vb;
     pb += int(blocks_for(n));
-    vb += int(blocks_for(pr.vertex_end - pr.vertex_begin));
+    vb += int(vertex_blocks_for(pr.vertex_end - pr.vertex_begin));
     P.point_begin[p] = int(pr.point_begin);
     P.point_end[p] = int(pr.point_end);
     P.vertex_begin[p] = int(pr.vertex_begin);
@@ -317,9 +304,6 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   P.vtx_entry = a.vtx_entry;
   P.labels = a.labels;
   P.cluster_count = a.cluster_count;
-  P.vc_ptr = a.vc_ptr;
-  P.vc_cluster = a.vc_cluster;
-  P.vc_weight = a.vc_weight;
   P.theta = a.theta;
   P.adam_m = a.adam_m;
   P.adam_v = a.adam_v;
@@ -336,18 +320,12 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   w += align256(3 * c * 4);
   P.usum = reinterpret_cast<float*>(w);
   w += align256(3 * c * 4);
-  P.acc = reinterpret_cast<float*>(w);
-  w += align256(3 * a.num_vertices * 4);
   P.part_points = reinterpret_cast<double*>(w);
   w += align256(int64_t(pb) * 8);
   P.part_cluster = reinterpret_cast<double*>(w);
 
   if (cl) {
     const cudaError_t err = cudaMemsetAsync(P.csum, 0, 3 * c * sizeof(float), stream);
-    if (err != cudaSuccess) return err;
-  }
-  if (a.num_vertices > 0) {
-    const cudaError_t err = cudaMemsetAsync(P.acc, 0, 3 * a.num_vertices * sizeof(float), stream);
     if (err != cudaSuccess) return err;
   }
   const int control_threads = 32 * a.num_problems;

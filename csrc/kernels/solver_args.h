@@ -36,11 +36,6 @@ struct Args {
   const int32_t* vtx_entry;    // (8N) entries point * 8 + corner, grouped by vertex
   const int32_t* labels;       // (N) global cluster ids, -1 noise; null: no cluster term
   const float* cluster_count;  // (C) points per cluster
-  // Per vertex, sum of the corner weights of its points in each cluster (CSR over vertices):
-  // with it the cluster-mean part of the gradient needs no per-entry loop on the GPU.
-  const int32_t* vc_ptr;       // (M + 1)
-  const int32_t* vc_cluster;   // (K)
-  const float* vc_weight;      // (K)
   int64_t num_points, num_vertices, num_clusters;
   DtDesc dts[kMaxDts];
   int num_dts;

@@ -25,7 +25,7 @@ COL_ACTIVE, COL_ITER, COL_BEST_LOSS, COL_BEST_ITER = 0, 1, 2, 5
 
 
 @torch.library.register_fake("floxels::solver_run")
-def _fake(points, corner_idx, corner_w, vtx_ptr, vtx_entry, labels, cluster_count, vc_ptr, vc_cluster, vc_weight, dts, dt_origins, point_ranges,
+def _fake(points, corner_idx, corner_w, vtx_ptr, vtx_entry, labels, cluster_count, dts, dt_origins, point_ranges,
           vertex_ranges, support_ranges, support_dt, support_t, support_w, reg_scale, hyper, theta, adam_m, adam_v,
           best, state, history, num_iters):
     return None
@@ -118,20 +118,8 @@ class PackedProblems:
             lab = torch.cat(labels)
             self.labels = lab.to(torch.int32).contiguous()
             self.cluster_count = torch.bincount(lab[lab >= 0], minlength=ncl).to(torch.float32).contiguous()
-            # per vertex: its points' clusters and summed corner weights (CUDA applies the
-            # cluster-mean part of the gradient through this table)
-            lab8 = lab.repeat_interleave(8)
-            keep = lab8 >= 0
-            pair = flat[keep] * ncl + lab8[keep]
-            uniq, inv = torch.unique(pair, return_inverse=True)
-            self.vc_weight = torch.zeros(uniq.shape[0], dtype=torch.float32, device=dev).index_add_(
-                0, inv, self.corner_w.reshape(-1)[keep]).contiguous()
-            self.vc_cluster = (uniq % ncl).to(torch.int32).contiguous()
-            vcount = torch.bincount(uniq // ncl, minlength=M)
-            self.vc_ptr = torch.cat([vcount.new_zeros(1), torch.cumsum(vcount, 0)]).to(torch.int32).contiguous()
         else:
             self.labels = self.cluster_count = None
-            self.vc_ptr = self.vc_cluster = self.vc_weight = None
         self.hyper = solver_hyper(cfg)
         f32 = dict(dtype=torch.float32, device=dev)
         self.theta = torch.zeros(M, 3, **f32)
@@ -148,7 +136,7 @@ class PackedProblems:
     def run(self, num_iters: int) -> None:
         """Enqueue ``num_iters`` iterations (no host synchronisation on CUDA)."""
         ops_ns.solver_run(self.points, self.corner_idx, self.corner_w, self.vtx_ptr, self.vtx_entry, self.labels,
-                          self.cluster_count, self.vc_ptr, self.vc_cluster, self.vc_weight, self.dts, self.dt_origins, self.point_ranges, self.vertex_ranges,
+                          self.cluster_count, self.dts, self.dt_origins, self.point_ranges, self.vertex_ranges,
                           self.support_ranges, self.support_dt, self.support_t, self.support_w, self.reg_scale,
                           self.hyper, self.theta, self.adam_m, self.adam_v, self.best, self.state, self.history,
                           int(num_iters))
