@@ -61,7 +61,7 @@ def test_nearest_neighbors_chunking_is_exact():
     x = torch.tensor(rng.uniform(-30, 30, (300, 3)), dtype=torch.float32)
     y = torch.tensor(rng.uniform(-30, 30, (170, 3)), dtype=torch.float32)
     full = torch.cdist(x.double(), y.double()).argmin(1)
-    for chunk in (1, 7, 170, 1 << 24):
+    for chunk in (0, 1, 7, 170, 1 << 24):
         assert torch.equal(nearest_neighbors(x, y, chunk), full)
     assert torch.allclose(nn_distances(x, y, squared=False), torch.cdist(x.double(), y.double()).min(1).values.float())
 

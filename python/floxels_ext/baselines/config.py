@@ -16,7 +16,6 @@ import math
 from dataclasses import dataclass
 
 from ..ops.grid import DEFAULT_MAX_CELLS
-from .chamfer import DEFAULT_CHUNK_ELEMS
 from .mlp import ACTIVATIONS, INITS
 
 
@@ -93,7 +92,7 @@ class NSFPConfig(_MLPBaselineConfig):
     backward_flow: bool = True
     chamfer_truncation: float = 2.0  # NSFP's code zeroes squared NN distances >= 2 (m^2)
     chamfer_squared: bool = True     # False: plain distances, truncated at chamfer_truncation (m)
-    nn_chunk_elems: int = DEFAULT_CHUNK_ELEMS  # memory cap of one distance-matrix chunk
+    nn_chunk_elems: int = 0          # entries of one distance-matrix chunk (0: 2^24 CPU, 2^27 GPU)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -102,8 +101,9 @@ class NSFPConfig(_MLPBaselineConfig):
         v = self.chamfer_truncation
         if not (isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 and not math.isnan(v)):
             raise ValueError(f"NSFPConfig.chamfer_truncation must be positive (inf = no truncation), got {v!r}")
-        if not isinstance(self.nn_chunk_elems, int) or self.nn_chunk_elems < 1:
-            raise ValueError(f"NSFPConfig.nn_chunk_elems must be a positive integer, got {self.nn_chunk_elems!r}")
+        if not isinstance(self.nn_chunk_elems, int) or isinstance(self.nn_chunk_elems, bool) or self.nn_chunk_elems < 0:
+            raise ValueError(f"NSFPConfig.nn_chunk_elems must be an integer >= 0 (0 = per-device default), "
+                             f"got {self.nn_chunk_elems!r}")
 
 
 @dataclass(frozen=True)
