@@ -18,7 +18,7 @@ with a message otherwise).
 
 Sizes: the default (full) run uses the 32-beam lidar, two scenes x 3 frames, all points in
 range, 5000 baseline iterations at most (early stopping as in the paper) and is meant for a
-GPU (a few minutes on an H100). ``--quick`` is a CPU smoke run (~1 min on 2 cores): one
+GPU (a few minutes on an H100). ``--quick`` is a CPU smoke run (under a minute on 2 cores): one
 scene, 2 frames, 30 m range, 1000 points per scan, 250 iterations at most.
 """
 
@@ -184,7 +184,7 @@ def plot(path: str, rows, abl_rows, title: str) -> bool:
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
-    ap.add_argument("--quick", action="store_true", help="tiny CPU smoke run (~1-2 min on 2 cores)")
+    ap.add_argument("--quick", action="store_true", help="tiny CPU smoke run (under a minute on 2 idle cores)")
     ap.add_argument("--scenes", nargs="+", default=None, help="simulated scenes (default: urban crossing; quick: crossing)")
     ap.add_argument("--frames", type=int, default=None, help="evaluated frames per scene (default 3; quick 2)")
     ap.add_argument("--seed", type=int, default=0)
