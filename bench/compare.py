@@ -72,14 +72,20 @@ def load_scene(scene: str, seed: int, num_frames: int, lidar: str, max_range: fl
     return scans, truth
 
 
-def run_method(name: str, data, device: str, options: dict):
+def run_method(name: str, data, device: str, options: dict, progress: bool = False):
     """Run one method on every scene; returns (metrics over all evaluated frames, s/frame)."""
     method = methods.get_method(name)
     preds, gts, seconds, nframes = [], [], 0.0, 0
-    for scans, truth, frames in data:
+    for k, (scans, truth, frames) in enumerate(data):
         out = {}
         t0 = time.perf_counter()
-        method.estimate_sequence(scans, frames, device, options, lambda f, flow: out.__setitem__(f, flow))
+
+        def done(f, flow):
+            out[f] = flow
+            if progress:
+                log(f"    {name}: scene {k + 1}/{len(data)} frame {f} done ({time.perf_counter() - t0:.1f} s)")
+
+        method.estimate_sequence(scans, frames, device, options, done)
         if device.startswith("cuda"):
             torch.cuda.synchronize()
         seconds += time.perf_counter() - t0
@@ -241,7 +247,7 @@ def main(argv=None) -> int:
     for name in args.methods:
         warm_up(name, data, dev, base[name])
         t0 = time.perf_counter()
-        m, spf = run_method(name, data, dev, base[name])
+        m, spf = run_method(name, data, dev, base[name], progress=True)
         rows.append({"name": name, "label": label_of[name], "metrics": m, "seconds_per_frame": spf,
                      "options": base[name]})
         log(f"[{time.perf_counter() - t_all:6.1f} s] {label_of[name]}: dyn EPE {fmt(m['dynamic_epe'])}, "
