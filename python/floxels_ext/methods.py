@@ -23,7 +23,7 @@ from dataclasses import dataclass
 __all__ = ["Method", "METHOD_MODULES", "register", "get_method", "available_methods"]
 
 # Modules that register methods when imported (floxels' own is below).
-METHOD_MODULES: list[str] = []
+METHOD_MODULES: list[str] = ["floxels_ext.baselines"]
 
 
 @dataclass(frozen=True)
