@@ -325,7 +325,9 @@ def run(args) -> int:
         raise CLIError(f"--device must be cpu or cuda, got {device!r}")
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise CLIError("--device cuda requested but no CUDA device is available")
-    options = {"num_scans": args.scans, **_parse_options(args.option, args.max_iters)}
+    options = _parse_options(args.option, args.max_iters)
+    if args.method == "floxels":  # the baselines estimate from a (frame, next frame) pair
+        options = {"num_scans": args.scans, **options}
     if args.method == "floxels":  # fail fast on a bad option instead of after reading data
         from .config import FloxelsConfig
         try:
