@@ -16,6 +16,7 @@
 
 #include "common/solver_torch.h"
 #include "kernels/cluster.h"
+#include "kernels/corners.h"
 #include "kernels/dt_loss.h"
 #include "kernels/solver.h"
 
@@ -117,12 +118,7 @@ class CpuSolver {
         double acc = 0.0;
         for (int64_t i = ch.begin; i < ch.end; ++i) {
           float* f = &f_[3 * i];
-          f[0] = f[1] = f[2] = 0.0f;
-          for (int j = 0; j < 8; ++j) {
-            const float w = a_.corner_w[8 * i + j];
-            const float* row = a_.theta + 3 * int64_t(a_.corner_idx[8 * i + j]);
-            for (int k = 0; k < 3; ++k) f[k] += w * row[k];
-          }
+          corners::gather_point<float>(a_.theta, a_.corner_idx + 8 * i, a_.corner_w + 8 * i, 3, f);
           const float* p = a_.points + 3 * i;
           float g[3];
           float l = dt_loss::point_loss<true, float, int64_t>(scans_[ch.problem], a_.problems[ch.problem].num_support,

@@ -13,12 +13,14 @@
 
 #include <cstdint>
 
+#include "cuda/block_reduce.cuh"
 #include "cuda/dt_loss_launch.h"
 #include "kernels/dt_loss.h"
 
 namespace floxels::cuda {
 namespace {
 
+using cuda_detail::block_sum;
 constexpr int kThreads = 256;
 constexpr int kFinalThreads = 256;
 
@@ -35,22 +37,6 @@ struct Params {
   T inv_spacing;
   T truncation;
 };
-
-// Deterministic sum of one double per thread over the block; result valid in thread 0.
-template <int kBlock>
-__device__ double block_sum(double v) {
-  static_assert(kBlock % 32 == 0 && kBlock <= 1024, "block size must be whole warps");
-  __shared__ double warp_sums[kBlock / 32];
-  for (int off = 16; off > 0; off >>= 1) v += __shfl_down_sync(0xffffffffu, v, off);
-  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-  if (lane == 0) warp_sums[warp] = v;
-  __syncthreads();
-  double total = 0.0;
-  if (threadIdx.x == 0) {
-    for (int w = 0; w < kBlock / 32; ++w) total += warp_sums[w];
-  }
-  return total;
-}
 
 template <typename T, bool kLoss, bool kGrad>
 __global__ void __launch_bounds__(kThreads) dt_loss_kernel(const __grid_constant__ Params<T> p) {

@@ -11,6 +11,7 @@
 
 #include <cstdint>
 
+#include "cuda/block_reduce.cuh"
 #include "cuda/solver_launch.h"
 #include "cuda/warp_aggregate.cuh"
 #include "kernels/cluster.h"
@@ -21,6 +22,7 @@ namespace floxels::cuda {
 namespace {
 
 using namespace floxels::solver;
+using cuda_detail::block_sum;
 using cuda_detail::warp_add;
 using Scan = dt_loss::Scan<float, int>;
 
@@ -71,18 +73,6 @@ __device__ __forceinline__ int problem_of(int block, const int* begins, int num_
   int p = 0;
   while (p + 1 < num_problems && block >= begins[p + 1]) ++p;
   return p;
-}
-
-// Deterministic block sum of one double per thread (valid in thread 0).
-__device__ double block_sum(double v) {
-  __shared__ double warp_sums[kThreads / 32];
-  for (int off = 16; off > 0; off >>= 1) v += __shfl_down_sync(0xffffffffu, v, off);
-  if ((threadIdx.x & 31) == 0) warp_sums[threadIdx.x >> 5] = v;
-  __syncthreads();
-  double total = 0.0;
-  if (threadIdx.x == 0)
-    for (int w = 0; w < kThreads / 32; ++w) total += warp_sums[w];
-  return total;
 }
 
 __device__ __forceinline__ void zero_strided(float* a, int64_t n) {
@@ -145,7 +135,7 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
     const int64_t key = valid && unsigned(P.labels[i]) < unsigned(P.num_clusters) ? int64_t(P.labels[i]) : -1;
     cluster_accumulate(P.csum, key, f, P.num_clusters, smem_table, scratch);
   }
-  const double total = block_sum(double(loss));
+  const double total = block_sum<kThreads>(double(loss));
   if (threadIdx.x == 0) P.part_points[blockIdx.x] = total;
 }
 
@@ -170,7 +160,7 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
     for (int c = 0; c < 3; ++c) gi[c] += coef * u[c];
   }
   cluster_accumulate(P.usum, l, u, P.num_clusters, smem_table, scratch);
-  const double total = block_sum(double(loss));
+  const double total = block_sum<kThreads>(double(loss));
   if (threadIdx.x == 0) P.part_cluster[blockIdx.x] = total;
 }
 
