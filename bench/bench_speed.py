@@ -92,6 +92,22 @@ def main() -> None:
                torch=torch.__version__, points=[len(s) for s in frame], iters=res.num_iters,
                frame_s=frame_s, frame_runs_s=wall, stages=res.timings, metrics_ours=m_ours)
 
+    # stage breakdown: the same frame with the stages run one after the other (by default
+    # DBSCAN and the sorting overlap the EDTs on a side stream, see estimator.py)
+    os.environ["FLOXELS_SERIAL_STAGES"] = "1"
+    try:
+        serial = []
+        for _ in range(args.repeats):
+            _sync(dev)
+            t0 = time.perf_counter()
+            r = Floxels(cfg, dev).fit(frame, target)
+            _sync(dev)
+            serial.append((time.perf_counter() - t0, r.timings))
+    finally:
+        del os.environ["FLOXELS_SERIAL_STAGES"]
+    serial.sort(key=lambda x: x[0])
+    out.update(frame_serial_s=serial[len(serial) // 2][0], stages_serial=serial[len(serial) // 2][1])
+
     # sequence throughput (DT reuse + batched targets)
     seq = scans[:args.seq_frames]
     estimate_sequence(seq[:min(len(seq), 6)], cfg.replace(max_iters=20), device=dev, batch_size=args.batch)  # warm
@@ -122,9 +138,13 @@ def main() -> None:
 
     print(f"\nFloxels frame, {dev} ({out['gpu']}), {sum(out['points']) // 5} points/scan, {out['iters']} iterations")
     print(f"{'':<26} {'ms':>10}")
-    print(f"{'whole frame (median)':<26} {1e3 * frame_s:>10.2f}")
+    print(f"{'whole frame (median)':<26} {1e3 * frame_s:>10.2f}   (DBSCAN + sorting overlap the EDTs)")
     for k in ("dt", "dbscan", "setup", "optimise"):
         print(f"{'  ' + k:<26} {1e3 * res.timings[k]:>10.2f}")
+    print(f"{'stages run serially':<26} {1e3 * out['frame_serial_s']:>10.2f}")
+    for k in ("dt", "dbscan", "setup", "optimise"):
+        print(f"{'  ' + k:<26} {1e3 * out['stages_serial'][k]:>10.2f}")
+    print(f"{'  optimise per iteration':<26} {1e6 * out['stages_serial']['optimise'] / out['iters']:>10.1f} us")
     if "ref_s" in out:
         print(f"{'reference (pure PyTorch)':<26} {1e3 * out['ref_s']:>10.1f}   ratio {out['speedup']:.0f}x")
     print(f"\nsequence: {len(seq)} frames in {seq_s:.3f} s = {out['seq_fps']:.1f} frames/s (batch {args.batch}); "

@@ -81,10 +81,12 @@ TORCH_LIBRARY(floxels, m) {
   // support_dt / support_t / support_w: per support scan of each problem, the index into
   // dts, the time offset and lambda_d * w(t); reg_scale: B multipliers of the regularisers.
   // hyper = [dt_cell, truncation, lr, beta1, beta2, eps, lambda_c, lambda_g_start,
-  // lambda_g_end, lambda_g_decay_iters, patience, max_iters, min_delta]
+  // lambda_g_end, lambda_g_decay_iters, patience, max_iters, min_delta].
+  // seg_ptr (S + 1): segments = runs of points with equal corner_idx rows and labels inside
+  // one problem; vtx_ptr / vtx_entry: per vertex, its (segment * 8 + corner) entries
   // (python/floxels_ext/ops/solver.py builds all of this). No host synchronisation: the
   // CUDA version can be captured into a CUDA graph.
-  m.def("solver_run(Tensor points, Tensor corner_idx, Tensor corner_w, Tensor vtx_ptr, Tensor vtx_entry, "
+  m.def("solver_run(Tensor points, Tensor corner_idx, Tensor corner_w, Tensor seg_ptr, Tensor vtx_ptr, Tensor vtx_entry, "
         "Tensor? labels, Tensor? cluster_count, Tensor[] dts, float[] dt_origins, int[] point_ranges, "
         "int[] vertex_ranges, int[] support_ranges, int[] support_dt, float[] support_t, float[] support_w, "
         "float[] reg_scale, float[] hyper, Tensor(a!) theta, Tensor(b!) adam_m, Tensor(c!) adam_v, "

@@ -56,3 +56,14 @@ with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) a
     p.run(20)
     torch.cuda.synchronize()
 print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=12))
+
+# Whole frame: where the host time of the non-optimiser stages goes (syncs, copies, launches).
+est = Floxels(cfg.replace(max_iters=50), "cuda")
+est.fit(scans, 2)
+torch.cuda.synchronize()
+with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU,
+                                        torch.profiler.ProfilerActivity.CUDA]) as prof:
+    res = est.fit(scans, 2)
+    torch.cuda.synchronize()
+print("frame stages (ms):", {k: round(1e3 * v, 2) for k, v in res.timings.items()})
+print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))

@@ -133,7 +133,7 @@ def test_sequence_reuses_distance_transforms(scene, monkeypatch):
 
     built = []
     orig = est._build_dt
-    monkeypatch.setattr(est, "_build_dt", lambda p, c: built.append(len(p)) or orig(p, c))
+    monkeypatch.setattr(est, "_build_dt", lambda p, c, *a: built.append(len(p)) or orig(p, c, *a))
     cfg = FAST.replace(num_scans=3, max_iters=20)
     flows = estimate_sequence(scans, config=cfg)
     assert len(flows) == len(scans) and all(f.shape == s.shape for f, s in zip(flows, scans))
@@ -208,3 +208,19 @@ def test_scans_far_apart_do_not_allocate_a_joint_grid():
     out = estimate_flow([a, far], target=0, config=FAST)
     assert out.shape == a.shape and np.isfinite(out).all()
     assert np.abs(out).max() < 0.5
+
+
+def test_sequence_converts_each_scan_once(scene):
+    """A bad scan is reported once per sequence, not once per window that contains it, and
+    its dropped rows get NaN flow in its own frame."""
+    import warnings
+
+    scans, _, _ = scene
+    s = [x.copy() for x in scans]
+    s[1][3] = np.nan
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        flows = estimate_sequence(s, config=FAST.replace(num_scans=3, max_iters=10))
+    msgs = [str(w.message) for w in caught if "NaN" in str(w.message)]
+    assert len(msgs) == 1 and msgs[0].startswith("scan 1:"), msgs
+    assert np.isnan(flows[1][3]).all() and np.isfinite(np.delete(flows[1], 3, axis=0)).all()

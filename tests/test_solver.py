@@ -30,7 +30,9 @@ def _scene(seed, n=600, shift=(0.3, 0.1, 0.0)):
     return P, supports
 
 
-def _problem(P, supports, cfg, labels=True):
+def _problem(P, supports, cfg, labels=True, sort=False):
+    """One problem; ``sort``: order the points by (label, voxel) as the estimator does, which
+    makes the solver's segments long (unsorted points give mostly one-point segments)."""
     dts, origins, offsets, weights = [], [], [], []
     for t, Q in supports.items():
         d, o = distance_transform(Q, cfg.dt_cell, cfg.dt_padding)
@@ -41,6 +43,13 @@ def _problem(P, supports, cfg, labels=True):
     go, gs = grid_for_points(P, cfg.voxel_size, cfg.voxel_size)
     corners = compact_corners(P, go, cfg.voxel_size, gs)
     lab = dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples) if labels else None
+    if sort:
+        key = corners.corner_idx[:, 0].long() + (lab + 1) * corners.num_params if lab is not None \
+            else corners.corner_idx[:, 0].long()
+        order = torch.argsort(key)
+        P = P[order].contiguous()
+        corners = compact_corners(P, go, cfg.voxel_size, gs)
+        lab = lab[order].contiguous() if lab is not None else None
     return SolverProblem(P, corners, lab, dts, origins, offsets, weights, float(len(supports)))
 
 
@@ -86,11 +95,12 @@ def python_loop(pr: SolverProblem, cfg: FloxelsConfig):
     return best, losses, stopper.best_iter
 
 
+@pytest.mark.parametrize("sort", [False, True])
 @pytest.mark.parametrize("cluster", [True, False])
-def test_matches_python_loop(cluster):
+def test_matches_python_loop(cluster, sort):
     cfg = FloxelsConfig(max_iters=6, cluster_loss=cluster)
     P, sup = _scene(0)
-    pr = _problem(P, sup, cfg, labels=cluster)
+    pr = _problem(P, sup, cfg, labels=cluster, sort=sort)
     best_ref, losses_ref, best_iter_ref = python_loop(pr, cfg)
     packed = PackedProblems([pr], cfg)
     run_solver(packed)
@@ -156,6 +166,11 @@ def test_bad_inputs_raise_clear_errors():
     packed.labels = packed.labels.to(torch.int64)
     with pytest.raises(RuntimeError, match="labels must be Int"):
         packed.run(1)
+    packed = PackedProblems([_problem(P, sup, cfg, sort=True)], cfg)
+    seg = int((packed.seg_ptr[1:] - packed.seg_ptr[:-1]).argmax())  # a segment of several points
+    packed.labels[int(packed.seg_ptr[seg]) + 1] += 1
+    with pytest.raises(RuntimeError, match="segment"):
+        packed.run(1)
     packed = PackedProblems([_problem(P, sup, cfg)], cfg)
     packed.point_ranges = [0, 5]
     with pytest.raises(RuntimeError, match="point_ranges"):
@@ -168,10 +183,7 @@ def test_opcheck():
     cfg = FloxelsConfig(max_iters=4)
     P, sup = _scene(7, n=150)
     p = PackedProblems([_problem(P, sup, cfg)], cfg)
-    args = (p.points, p.corner_idx, p.corner_w, p.vtx_ptr, p.vtx_entry, p.labels, p.cluster_count, p.dts,
-            p.dt_origins, p.point_ranges, p.vertex_ranges, p.support_ranges, p.support_dt, p.support_t,
-            p.support_w, p.reg_scale, p.hyper, p.theta, p.adam_m, p.adam_v, p.best, p.state, p.history, 2)
-    torch.library.opcheck(torch.ops.floxels.solver_run.default, args,
+    torch.library.opcheck(torch.ops.floxels.solver_run.default, p.op_args(2),
                           test_utils=("test_schema", "test_faketensor"))
 
 
@@ -182,7 +194,7 @@ def test_cuda_matches_cpu(graph):
     probs_cpu, probs_gpu = [], []
     for seed in (8, 9):
         P, sup = _scene(seed, n=3000)
-        pr = _problem(P, sup, cfg)
+        pr = _problem(P, sup, cfg, sort=seed == 9)
         probs_cpu.append(pr)
         dev = lambda t: t.cuda() if t is not None else None  # noqa: E731
         c = pr.corners

@@ -1,6 +1,6 @@
 // floxels::solver_run's torch arguments -> solver::Args, with every check that needs no
 // look at tensor contents (shapes, dtypes, devices, contiguity, offset tables), shared by
-// the CPU and CUDA bindings. Index contents (corner_idx, vtx_entry, labels) are validated
+// the CPU and CUDA bindings. Index contents (corner_idx, seg_ptr, vtx_entry, labels) are validated
 // once per frame by python/floxels_ext/ops/solver.py; the kernels still bound-check them
 // so that bad indices can never touch memory outside the tables.
 #pragma once
@@ -41,7 +41,7 @@ inline void check_offsets(c10::ArrayRef<int64_t> r, int64_t B, int64_t total, co
 constexpr int kHyperValues = 13;
 
 inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, const at::Tensor& corner_w,
-                      const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry,
+                      const at::Tensor& seg_ptr, const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry,
                       const std::optional<at::Tensor>& labels, const std::optional<at::Tensor>& cluster_count,
                       at::TensorList dts, c10::ArrayRef<double> dt_origins, c10::ArrayRef<int64_t> point_ranges,
                       c10::ArrayRef<int64_t> vertex_ranges, c10::ArrayRef<int64_t> support_ranges,
@@ -68,8 +68,11 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
 
   check_table(corner_idx, "corner_idx", at::kInt, {N, 8}, points);
   check_table(corner_w, "corner_w", at::kFloat, {N, 8}, points);
+  const int64_t SG = seg_ptr.dim() == 1 ? seg_ptr.size(0) - 1 : -1;
+  FLX_CHECK(SG >= 0, "floxels: solver_run: seg_ptr must be 1-D with S + 1 offsets");
+  check_table(seg_ptr, "seg_ptr", at::kInt, {SG + 1}, points);
   check_table(vtx_ptr, "vtx_ptr", at::kInt, {M + 1}, points);
-  check_table(vtx_entry, "vtx_entry", at::kInt, {8 * N}, points);
+  check_table(vtx_entry, "vtx_entry", at::kInt, {8 * SG}, points);
   for (auto* t : {&theta, &adam_m, &adam_v, &best}) check_table(*t, "theta/adam_m/adam_v/best", at::kFloat, {M, 3}, points);
   check_table(state, "state", at::kDouble, {B, kStateCols}, points);
   check_table(history, "history", at::kDouble, {B, max_iters}, points);
@@ -126,6 +129,8 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
   a.points = points.data_ptr<float>();
   a.corner_idx = corner_idx.data_ptr<int32_t>();
   a.corner_w = corner_w.data_ptr<float>();
+  a.seg_ptr = seg_ptr.data_ptr<int32_t>();
+  a.num_segments = SG;
   a.vtx_ptr = vtx_ptr.data_ptr<int32_t>();
   a.vtx_entry = vtx_entry.data_ptr<int32_t>();
   a.labels = labels ? labels->data_ptr<int32_t>() : nullptr;

@@ -35,20 +35,40 @@ struct Chunk {
 
 // Contents checks the CUDA kernels cannot afford per call (they bound-check instead).
 void check_indices(const Args& a) {
-  const int64_t N = a.num_points, M = a.num_vertices, C = a.num_clusters;
-  for (int64_t j = 0; j < 8 * N; ++j) {
+  const int64_t N = a.num_points, M = a.num_vertices, C = a.num_clusters, S = a.num_segments;
+  for (int64_t j = 0; j < 8 * N; ++j)
     FLX_CHECK(a.corner_idx[j] >= 0 && a.corner_idx[j] < M, "floxels: solver_run: corner_idx[", j / 8, ", ",
               j % 8, "] = ", a.corner_idx[j], " is not a row of theta (", M, " rows)");
-    FLX_CHECK(a.vtx_entry[j] >= 0 && a.vtx_entry[j] < 8 * N, "floxels: solver_run: vtx_entry[", j, "] = ",
-              a.vtx_entry[j], " is out of range");
-  }
-  FLX_CHECK(a.vtx_ptr[0] == 0 && a.vtx_ptr[M] == 8 * N, "floxels: solver_run: vtx_ptr must run from 0 to 8N");
-  for (int64_t v = 0; v < M; ++v)
-    FLX_CHECK(a.vtx_ptr[v] <= a.vtx_ptr[v + 1], "floxels: solver_run: vtx_ptr must be non-decreasing");
   if (a.labels)
     for (int64_t i = 0; i < N; ++i)
       FLX_CHECK(a.labels[i] >= -1 && a.labels[i] < C, "floxels: solver_run: labels[", i, "] = ", a.labels[i],
                 " is outside [-1, ", C, ")");
+  // Segments: cover the points in order, never span two problems, and their points share
+  // corner rows and labels (the vertex gradient is computed per segment).
+  FLX_CHECK(a.seg_ptr[0] == 0 && a.seg_ptr[S] == N, "floxels: solver_run: seg_ptr must run from 0 to N");
+  int p = 0;
+  for (int64_t s = 0; s < S; ++s) {
+    const int64_t b = a.seg_ptr[s], e = a.seg_ptr[s + 1];
+    FLX_CHECK(b < e, "floxels: solver_run: seg_ptr must be increasing (segment ", s, " is empty)");
+    while (p + 1 < a.num_problems && b >= a.problems[p].point_end) ++p;
+    FLX_CHECK(e <= a.problems[p].point_end, "floxels: solver_run: segment ", s, " spans two problems");
+    for (int64_t i = b + 1; i < e; ++i) {
+      for (int k = 0; k < 8; ++k)
+        FLX_CHECK(a.corner_idx[8 * i + k] == a.corner_idx[8 * b + k], "floxels: solver_run: point ", i,
+                  " has other corners than the first point of its segment ", s);
+      FLX_CHECK(!a.labels || a.labels[i] == a.labels[b], "floxels: solver_run: point ", i,
+                " has another label than the first point of its segment ", s);
+    }
+  }
+  FLX_CHECK(a.vtx_ptr[0] == 0 && a.vtx_ptr[M] == 8 * S, "floxels: solver_run: vtx_ptr must run from 0 to 8S");
+  for (int64_t v = 0; v < M; ++v) {
+    FLX_CHECK(a.vtx_ptr[v] <= a.vtx_ptr[v + 1], "floxels: solver_run: vtx_ptr must be non-decreasing");
+    for (int32_t e = a.vtx_ptr[v]; e < a.vtx_ptr[v + 1]; ++e) {
+      const int32_t ent = a.vtx_entry[e];
+      FLX_CHECK(ent >= 0 && ent < 8 * S && a.corner_idx[8 * int64_t(a.seg_ptr[ent >> 3]) + (ent & 7)] == v,
+                "floxels: solver_run: vtx_entry[", e, "] = ", ent, " is not a (segment, corner) of vertex ", v);
+    }
+  }
 }
 
 class CpuSolver {
@@ -72,6 +92,12 @@ class CpuSolver {
     }
     f_.resize(3 * N);
     g_.resize(3 * N);
+    const int64_t S = a.num_segments;
+    seg_grad_.resize(24 * S);
+    seg_wsum_.assign(8 * S, 0.0f);
+    for (int64_t s = 0; s < S; ++s)
+      for (int64_t i = a.seg_ptr[s]; i < a.seg_ptr[s + 1]; ++i)
+        for (int k = 0; k < 8; ++k) seg_wsum_[8 * s + k] += a.corner_w[8 * i + k];
     part_.resize(chunks_.size());
     cluster_ = a.labels != nullptr && C > 0;
     if (cluster_) {
@@ -181,7 +207,23 @@ class CpuSolver {
     }
   }
 
+  // Per segment: sum over its points of w_k * g_i (8 corners x 3), in point order.
+  void segment_stage() {
+    at::parallel_for(0, a_.num_segments, 256, [&](int64_t s0, int64_t s1) {
+      for (int64_t s = s0; s < s1; ++s) {
+        float acc[24] = {};
+        for (int64_t i = a_.seg_ptr[s]; i < a_.seg_ptr[s + 1]; ++i)
+          for (int k = 0; k < 8; ++k)
+            for (int c = 0; c < 3; ++c) acc[3 * k + c] += a_.corner_w[8 * i + k] * g_[3 * i + c];
+        std::copy(acc, acc + 24, &seg_grad_[24 * s]);
+      }
+    });
+  }
+
   void vertex_stage() {
+    bool any = false;
+    for (int p = 0; p < a_.num_problems; ++p) any |= a_.state[p * kStateCols + kStep] != 0.0;
+    if (any) segment_stage();
     for (int p = 0; p < a_.num_problems; ++p) {
       const double* st = a_.state + p * kStateCols;
       const bool step = st[kStep] != 0.0, copy = st[kCopyBest] != 0.0;
@@ -198,14 +240,16 @@ class CpuSolver {
           float G[3] = {0.0f, 0.0f, 0.0f};
           for (int32_t e = a_.vtx_ptr[v]; e < a_.vtx_ptr[v + 1]; ++e) {
             const int32_t ent = a_.vtx_entry[e];
-            const int64_t i = ent >> 3;
-            const float w = a_.corner_w[ent];
-            float gi[3] = {g_[3 * i], g_[3 * i + 1], g_[3 * i + 2]};
-            if (cluster_ && a_.labels[i] >= 0) {
-              const float* um = &umean_[3 * int64_t(a_.labels[i])];
-              for (int k = 0; k < 3; ++k) gi[k] -= ccoef * um[k];
+            const int64_t s = ent >> 3, k = ent & 7;
+            const float* sg = &seg_grad_[24 * s + 3 * k];
+            float gs[3] = {sg[0], sg[1], sg[2]};
+            const int32_t l = cluster_ ? a_.labels[a_.seg_ptr[s]] : -1;
+            if (l >= 0) {  // minus ccoef * mean_c(u) for each of the segment's points, weighted
+              const float* um = &umean_[3 * int64_t(l)];
+              const float w = seg_wsum_[8 * s + k];
+              for (int c = 0; c < 3; ++c) gs[c] -= ccoef * um[c] * w;
             }
-            for (int k = 0; k < 3; ++k) G[k] += w * gi[k];
+            for (int c = 0; c < 3; ++c) G[c] += gs[c];
           }
           for (int k = 0; k < 3; ++k) adam_update(th[k], a_.adam_m[3 * v + k], a_.adam_v[3 * v + k], G[k], a_.hyper,
                                                   step_size, bc2);
@@ -219,14 +263,14 @@ class CpuSolver {
   float flow_coef_[kMaxProblems] = {};
   float cluster_coef_[kMaxProblems] = {};
   std::vector<Chunk> chunks_;
-  std::vector<float> f_, g_, u_, mean_, umean_;
+  std::vector<float> f_, g_, u_, mean_, umean_, seg_grad_, seg_wsum_;
   std::vector<double> part_;
   bool cluster_ = false;
   std::vector<int64_t> member_ptr_, members_;
 };
 
 void solver_run_cpu(const at::Tensor& points, const at::Tensor& corner_idx, const at::Tensor& corner_w,
-                    const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry, const std::optional<at::Tensor>& labels,
+                    const at::Tensor& seg_ptr, const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry, const std::optional<at::Tensor>& labels,
                     const std::optional<at::Tensor>& cluster_count, at::TensorList dts,
                     c10::ArrayRef<double> dt_origins, c10::ArrayRef<int64_t> point_ranges,
                     c10::ArrayRef<int64_t> vertex_ranges, c10::ArrayRef<int64_t> support_ranges,
@@ -235,7 +279,7 @@ void solver_run_cpu(const at::Tensor& points, const at::Tensor& corner_idx, cons
                     const at::Tensor& adam_m, const at::Tensor& adam_v, const at::Tensor& best,
                     const at::Tensor& state, const at::Tensor& history, int64_t num_iters) {
   FLX_CHECK(points.is_cpu(), "floxels: solver_run CPU kernel called with points on ", points.device());
-  const Args a = make_args(points, corner_idx, corner_w, vtx_ptr, vtx_entry, labels, cluster_count, dts, dt_origins,
+  const Args a = make_args(points, corner_idx, corner_w, seg_ptr, vtx_ptr, vtx_entry, labels, cluster_count, dts, dt_origins,
                            point_ranges, vertex_ranges, support_ranges, support_dt, support_t, support_w, reg_scale,
                            hyper, theta, adam_m, adam_v, best, state, history, num_iters);
   check_indices(a);

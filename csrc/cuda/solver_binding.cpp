@@ -17,7 +17,7 @@ namespace floxels {
 namespace {
 
 void solver_run_cuda(const at::Tensor& points, const at::Tensor& corner_idx, const at::Tensor& corner_w,
-                     const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry, const std::optional<at::Tensor>& labels,
+                     const at::Tensor& seg_ptr, const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry, const std::optional<at::Tensor>& labels,
                      const std::optional<at::Tensor>& cluster_count, at::TensorList dts,
                      c10::ArrayRef<double> dt_origins, c10::ArrayRef<int64_t> point_ranges,
                      c10::ArrayRef<int64_t> vertex_ranges, c10::ArrayRef<int64_t> support_ranges,
@@ -26,7 +26,7 @@ void solver_run_cuda(const at::Tensor& points, const at::Tensor& corner_idx, con
                      const at::Tensor& theta, const at::Tensor& adam_m, const at::Tensor& adam_v,
                      const at::Tensor& best, const at::Tensor& state, const at::Tensor& history, int64_t num_iters) {
   FLX_CHECK(points.is_cuda(), "floxels: solver_run CUDA kernel called with points on ", points.device());
-  const solver::Args a = solver::make_args(points, corner_idx, corner_w, vtx_ptr, vtx_entry, labels, cluster_count,
+  const solver::Args a = solver::make_args(points, corner_idx, corner_w, seg_ptr, vtx_ptr, vtx_entry, labels, cluster_count,
                                            dts, dt_origins, point_ranges, vertex_ranges, support_ranges, support_dt,
                                            support_t, support_w, reg_scale, hyper, theta, adam_m, adam_v, best,
                                            state, history, num_iters);

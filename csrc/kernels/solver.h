@@ -10,7 +10,8 @@
 //   3. per problem: the iteration's loss (deterministic sum of per-chunk partials), loss
 //      history, lowest-loss tracking and early stopping (EarlyStopping in Python);
 //   4. per vertex: copy to the best table if this iteration's loss is the lowest so far,
-//      gradient = sum over the (point, corner) entries of the vertex, Adam update.
+//      gradient = sum over the vertex's (segment, corner) entries of the segment's
+//      corner-weighted gradient sum (segments: solver_args.h), Adam update.
 // All state (iteration counters, best losses, flags) lives in a small float64 table, so
 // iterations never need the host: the CUDA version replays them from a CUDA graph.
 #pragma once

@@ -32,11 +32,17 @@ struct Args {
   const float* points;         // (N, 3)
   const int32_t* corner_idx;   // (N, 8) global rows of theta
   const float* corner_w;       // (N, 8)
+  // Segments: runs of consecutive points of one problem with identical corner_idx rows and
+  // labels (the estimator sorts points by (label, voxel), so a segment is the part of one
+  // cluster inside one flow-grid cell). The gradient of a vertex is a sum over the
+  // (segment, corner) pairs that touch it: a fixed, small fan-in, however many points
+  // crowd a cell near the sensor.
+  const int32_t* seg_ptr;      // (S + 1) first point of each segment, then N
   const int32_t* vtx_ptr;      // (M + 1) CSR offsets into vtx_entry
-  const int32_t* vtx_entry;    // (8N) entries point * 8 + corner, grouped by vertex
+  const int32_t* vtx_entry;    // (8S) entries segment * 8 + corner, grouped by vertex
   const int32_t* labels;       // (N) global cluster ids, -1 noise; null: no cluster term
   const float* cluster_count;  // (C) points per cluster
-  int64_t num_points, num_vertices, num_clusters;
+  int64_t num_points, num_vertices, num_clusters, num_segments;
   DtDesc dts[kMaxDts];
   int num_dts;
   Problem problems[kMaxProblems];

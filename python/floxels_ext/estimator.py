@@ -13,7 +13,9 @@ One frame:
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -21,7 +23,8 @@ from dataclasses import dataclass, field
 import torch
 
 from .config import FloxelsConfig
-from .ops import compact_corners, dbscan, distance_transform, grid_for_points
+from .ops import compact_corners, distance_transform
+from .ops.grid import grid_from_bounds, point_bounds
 from .ops.corners import CompactCorners
 from .ops.solver import MAX_DTS, MAX_PROBLEMS, PackedProblems, SolverProblem
 from .scans import PreparedScans, prepare_scans, resolve_device, restore_output
@@ -63,11 +66,16 @@ class FloxelsResult:
         return self._corners.to_dense(self._params)
 
 
-def _build_dt(points: torch.Tensor, cfg: FloxelsConfig) -> DistanceTransform | None:
+def _build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None) -> DistanceTransform | None:
+    """DT of a validated scan; ``bounds`` (its min/max xyz, see point_bounds) saves a host sync."""
     if points.shape[0] == 0:
         return None
-    values, origin = distance_transform(points, cfg.dt_cell, cfg.dt_padding, max_cells=cfg.max_dt_cells)
-    return DistanceTransform(values, origin)
+    if bounds is None:
+        values, origin = distance_transform(points, cfg.dt_cell, cfg.dt_padding, max_cells=cfg.max_dt_cells)
+        return DistanceTransform(values, origin)
+    origin, shape = grid_from_bounds(*bounds, cfg.dt_cell, cfg.dt_padding, cfg.max_dt_cells)
+    occ = F.points_to_occupancy(points, origin, cfg.dt_cell, shape)
+    return DistanceTransform(F.edt(occ, cfg.dt_cell), origin)
 
 
 class Floxels:
@@ -114,14 +122,31 @@ class Floxels:
         t_start = time.perf_counter()
         device = items[0][0].points[0].device
 
+        # Scans were validated by prepare_scans, so the ops are called directly (no
+        # re-checks), and every cloud's bounds come back in one host synchronisation.
         t0 = time.perf_counter()
+        # DTs still to build, by scan tensor (windows of one sequence share scan tensors,
+        # so each scan is built once): id -> (points, [(cache, index in window)])
+        todo: dict[int, tuple] = {}
+        for prep, cache in items:
+            if prep.points[prep.target].shape[0] > 0:
+                for i in prep.supports:
+                    if i not in cache and prep.points[i].shape[0] > 0:
+                        todo.setdefault(id(prep.points[i]), (prep.points[i], []))[1].append((cache, i))
+        targets = [prep.points[prep.target] for prep, _ in items if prep.points[prep.target].shape[0] > 0]
+        bounds = point_bounds([v[0] for v in todo.values()] + targets)
+        for (pts, users), b in zip(todo.values(), bounds):
+            d = _build_dt(pts, cfg, b)
+            for cache, i in users:
+                cache[i] = d
+        target_bounds = iter(bounds[len(todo):])
         supports = []  # per item: (dts, origins, offsets, weights)
         for prep, cache in items:
             dts, origins, offsets, weights = [], [], [], []
             if prep.points[prep.target].shape[0] > 0:
                 for i, t in zip(prep.supports, prep.offsets):
-                    if i not in cache:
-                        cache[i] = _build_dt(prep.points[i], cfg)
+                    if i not in cache:  # empty support scan
+                        cache[i] = None
                     d = cache[i]
                     if d is None:  # empty support scan: no evidence from it
                         continue
@@ -130,36 +155,39 @@ class Floxels:
                     offsets.append(float(t))
                     weights.append(cfg.lambda_d * cfg.time_weight(t))
             supports.append((dts, origins, offsets, weights))
-        _sync_device(device)
+        serial = _serial_stages(device)
+        if serial:
+            _sync_device(device)
         timings["dt"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        labels = [dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
-                  if cfg.cluster_loss and prep.points[prep.target].shape[0] else None for prep, _ in items]
-        _sync_device(device)
-        timings["dbscan"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        problems, orders, grids = [], [], []
-        for (prep, _), lab, (dts, origins, offsets, weights) in zip(items, labels, supports):
-            P = prep.points[prep.target]
-            if P.shape[0] == 0:
-                problems.append(None)
-                orders.append(None)
-                grids.append(None)
-                continue
-            g_origin, g_shape = grid_for_points(P, cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40)
-            # Sort points along the flow grid so neighbouring points touch neighbouring memory
-            # (flow vertices and DT samples) in every kernel.
-            order = torch.argsort(_voxel_key(P, g_origin, cfg.voxel_size, g_shape))
-            Ps = P[order].contiguous()
-            corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
-            lab_s = lab[order].contiguous() if lab is not None else None
-            problems.append(SolverProblem(Ps, corners, lab_s, dts, origins, offsets, weights,
-                                          cfg.regulariser_scale(len(prep.supports))))
-            orders.append(order)
-            grids.append(g_origin)
-        timings["setup"] = time.perf_counter() - t0
+        # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
+        # bound) run on the main one: their host synchronisations wait for the side stream
+        # only. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other (stage timings).
+        side = None if serial or device.type != "cuda" else _side_stream(device)
+        if side is not None:
+            main = torch.cuda.current_stream(device)
+            side.wait_stream(main)
+            stream_ctx = torch.cuda.stream(side)
+        else:
+            stream_ctx = contextlib.nullcontext()
+        with stream_ctx:
+            labels, problems, orders, grids = self._targets(items, supports, target_bounds, timings)
+        if side is not None:
+            # tensors made on the side stream and used on the main one: keep the caching
+            # allocator from handing their memory to the side stream while main still uses it
+            for pr, order in zip(problems, orders):
+                if pr is not None:
+                    for t in (pr.points, pr.corners.corner_idx, pr.corners.corner_w, pr.corners.vertices, order,
+                              pr.labels):
+                        if t is not None:
+                            t.record_stream(main)
+            for lab in labels:
+                if lab is not None:
+                    lab.record_stream(main)
+            main.wait_stream(side)
+            t1 = time.perf_counter()
+            _sync_device(device)  # the EDTs not hidden behind DBSCAN and the sorting
+            timings["dt"] += time.perf_counter() - t1
 
         t0 = time.perf_counter()
         live = [k for k, p in enumerate(problems) if p is not None]
@@ -167,8 +195,8 @@ class Floxels:
         for group in _groups(live, problems):
             packed = PackedProblems([problems[k] for k in group], cfg)
             run_solver(packed)
-            for b, k in enumerate(group):
-                solved[k] = (packed.best_params(b).clone(), packed.losses(b), packed.best_iter(b))
+            for b, (k, (losses, best_iter)) in enumerate(zip(group, packed.summaries())):
+                solved[k] = (packed.best_params(b).clone(), losses, best_iter)
         timings["optimise"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
         if len(items) > 1:
@@ -189,6 +217,46 @@ class Floxels:
             results.append(FloxelsResult(restore_output(flow, prep), flow, lab, losses, best_iter, len(losses),
                                          dict(timings), grids[k], cfg.voxel_size, corners, params))
         return results
+
+    def _targets(self, items, supports, target_bounds, timings):
+        """DBSCAN of every target, then its points sorted by (cluster, voxel) with their
+        compact corners: the per-target part of :meth:`_fit_group` before the solver."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        labels = [F.dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
+                  if cfg.cluster_loss and prep.points[prep.target].shape[0] else None for prep, _ in items]
+        present = [lab for lab in labels if lab is not None and lab.shape[0] > 0]
+        # clusters per target (one host synchronisation for all)
+        maxes = iter(torch.stack([lab.max() for lab in present]).tolist() if present else [])
+        num_clusters = [int(next(maxes)) + 1 if lab is not None and lab.shape[0] > 0 else 0 for lab in labels]
+        timings["dbscan"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        problems, orders, grids = [], [], []
+        for (prep, _), lab, ncl, (dts, origins, offsets, weights) in zip(items, labels, num_clusters, supports):
+            P = prep.points[prep.target]
+            if P.shape[0] == 0:
+                problems.append(None)
+                orders.append(None)
+                grids.append(None)
+                continue
+            g_origin, g_shape = grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size,
+                                                 max_cells=1 << 40)
+            # Sort points by (cluster, voxel): neighbouring points touch neighbouring memory
+            # (flow vertices, DT samples), a block of points meets few clusters, and the
+            # solver's segments (one cluster inside one cell) are long runs.
+            order = torch.argsort(_voxel_key(P, g_origin, cfg.voxel_size, g_shape))
+            if lab is not None:
+                order = order[torch.sort(lab[order], stable=True).indices]
+            Ps = P[order].contiguous()
+            corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
+            lab_s = lab[order].contiguous() if lab is not None else None
+            problems.append(SolverProblem(Ps, corners, lab_s, dts, origins, offsets, weights,
+                                          cfg.regulariser_scale(len(prep.supports)), ncl))
+            orders.append(order)
+            grids.append(g_origin)
+        timings["setup"] = time.perf_counter() - t0
+        return labels, problems, orders, grids
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:
@@ -227,6 +295,22 @@ def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:
     o = torch.tensor(origin, dtype=P.dtype, device=P.device)
     i = ((P - o) / spacing).floor().long()
     return (i[:, 2].clamp(0, Z - 1) * Y + i[:, 1].clamp(0, Y - 1)) * X + i[:, 0].clamp(0, X - 1)
+
+
+_SIDE_STREAMS: dict = {}
+
+
+def _side_stream(device: torch.device):
+    """One persistent side stream per device (a new stream per frame would strand cached
+    allocator blocks on streams never used again)."""
+    key = device.index if device.index is not None else torch.cuda.current_device()
+    if key not in _SIDE_STREAMS:
+        _SIDE_STREAMS[key] = torch.cuda.Stream(device=torch.device("cuda", key))
+    return _SIDE_STREAMS[key]
+
+
+def _serial_stages(device: torch.device) -> bool:
+    return device.type != "cuda" or os.environ.get("FLOXELS_SERIAL_STAGES", "0") == "1"
 
 
 def _sync_device(device: torch.device) -> None:
@@ -285,19 +369,22 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     if not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     cache: dict[int, DistanceTransform | None] = {}
+    converted: dict = {}  # sequence index -> scan on the device (converted and NaN-checked once)
     out = []
     for k0 in range(0, len(frames), batch_size):
         batch = frames[k0:k0 + batch_size]
         items = []
         for f in batch:
             start, stop = window_for(f, n, cfg.num_scans)
-            items.append((prepare_scans(scans[start:stop], f - start, device), _WindowCache(cache, start)))
+            items.append((prepare_scans(scans[start:stop], f - start, device, converted, start),
+                          _WindowCache(cache, start)))
         results = est._fit_group(items)
-        # free DTs that no later window will use
+        # free the DTs and device scans that no later window will use
         later = [window_for(g, n, cfg.num_scans)[0] for g in frames[k0 + batch_size:]]
         horizon = min(later) if later else math.inf
-        for i in [i for i in cache if i < horizon]:
-            del cache[i]
+        for d in (cache, converted):
+            for i in [i for i in d if i < horizon]:
+                del d[i]
         for f, res in zip(batch, results):
             out.append(res.flow)
             if callback is not None:

@@ -59,7 +59,13 @@ def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
     return dev
 
 
-def prepare_scans(scans: Sequence, target: int | None, device) -> PreparedScans:
+def prepare_scans(scans: Sequence, target: int | None, device, converted: dict | None = None,
+                  first_index: int = 0) -> PreparedScans:
+    """Validate a window of scans and move them to the compute device.
+
+    ``converted`` (sequence index -> (points, finite mask)) lets sliding windows over one
+    sequence convert, copy and NaN-check each scan once; ``first_index`` is the sequence
+    index of ``scans[0]`` (also used in warnings)."""
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -91,20 +97,32 @@ def prepare_scans(scans: Sequence, target: int | None, device) -> PreparedScans:
 
     points, masks = [], []
     for i, t in enumerate(tensors):
-        t = t.to(device=dev, dtype=torch.float32)
-        finite = torch.isfinite(t).all(dim=1)
-        bad = int((~finite).sum())
-        if bad:
-            warnings.warn(f"scan {i}: dropping {bad} point(s) with NaN/inf coordinates"
-                          + (" (their flow is NaN)" if i == target else ""), UserWarning, stacklevel=3)
-            t = t[finite]
-        points.append(t.contiguous())
+        key = first_index + i
+        if converted is not None and key in converted:
+            t, finite = converted[key]
+        else:
+            t, finite = _finite_rows(t, dev, key, i == target)
+            if converted is not None:
+                converted[key] = (t, finite)
+        points.append(t)
         masks.append(finite)
     supports = [i for i in range(n) if i != target]
     return PreparedScans(points=points, finite_masks=masks, target=target,
                          offsets=[i - target for i in supports], supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
                          in_device=tensors[0].device, num_target_points=tensors[target].shape[0])
+
+
+def _finite_rows(t: torch.Tensor, dev: torch.device, index: int, is_target: bool):
+    """float32 contiguous copy on ``dev`` without the NaN/inf rows (warned about), and the mask."""
+    t = t.to(device=dev, dtype=torch.float32)
+    finite = torch.isfinite(t).all(dim=1)
+    bad = int((~finite).sum())
+    if bad:
+        warnings.warn(f"scan {index}: dropping {bad} point(s) with NaN/inf coordinates"
+                      + (" (their flow is NaN)" if is_target else ""), UserWarning, stacklevel=4)
+        t = t[finite]
+    return t.contiguous(), finite
 
 
 def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):

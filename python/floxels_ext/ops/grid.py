@@ -29,8 +29,24 @@ def grid_for_points(points: torch.Tensor, spacing: float, padding: float = 0.0,
     spacing = as_spacing(spacing)
     if points.shape[0] == 0:
         raise ValueError("cannot build a grid around an empty point cloud")
-    lo = (points.min(dim=0).values.double() - padding).tolist()
-    hi = (points.max(dim=0).values.double() + padding).tolist()
+    lo = points.min(dim=0).values.double().tolist()
+    hi = points.max(dim=0).values.double().tolist()
+    return grid_from_bounds(lo, hi, spacing, padding, max_cells)
+
+
+def point_bounds(clouds: list[torch.Tensor]) -> list[tuple[list[float], list[float]]]:
+    """(min xyz, max xyz) of each non-empty cloud, read back in one host synchronisation."""
+    if not clouds:
+        return []
+    mm = torch.stack([torch.cat([c.min(dim=0).values, c.max(dim=0).values]).double() for c in clouds]).tolist()
+    return [(r[:3], r[3:]) for r in mm]
+
+
+def grid_from_bounds(lo: list[float], hi: list[float], spacing: float, padding: float = 0.0,
+                     max_cells: int = DEFAULT_MAX_CELLS) -> tuple[list[float], list[int]]:
+    """:func:`grid_for_points` from the points' bounds (``lo``/``hi`` = min/max xyz)."""
+    lo = [v - padding for v in lo]
+    hi = [v + padding for v in hi]
     origin = [math.floor(v / spacing) * spacing for v in lo]
     n_xyz = [int(math.floor((h - o) / spacing + 1e-9)) + 2 for h, o in zip(hi, origin)]
     cells = n_xyz[0] * n_xyz[1] * n_xyz[2]

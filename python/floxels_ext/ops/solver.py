@@ -25,7 +25,7 @@ COL_ACTIVE, COL_ITER, COL_BEST_LOSS, COL_BEST_ITER = 0, 1, 2, 5
 
 
 @torch.library.register_fake("floxels::solver_run")
-def _fake(points, corner_idx, corner_w, vtx_ptr, vtx_entry, labels, cluster_count, dts, dt_origins, point_ranges,
+def _fake(points, corner_idx, corner_w, seg_ptr, vtx_ptr, vtx_entry, labels, cluster_count, dts, dt_origins, point_ranges,
           vertex_ranges, support_ranges, support_dt, support_t, support_w, reg_scale, hyper, theta, adam_m, adam_v,
           best, state, history, num_iters):
     return None
@@ -46,6 +46,7 @@ class SolverProblem:
     time_offsets: list[float]
     weights: list[float]
     reg_scale: float
+    num_clusters: int | None = None  # labels.max() + 1 if known (saves a host synchronisation)
 
 
 def solver_hyper(cfg) -> list[float]:
@@ -82,7 +83,7 @@ class PackedProblems:
             w.append(p.corners.corner_w.to(torch.float32))
             if use_cluster:
                 lab = p.labels if p.labels is not None else torch.full((n,), -1, dtype=torch.int64, device=dev)
-                k = int(lab.max()) + 1 if n else 0
+                k = p.num_clusters if p.num_clusters is not None else (int(lab.max()) + 1 if n else 0)
                 labels.append(torch.where(lab >= 0, lab + ncl, lab))
                 ncl += max(k, 0)
             self.point_ranges.append(self.point_ranges[-1] + n)
@@ -108,14 +109,13 @@ class PackedProblems:
         flat = torch.cat(idx).reshape(-1)
         self.corner_idx = flat.to(torch.int32).reshape(N, 8).contiguous()
         self.corner_w = torch.cat(w).contiguous()
-        # Transpose of the corner table (built once): each vertex's (point, corner) entries,
-        # so the gradient of a vertex is a gather and needs no atomics.
-        order = torch.argsort(flat, stable=True)
-        self.vtx_entry = order.to(torch.int32).contiguous()
-        counts = torch.bincount(flat, minlength=M)
-        self.vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32).contiguous()
         if use_cluster and ncl > 0:
-            lab = torch.cat(labels)
+            lab_all = torch.cat(labels)
+        else:
+            lab_all = None
+        self.seg_ptr, self.vtx_ptr, self.vtx_entry = _segments(self.corner_idx, lab_all, self.point_ranges, M)
+        if lab_all is not None:
+            lab = lab_all
             self.labels = lab.to(torch.int32).contiguous()
             self.cluster_count = torch.bincount(lab[lab >= 0], minlength=ncl).to(torch.float32).contiguous()
         else:
@@ -133,13 +133,16 @@ class PackedProblems:
         self.state[:, COL_BEST_ITER] = -1.0
         self.history = torch.full((self.num_problems, cfg.max_iters), float("nan"), dtype=torch.float64, device=dev)
 
+    def op_args(self, num_iters: int) -> tuple:
+        """The arguments of ``torch.ops.floxels.solver_run`` for ``num_iters`` iterations."""
+        return (self.points, self.corner_idx, self.corner_w, self.seg_ptr, self.vtx_ptr, self.vtx_entry, self.labels,
+                self.cluster_count, self.dts, self.dt_origins, self.point_ranges, self.vertex_ranges,
+                self.support_ranges, self.support_dt, self.support_t, self.support_w, self.reg_scale, self.hyper,
+                self.theta, self.adam_m, self.adam_v, self.best, self.state, self.history, int(num_iters))
+
     def run(self, num_iters: int) -> None:
         """Enqueue ``num_iters`` iterations (no host synchronisation on CUDA)."""
-        ops_ns.solver_run(self.points, self.corner_idx, self.corner_w, self.vtx_ptr, self.vtx_entry, self.labels,
-                          self.cluster_count, self.dts, self.dt_origins, self.point_ranges, self.vertex_ranges,
-                          self.support_ranges, self.support_dt, self.support_t, self.support_w, self.reg_scale,
-                          self.hyper, self.theta, self.adam_m, self.adam_v, self.best, self.state, self.history,
-                          int(num_iters))
+        ops_ns.solver_run(*self.op_args(num_iters))
 
     # -- results (these synchronise) ------------------------------------------------------
     def best_params(self, b: int) -> torch.Tensor:
@@ -149,5 +152,39 @@ class PackedProblems:
         n = int(self.state[b, COL_ITER].item())
         return self.history[b, :n].tolist()
 
+    def summaries(self) -> list[tuple[list[float], int]]:
+        """(losses, best iteration) of every problem, read back in one host synchronisation."""
+        both = torch.cat([self.state, self.history], dim=1).cpu()
+        out = []
+        for row in both:
+            n = int(row[COL_ITER])
+            out.append((row[STATE_COLS:STATE_COLS + n].tolist(), int(row[COL_BEST_ITER])))
+        return out
+
     def best_iter(self, b: int) -> int:
         return int(self.state[b, COL_BEST_ITER].item())
+
+
+def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_ranges: list[int], num_vertices: int):
+    """Segments (runs of points with equal corner rows and labels inside one problem) and,
+    per vertex, its (segment * 8 + corner) entries: the vertex gradient is then a gather of
+    per-segment sums with a small fan-in. Points sorted by (label, voxel) make each segment
+    the part of one cluster inside one flow-grid cell."""
+    N, dev = corner_idx.shape[0], corner_idx.device
+    if N == 0:
+        zeros = torch.zeros(1, dtype=torch.int32, device=dev)
+        return zeros, torch.zeros(num_vertices + 1, dtype=torch.int32, device=dev), zeros[:0]
+    new = torch.ones(N, dtype=torch.bool, device=dev)
+    new[1:] = (corner_idx[1:] != corner_idx[:-1]).any(1)
+    if labels is not None:
+        new[1:] |= labels[1:] != labels[:-1]
+    starts = torch.tensor([b for b, e in zip(point_ranges[:-1], point_ranges[1:]) if e > b], dtype=torch.int64,
+                          device=dev)
+    new[starts] = True
+    first = torch.nonzero(new).reshape(-1)
+    seg_ptr = torch.cat([first, first.new_full((1,), N)]).to(torch.int32).contiguous()
+    flat = corner_idx[first].reshape(-1).to(torch.int64)  # (8S) vertex of each (segment, corner)
+    order = torch.argsort(flat, stable=True)
+    counts = torch.bincount(flat, minlength=num_vertices)
+    vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32).contiguous()
+    return seg_ptr, vtx_ptr, order.to(torch.int32).contiguous()
