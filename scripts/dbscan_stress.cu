@@ -400,7 +400,7 @@ int main(int argc, char** argv) {
   for (int64_t n : sizes) {
     if (n > max_n) continue;
     for (int kind = 0; kind < kNumKinds; ++kind) {
-      if (kind != kLidar && kind != kFarOutliers && n > 60000) continue;  // keep the CPU reference quick
+      if (kind != kLidar && kind != kFarOutliers && n > 20000) continue;  // keep the CPU reference quick
       for (int f = 0; f < 2; ++f) {
         const double eps = kind == kLattice ? 0.5 : epss[pick() % 4];
         configs.push_back({kind, n, eps, mss[pick() % 5], f == 0});
