@@ -180,3 +180,53 @@ def test_cuda_matches_cpu(dtype):
     with pytest.raises(RuntimeError, match="finite"):
         F.dbscan(bad, 0.5, 4)
     torch.library.opcheck(F.dbscan, (torch.rand(64, 3, device="cuda", dtype=dtype), 0.3, 3))
+
+
+def lidar_cloud(n, rng, dtype):
+    """Lidar-like sweep without the simulator: ground rings, box surfaces, a wall, sparse
+    noise and dense blobs near the sensor (thousands of points within eps)."""
+    kind = rng.choice(5, size=n, p=[0.35, 0.3, 0.25, 0.07, 0.03])
+    pts = np.empty((n, 3))
+    m = kind == 0  # rings, one per beam
+    r = 2.5 + rng.integers(0, 32, m.sum()) ** 2 * 0.06
+    t = rng.uniform(0, 2 * np.pi, m.sum())
+    pts[m] = np.c_[r * np.cos(t), r * np.sin(t), np.full(m.sum(), -1.7)] + rng.normal(0, 0.02, (m.sum(), 3))
+    m = kind == 1  # objects: box faces
+    r, t = rng.uniform(5, 45, 30), rng.uniform(0, 2 * np.pi, 30)
+    size = rng.uniform(0.4, 2.0, (30, 3))
+    o = rng.integers(0, 30, m.sum())
+    local = (rng.uniform(size=(m.sum(), 3)) - 0.5) * size[o]
+    side = rng.integers(0, 2, m.sum()).astype(bool)
+    local[side, 0] = np.sign(local[side, 0]) * size[o[side], 0] / 2
+    local[~side, 1] = np.sign(local[~side, 1]) * size[o[~side], 1] / 2
+    pts[m] = np.c_[r[o] * np.cos(t[o]), r[o] * np.sin(t[o]), np.full(m.sum(), -1.2)] + local
+    m = kind == 2  # dense near-sensor blobs
+    c = np.c_[rng.uniform(-4, 4, (6, 2)), rng.uniform(-1, 0, 6)]
+    s = rng.uniform(0.05, 0.3, 6)
+    b = rng.integers(0, 6, m.sum())
+    pts[m] = c[b] + rng.normal(0, 1, (m.sum(), 3)) * s[b, None]
+    m = kind == 3  # a wall
+    pts[m] = np.c_[np.full(m.sum(), -20.0), rng.uniform(-30, 30, m.sum()), rng.uniform(-1.7, 2.3, m.sum())]
+    m = kind == 4  # sparse noise
+    pts[m] = rng.uniform((-60, -60, -2), (60, 60, 4), (m.sum(), 3))
+    return torch.from_numpy(pts).to(dtype)
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cuda_lidar_120k_matches_cpu(dtype):
+    # The production setting (eps 0.5, min_samples 4) and a stricter one, repeated: the old
+    # kernel failed intermittently (cudaErrorInvalidAddressSpace) at this scale.
+    rng = np.random.default_rng(5)
+    pts = lidar_cloud(120_000, rng, dtype)
+    far = pts.clone()
+    far[0] = torch.tensor([1e6, -1e6, 3.0], dtype=dtype)  # huge extent: enlarged-cell code path
+    for cloud, settings in ((pts, ((0.5, 4), (0.3, 10))), (far, ((0.5, 4),))):
+        gpu_cloud = cloud.cuda()
+        for eps, min_samples in settings:
+            cpu = F.dbscan(cloud, eps, min_samples)
+            assert int(cpu.max()) > 10  # many clusters, not a trivial labelling
+            for _ in range(3):
+                gpu = F.dbscan(gpu_cloud, eps, min_samples)
+                torch.cuda.synchronize()
+                torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=0)

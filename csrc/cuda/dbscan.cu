@@ -1,10 +1,29 @@
 // CUDA exact DBSCAN with scikit-learn's labels (math in csrc/kernels/dbscan.h).
 //
-// Same stages as the CPU version: bounding box -> cell keys -> radix sort -> distinct
-// cells + their 9 neighbour ranges -> core test -> lock-free union-find over core pairs
-// (atomicCAS hooking of the larger root under the smaller, so no cycles) -> cluster ids
-// ranked by each component's smallest original core index (scan over original order) ->
-// border points take the smallest cluster id among their core neighbours.
+// Stages: bounding box -> sub-cell keys (cells of size ~eps, each split in 2 x 2 x 2 halves)
+// -> radix sort -> distinct sub-cells and cells, each cell's 27-cell neighbourhood as 9
+// contiguous RANGES OF SUB-CELLS -> core test -> union-find over core pairs within eps ->
+// cluster ids ranked by each component's smallest original core index -> border points take
+// the smallest cluster id among their core neighbours.
+//
+// Why sub-cells: a half cell's diagonal is < 0.96 eps (dbscan::subcells_within_eps), so all
+// points of one sub-cell are neighbours of each other. Hence (the "dense" mode, used unless
+// the grid had to be enlarged for a huge extent):
+//  - a point whose sub-cell holds >= min_samples points is core with no distance test;
+//  - all cores of one sub-cell are in one cluster: they start united (parent = the first
+//    core of the sub-cell), the hook stage only needs ONE core pair within eps per pair of
+//    sub-cells, skips a whole sub-cell already in its component with one root lookup, and a
+//    border point needs one core within eps per sub-cell (all share a label);
+//  - a sub-cell whose box is farther than eps from a point (rigorous bound with margin,
+//    see far()) is skipped without touching its points.
+// This removes the O(k^2) per dense cell of thousands of points near the sensor.
+//
+// Union-find: parent[x] <= x always (roots are only hooked under SMALLER roots with
+// atomicCAS, path halving stores only ancestors), so there is no cycle and every stored value
+// is a valid index, whatever the interleaving. Roots are then read with a read-only walk into
+// a SEPARATE array (the old kernel stored them into parent while other threads were still
+// path-halving through it, which could leave a non-root there and index min_orig/cid with
+// garbage: the likely cause of the intermittent cudaErrorInvalidAddressSpace).
 #include <cuda_runtime.h>
 
 #include <cub/device/device_radix_sort.cuh>
@@ -16,6 +35,7 @@
 #include <cstdint>
 
 #include "cuda/dbscan_launch.h"
+#include "cuda/dbscan_stages.cuh"
 #include "kernels/dbscan.h"
 
 namespace floxels::cuda {
@@ -23,6 +43,8 @@ namespace {
 
 constexpr int kThreads = 256;
 using dbscan::Grid;
+using stages::kR2;
+using stages::Params;
 
 inline unsigned blocks_for(int64_t work) { return unsigned((work + kThreads - 1) / kThreads); }
 
@@ -52,6 +74,7 @@ __global__ void bbox_kernel(const T* __restrict__ p, int64_t n, unsigned long lo
       lo[a] = fmin(lo[a], v);
       hi[a] = fmax(hi[a], v);
     }
+  // Every thread of the block reaches here (no early return): full-mask shuffles are valid.
   for (int off = 16; off > 0; off >>= 1)
     for (int a = 0; a < 3; ++a) {
       lo[a] = fmin(lo[a], __shfl_down_sync(0xffffffffu, lo[a], off));
@@ -72,163 +95,169 @@ __global__ void key_kernel(const T* __restrict__ p, int64_t n, Grid g, uint64_t*
                            int32_t* __restrict__ idx) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  keys[i] = dbscan::point_key(g, double(p[i * 3]), double(p[i * 3 + 1]), double(p[i * 3 + 2]));
+  keys[i] = dbscan::point_sub_key(g, double(p[i * 3]), double(p[i * 3 + 1]), double(p[i * 3 + 2]));
   idx[i] = int32_t(i);
 }
 
+// Sorted coordinates (float64) and the flags "first point of its sub-cell / of its cell".
 template <typename T>
 __global__ void gather_kernel(const T* __restrict__ p, const uint64_t* __restrict__ keys,
                               const int32_t* __restrict__ orig, int64_t n, double* __restrict__ xs,
-                              double* __restrict__ ys, double* __restrict__ zs, int32_t* __restrict__ flag) {
+                              double* __restrict__ ys, double* __restrict__ zs, int32_t* __restrict__ sub_flag,
+                              int32_t* __restrict__ cell_flag) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const int64_t o = orig[i];
   xs[i] = double(p[o * 3]);
   ys[i] = double(p[o * 3 + 1]);
   zs[i] = double(p[o * 3 + 2]);
-  flag[i] = (i == 0 || keys[i] != keys[i - 1]) ? 1 : 0;
+  sub_flag[i] = (i == 0 || keys[i] != keys[i - 1]) ? 1 : 0;
+  cell_flag[i] = (i == 0 || (keys[i] >> dbscan::kSubBits) != (keys[i - 1] >> dbscan::kSubBits)) ? 1 : 0;
 }
 
-// cell_incl = inclusive scan of the new-cell flags: point i lies in cell cell_incl[i] - 1.
-__global__ void cells_kernel(const uint64_t* __restrict__ keys, const int32_t* __restrict__ flag,
-                             const int32_t* __restrict__ cell_incl, int64_t n, uint64_t* __restrict__ cell_keys,
-                             int32_t* __restrict__ cell_start, int32_t* __restrict__ num_cells) {
+// sub_incl / cell_incl: inclusive scans of the flags, so point i lies in sub-cell
+// sub_incl[i] - 1 and cell cell_incl[i] - 1. counts = {num_cells, num_subs}.
+__global__ void segments_kernel(const uint64_t* __restrict__ keys, const int32_t* __restrict__ sub_incl,
+                                const int32_t* __restrict__ cell_incl, int64_t n, int32_t* __restrict__ sub_start,
+                                uint64_t* __restrict__ sub_key, uint64_t* __restrict__ cell_keys,
+                                int32_t* __restrict__ cell_start, int32_t* __restrict__ counts) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  if (flag[i]) {
-    cell_keys[cell_incl[i] - 1] = keys[i];
+  if (i == 0 || keys[i] != keys[i - 1]) {
+    sub_start[sub_incl[i] - 1] = int32_t(i);
+    sub_key[sub_incl[i] - 1] = keys[i];
+  }
+  if (i == 0 || (keys[i] >> dbscan::kSubBits) != (keys[i - 1] >> dbscan::kSubBits)) {
+    cell_keys[cell_incl[i] - 1] = keys[i] >> dbscan::kSubBits;
     cell_start[cell_incl[i] - 1] = int32_t(i);
   }
   if (i == n - 1) {
-    *num_cells = cell_incl[i];
+    counts[0] = cell_incl[i];
+    counts[1] = sub_incl[i];
     cell_start[cell_incl[i]] = int32_t(n);
+    sub_start[sub_incl[i]] = int32_t(n);
   }
 }
 
+// The per-item logic lives in dbscan_stages.cuh (shared with the CPU emulation of
+// scripts/dbscan_stress.cu); num_cells / num_subs are only known on the device (counts), so
+// those kernels are launched with one thread per point and check the count.
 __global__ void ranges_kernel(Grid g, const uint64_t* __restrict__ cell_keys, const int32_t* __restrict__ cell_start,
-                              const int32_t* __restrict__ num_cells, int32_t* __restrict__ ranges) {
-  const int32_t c = int32_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  const int32_t m = *num_cells;
+                              const int32_t* __restrict__ counts, const int32_t* __restrict__ sub_incl,
+                              int32_t* __restrict__ ranges) {
+  const int64_t c = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int32_t m = counts[0];
   if (c >= m) return;
-  dbscan::neighbour_ranges(g, cell_keys, cell_start, m, cell_keys[c], ranges + int64_t(c) * 2 * dbscan::kRanges);
+  stages::cell_ranges(g, cell_keys, cell_start, m, sub_incl, c, ranges + c * kR2);
 }
 
-__global__ void count_kernel(const double* __restrict__ xs, const double* __restrict__ ys,
-                             const double* __restrict__ zs, const int32_t* __restrict__ cell_incl,
-                             const int32_t* __restrict__ ranges, int64_t n, double eps2, int32_t min_samples,
-                             uint8_t* __restrict__ core, int32_t* __restrict__ parent, int32_t* __restrict__ min_orig) {
+__global__ void core_kernel(Params P, const double* __restrict__ xs, const double* __restrict__ ys,
+                            const double* __restrict__ zs, const int32_t* __restrict__ sub_incl,
+                            const int32_t* __restrict__ cell_incl, const int32_t* __restrict__ sub_start,
+                            const uint64_t* __restrict__ sub_key, const int32_t* __restrict__ ranges, int64_t n,
+                            uint8_t* __restrict__ core) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  const int32_t* rg = ranges + int64_t(cell_incl[i] - 1) * 2 * dbscan::kRanges;
-  core[i] = dbscan::count_neighbours(xs, ys, zs, int32_t(i), rg, eps2, min_samples) >= min_samples;
-  parent[i] = int32_t(i);
+  core[i] = stages::is_core(P, xs, ys, zs, sub_incl, cell_incl, sub_start, sub_key, ranges, int32_t(i));
+}
+
+__global__ void rep_kernel(const uint8_t* __restrict__ core, const int32_t* __restrict__ sub_start,
+                           const int32_t* __restrict__ counts, int32_t* __restrict__ rep) {
+  const int64_t s = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (s >= counts[1]) return;
+  rep[s] = stages::first_core(core, sub_start, s);
+}
+
+__global__ void init_kernel(Params P, const uint8_t* __restrict__ core, const int32_t* __restrict__ sub_incl,
+                            const int32_t* __restrict__ rep, int64_t n, int32_t* __restrict__ parent,
+                            int32_t* __restrict__ min_orig) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  parent[i] = stages::initial_parent(P, core, sub_incl, rep, int32_t(i));
   min_orig[i] = INT_MAX;
 }
 
-// Reads go through volatile: other threads hook roots concurrently.
-__device__ __forceinline__ int32_t find_root(int32_t* parent, int32_t x) {
-  volatile int32_t* vp = parent;
-  int32_t p = vp[x];
-  while (p != x) {
-    const int32_t gp = vp[p];
-    if (gp != p) vp[x] = gp;  // path halving: only ever an ancestor
-    x = p;
-    p = gp;
-  }
-  return x;
-}
-
-__device__ __forceinline__ void unite(int32_t* parent, int32_t a, int32_t b) {
-  while (true) {
-    a = find_root(parent, a);
-    b = find_root(parent, b);
-    if (a == b) return;
-    if (a < b) {
-      const int32_t t = a;
-      a = b;
-      b = t;
-    }
-    if (atomicCAS(parent + a, a, b) == a) return;
-  }
-}
-
-__global__ void hook_kernel(const double* __restrict__ xs, const double* __restrict__ ys,
-                            const double* __restrict__ zs, const int32_t* __restrict__ cell_incl,
+// parent is read and written concurrently (volatile loads, atomicCAS): not __restrict__.
+__global__ void hook_kernel(Params P, const double* __restrict__ xs, const double* __restrict__ ys,
+                            const double* __restrict__ zs, const int32_t* __restrict__ sub_incl,
+                            const int32_t* __restrict__ cell_incl, const int32_t* __restrict__ sub_start,
+                            const uint64_t* __restrict__ sub_key, const int32_t* __restrict__ rep,
                             const int32_t* __restrict__ ranges, const uint8_t* __restrict__ core, int64_t n,
-                            double eps2, int32_t* parent) {
-  const int64_t ii = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (ii >= n || !core[ii]) return;
-  const int32_t i = int32_t(ii);
-  const int32_t* rg = ranges + int64_t(cell_incl[i] - 1) * 2 * dbscan::kRanges;
-  const double px = xs[i], py = ys[i], pz = zs[i];
-  // parent[j] == an ancestor of i proves j is already connected: no distance test.
-  volatile const int32_t* vp = parent;
-  int32_t ri = find_root(parent, i);
-  for (int r = 0; r < dbscan::kRanges; ++r) {
-    const int32_t end = min(rg[2 * r + 1], i);  // each unordered pair once
-    for (int32_t j = rg[2 * r]; j < end; ++j) {
-      if (!core[j] || vp[j] == ri) continue;
-      if (dbscan::rdist(px, py, pz, xs[j], ys[j], zs[j]) > eps2) continue;
-      unite(parent, i, j);
-      ri = find_root(parent, i);
-    }
-  }
-}
-
-__global__ void root_kernel(const uint8_t* __restrict__ core, const int32_t* __restrict__ orig, int64_t n,
-                            int32_t* parent, int32_t* __restrict__ min_orig) {
+                            int32_t* parent) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n || !core[i]) return;
-  const int32_t r = find_root(parent, int32_t(i));
-  parent[i] = r;
+  stages::hook_point(P, xs, ys, zs, sub_incl, cell_incl, sub_start, sub_key, rep, ranges, core, parent, int32_t(i));
+}
+
+// After hook_kernel: roots into a SEPARATE array by a read-only walk (see file comment).
+__global__ void root_kernel(const uint8_t* __restrict__ core, const int32_t* __restrict__ orig,
+                            const int32_t* __restrict__ parent, int64_t n, int32_t* __restrict__ root,
+                            int32_t* __restrict__ min_orig) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n || !core[i]) return;
+  const int32_t r = stages::final_root(parent, int32_t(i));
+  root[i] = r;
   atomicMin(min_orig + r, orig[i]);
 }
 
 // first[o] = 1 where original point o is the smallest-index core of its component.
 __global__ void first_kernel(const uint8_t* __restrict__ core, const int32_t* __restrict__ orig,
-                             const int32_t* __restrict__ parent, const int32_t* __restrict__ min_orig, int64_t n,
+                             const int32_t* __restrict__ root, const int32_t* __restrict__ min_orig, int64_t n,
                              int32_t* __restrict__ first) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  first[orig[i]] = (core[i] && min_orig[parent[i]] == orig[i]) ? 1 : 0;
+  first[orig[i]] = (core[i] && min_orig[root[i]] == orig[i]) ? 1 : 0;
 }
 
-__global__ void core_label_kernel(const uint8_t* __restrict__ core, const int32_t* __restrict__ parent,
+__global__ void core_label_kernel(const uint8_t* __restrict__ core, const int32_t* __restrict__ root,
                                   const int32_t* __restrict__ min_orig, const int32_t* __restrict__ cid, int64_t n,
                                   int32_t* __restrict__ lab) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  lab[i] = core[i] ? cid[min_orig[parent[i]]] : -1;
+  lab[i] = core[i] ? cid[min_orig[root[i]]] : -1;
 }
 
-__global__ void label_kernel(const double* __restrict__ xs, const double* __restrict__ ys,
+__global__ void label_kernel(Params P, const double* __restrict__ xs, const double* __restrict__ ys,
                              const double* __restrict__ zs, const int32_t* __restrict__ cell_incl,
-                             const int32_t* __restrict__ ranges, const uint8_t* __restrict__ core,
-                             const int32_t* __restrict__ lab, const int32_t* __restrict__ orig, int64_t n,
-                             double eps2, int64_t* __restrict__ labels) {
-  const int64_t ii = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (ii >= n) return;
-  const int32_t i = int32_t(ii);
-  int32_t best = lab[i];
-  if (!core[i]) {
-    const int32_t* rg = ranges + int64_t(cell_incl[i] - 1) * 2 * dbscan::kRanges;
-    const double px = xs[i], py = ys[i], pz = zs[i];
-    best = INT_MAX;
-    for (int r = 0; r < dbscan::kRanges; ++r)
-      for (int32_t j = rg[2 * r]; j < rg[2 * r + 1]; ++j)
-        if (core[j] && lab[j] < best && dbscan::rdist(px, py, pz, xs[j], ys[j], zs[j]) <= eps2) best = lab[j];
-    if (best == INT_MAX) best = -1;
-  }
-  labels[orig[i]] = best;
+                             const int32_t* __restrict__ sub_start, const uint64_t* __restrict__ sub_key,
+                             const int32_t* __restrict__ rep, const int32_t* __restrict__ ranges,
+                             const uint8_t* __restrict__ core, const int32_t* __restrict__ lab,
+                             const int32_t* __restrict__ orig, int64_t n, int64_t* __restrict__ labels) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  labels[orig[i]] = core[i] ? lab[i]
+                            : stages::border_label(P, xs, ys, zs, cell_incl, sub_start, sub_key, rep, ranges, core,
+                                                   lab, int32_t(i));
 }
 
 // Workspace layout; every block 256-byte aligned.
 struct Layout {
-  size_t keys_in, keys_out, idx_in, idx_out, xs, ys, zs, flag, cell_incl, cell_keys, cell_start, num_cells,
-      ranges, core, parent, min_orig, first, cid, lab, bbox, temp, temp_bytes, total;
+  size_t keys_in, keys, idx_in, orig, xs, ys, zs, sub_flag, cell_flag, sub_incl, cell_incl, sub_start, sub_key,
+      cell_keys, cell_start, counts, ranges, core, rep, parent, root, min_orig, first, cid, lab, bbox, temp,
+      temp_bytes, total;
 };
 
 inline size_t align_up(size_t v) { return (v + 255) & ~size_t(255); }
+
+// cub temporary storage for the sort over [0, end_bit) (typed exactly like the real call).
+size_t sort_temp_bytes(int64_t n, int end_bit) {
+  size_t bytes = 0;
+  if (cub::DeviceRadixSort::SortPairs(nullptr, bytes, static_cast<const uint64_t*>(nullptr),
+                                      static_cast<uint64_t*>(nullptr), static_cast<const int32_t*>(nullptr),
+                                      static_cast<int32_t*>(nullptr), n, 0, end_bit) != cudaSuccess)
+    return SIZE_MAX;
+  return bytes;
+}
+
+size_t scan_temp_bytes(int64_t n) {
+  size_t inc = 0, exc = 0;
+  if (cub::DeviceScan::InclusiveSum(nullptr, inc, static_cast<const int32_t*>(nullptr), static_cast<int32_t*>(nullptr),
+                                    n) != cudaSuccess ||
+      cub::DeviceScan::ExclusiveSum(nullptr, exc, static_cast<const int32_t*>(nullptr), static_cast<int32_t*>(nullptr),
+                                    n) != cudaSuccess)
+    return SIZE_MAX;
+  return std::max(inc, exc);
+}
 
 Layout make_layout(int64_t n_) {
   const size_t n = size_t(n_);
@@ -240,36 +269,42 @@ Layout make_layout(int64_t n_) {
     return at;
   };
   L.keys_in = take(n * 8);
-  L.keys_out = take(n * 8);
+  L.keys = take(n * 8);
   L.idx_in = take(n * 4);
-  L.idx_out = take(n * 4);
+  L.orig = take(n * 4);
   L.xs = take(n * 8);
   L.ys = take(n * 8);
   L.zs = take(n * 8);
-  L.flag = take(n * 4);
+  L.sub_flag = take(n * 4);
+  L.cell_flag = take(n * 4);
+  L.sub_incl = take(n * 4);
   L.cell_incl = take(n * 4);
+  L.sub_start = take((n + 1) * 4);
+  L.sub_key = take(n * 8);
   L.cell_keys = take(n * 8);
   L.cell_start = take((n + 1) * 4);
-  L.num_cells = take(4);
-  L.ranges = take(n * 2 * dbscan::kRanges * 4);
+  L.counts = take(2 * 4);
+  L.ranges = take(n * kR2 * 4);
   L.core = take(n);
+  L.rep = take(n * 4);
   L.parent = take(n * 4);
+  L.root = take(n * 4);
   L.min_orig = take(n * 4);
   L.first = take(n * 4);
   L.cid = take(n * 4);
   L.lab = take(n * 4);
   L.bbox = take(6 * 8);
-  size_t sort_bytes = 0, scan_bytes = 0;
-  cub::DeviceRadixSort::SortPairs(nullptr, sort_bytes, (const uint64_t*)nullptr, (uint64_t*)nullptr,
-                                  (const int32_t*)nullptr, (int32_t*)nullptr, n_, 0, 64);
-  cub::DeviceScan::InclusiveSum(nullptr, scan_bytes, (const int32_t*)nullptr, (int32_t*)nullptr, n_);
-  size_t scan2 = 0;
-  cub::DeviceScan::ExclusiveSum(nullptr, scan2, (const int32_t*)nullptr, (int32_t*)nullptr, n_);
-  L.temp_bytes = align_up(std::max(sort_bytes, std::max(scan_bytes, scan2)));
+  // The sort's key width is only known after the bounding box: size for all 64 bits (the
+  // launcher re-queries with the real width and checks it fits).
+  const size_t sort_bytes = sort_temp_bytes(n_, 64), scan_bytes = scan_temp_bytes(n_);
+  if (sort_bytes == SIZE_MAX || scan_bytes == SIZE_MAX) return Layout{};  // total 0: reported as an error
+  L.temp_bytes = align_up(std::max(sort_bytes, scan_bytes));
   L.temp = take(L.temp_bytes);
   L.total = off;
   return L;
 }
+
+inline bool launched() { return cudaPeekAtLastError() == cudaSuccess; }
 
 }  // namespace
 
@@ -279,40 +314,50 @@ template <typename T>
 int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t* labels, void* workspace,
            size_t workspace_bytes, cudaStream_t stream) {
   if (n <= 0) return kDbscanOk;
+  if (n >= int64_t(INT32_MAX) || min_samples < 1 || !(eps > 0.0) || !std::isfinite(eps)) return kDbscanBadArgs;
   const Layout L = make_layout(n);
-  if (workspace_bytes < L.total) return kDbscanCudaError;
+  if (L.total == 0 || workspace == nullptr || workspace_bytes < L.total) return kDbscanBadArgs;
+  // Report only errors raised by this call's launches.
+  if (cudaPeekAtLastError() != cudaSuccess) return kDbscanCudaError;
   char* ws = static_cast<char*>(workspace);
   auto at = [&](size_t off) { return static_cast<void*>(ws + off); };
   auto* keys_in = static_cast<uint64_t*>(at(L.keys_in));
-  auto* keys = static_cast<uint64_t*>(at(L.keys_out));
+  auto* keys = static_cast<uint64_t*>(at(L.keys));
   auto* idx_in = static_cast<int32_t*>(at(L.idx_in));
-  auto* orig = static_cast<int32_t*>(at(L.idx_out));
+  auto* orig = static_cast<int32_t*>(at(L.orig));
   auto* xs = static_cast<double*>(at(L.xs));
   auto* ys = static_cast<double*>(at(L.ys));
   auto* zs = static_cast<double*>(at(L.zs));
-  auto* flag = static_cast<int32_t*>(at(L.flag));
+  auto* sub_flag = static_cast<int32_t*>(at(L.sub_flag));
+  auto* cell_flag = static_cast<int32_t*>(at(L.cell_flag));
+  auto* sub_incl = static_cast<int32_t*>(at(L.sub_incl));
   auto* cell_incl = static_cast<int32_t*>(at(L.cell_incl));
+  auto* sub_start = static_cast<int32_t*>(at(L.sub_start));
+  auto* sub_key = static_cast<uint64_t*>(at(L.sub_key));
   auto* cell_keys = static_cast<uint64_t*>(at(L.cell_keys));
   auto* cell_start = static_cast<int32_t*>(at(L.cell_start));
-  auto* num_cells = static_cast<int32_t*>(at(L.num_cells));
+  auto* counts = static_cast<int32_t*>(at(L.counts));
   auto* ranges = static_cast<int32_t*>(at(L.ranges));
   auto* core = static_cast<uint8_t*>(at(L.core));
+  auto* rep = static_cast<int32_t*>(at(L.rep));
   auto* parent = static_cast<int32_t*>(at(L.parent));
+  auto* root = static_cast<int32_t*>(at(L.root));
   auto* min_orig = static_cast<int32_t*>(at(L.min_orig));
   auto* first = static_cast<int32_t*>(at(L.first));
   auto* cid = static_cast<int32_t*>(at(L.cid));
   auto* lab = static_cast<int32_t*>(at(L.lab));
   auto* bbox = static_cast<unsigned long long*>(at(L.bbox));
   void* temp = at(L.temp);
-  size_t temp_bytes = L.temp_bytes;
   const unsigned nb = blocks_for(n);
 
-  // Bounding box, read back to size the grid and the sort.
+  // Bounding box, read back (pinned-free: a pageable cudaMemcpy on the stream, then an
+  // explicit stream sync before the host reads it) to size the grid and the sort.
   if (cudaMemsetAsync(bbox, 0xff, 3 * 8, stream) != cudaSuccess) return kDbscanCudaError;
   if (cudaMemsetAsync(bbox + 3, 0, 3 * 8, stream) != cudaSuccess) return kDbscanCudaError;
   const unsigned bb_blocks = nb < 1024u ? nb : 1024u;
   bbox_kernel<T><<<bb_blocks, kThreads, 0, stream>>>(points, n, bbox);
-  unsigned long long bb_host[6];
+  if (!launched()) return kDbscanCudaError;
+  unsigned long long bb_host[6] = {0, 0, 0, 0, 0, 0};
   if (cudaMemcpyAsync(bb_host, bbox, sizeof(bb_host), cudaMemcpyDeviceToHost, stream) != cudaSuccess)
     return kDbscanCudaError;
   if (cudaStreamSynchronize(stream) != cudaSuccess) return kDbscanCudaError;
@@ -322,31 +367,47 @@ int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t*
     hi[a] = order_key_inverse(bb_host[3 + a]);
     if (!std::isfinite(lo[a]) || !std::isfinite(hi[a]) || !std::isfinite(hi[a] - lo[a])) return kDbscanNonFinite;
   }
-  const Grid g = dbscan::make_grid(lo, hi, eps);
-  const int key_bits = g.bits[0] + g.bits[1] + g.bits[2];
-  const double eps2 = eps * eps;
+  const Params P = stages::make_params(lo, hi, eps, min_samples);
+  const int key_bits = P.g.bits[0] + P.g.bits[1] + P.g.bits[2] + dbscan::kSubBits;
+  if (key_bits > 64) return kDbscanBadArgs;
+  size_t temp_bytes = sort_temp_bytes(n, key_bits);
+  if (temp_bytes > L.temp_bytes) return kDbscanBadArgs;
 
-  key_kernel<T><<<nb, kThreads, 0, stream>>>(points, n, g, keys_in, idx_in);
-  if (cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys, idx_in, orig, n, 0,
-                                      key_bits > 0 ? key_bits : 1, stream) != cudaSuccess)
+  key_kernel<T><<<nb, kThreads, 0, stream>>>(points, n, P.g, keys_in, idx_in);
+  if (!launched()) return kDbscanCudaError;
+  if (cub::DeviceRadixSort::SortPairs(temp, temp_bytes, static_cast<const uint64_t*>(keys_in), keys,
+                                      static_cast<const int32_t*>(idx_in), orig, n, 0, key_bits,
+                                      stream) != cudaSuccess)
     return kDbscanCudaError;
-  gather_kernel<T><<<nb, kThreads, 0, stream>>>(points, keys, orig, n, xs, ys, zs, flag);
+  gather_kernel<T><<<nb, kThreads, 0, stream>>>(points, keys, orig, n, xs, ys, zs, sub_flag, cell_flag);
+  if (!launched()) return kDbscanCudaError;
   temp_bytes = L.temp_bytes;
-  if (cub::DeviceScan::InclusiveSum(temp, temp_bytes, flag, cell_incl, n, stream) != cudaSuccess)
+  if (cub::DeviceScan::InclusiveSum(temp, temp_bytes, static_cast<const int32_t*>(sub_flag), sub_incl, n, stream) !=
+      cudaSuccess)
     return kDbscanCudaError;
-  cells_kernel<<<nb, kThreads, 0, stream>>>(keys, flag, cell_incl, n, cell_keys, cell_start, num_cells);
-  ranges_kernel<<<nb, kThreads, 0, stream>>>(g, cell_keys, cell_start, num_cells, ranges);
-  count_kernel<<<nb, kThreads, 0, stream>>>(xs, ys, zs, cell_incl, ranges, n, eps2, min_samples, core, parent,
-                                            min_orig);
-  hook_kernel<<<nb, kThreads, 0, stream>>>(xs, ys, zs, cell_incl, ranges, core, n, eps2, parent);
-  root_kernel<<<nb, kThreads, 0, stream>>>(core, orig, n, parent, min_orig);
-  first_kernel<<<nb, kThreads, 0, stream>>>(core, orig, parent, min_orig, n, first);
   temp_bytes = L.temp_bytes;
-  if (cub::DeviceScan::ExclusiveSum(temp, temp_bytes, first, cid, n, stream) != cudaSuccess)
+  if (cub::DeviceScan::InclusiveSum(temp, temp_bytes, static_cast<const int32_t*>(cell_flag), cell_incl, n,
+                                    stream) != cudaSuccess)
     return kDbscanCudaError;
-  core_label_kernel<<<nb, kThreads, 0, stream>>>(core, parent, min_orig, cid, n, lab);
-  label_kernel<<<nb, kThreads, 0, stream>>>(xs, ys, zs, cell_incl, ranges, core, lab, orig, n, eps2, labels);
-  return cudaGetLastError() == cudaSuccess ? kDbscanOk : kDbscanCudaError;
+  segments_kernel<<<nb, kThreads, 0, stream>>>(keys, sub_incl, cell_incl, n, sub_start, sub_key, cell_keys, cell_start,
+                                               counts);
+  ranges_kernel<<<nb, kThreads, 0, stream>>>(P.g, cell_keys, cell_start, counts, sub_incl, ranges);
+  core_kernel<<<nb, kThreads, 0, stream>>>(P, xs, ys, zs, sub_incl, cell_incl, sub_start, sub_key, ranges, n, core);
+  rep_kernel<<<nb, kThreads, 0, stream>>>(core, sub_start, counts, rep);
+  init_kernel<<<nb, kThreads, 0, stream>>>(P, core, sub_incl, rep, n, parent, min_orig);
+  hook_kernel<<<nb, kThreads, 0, stream>>>(P, xs, ys, zs, sub_incl, cell_incl, sub_start, sub_key, rep, ranges, core, n,
+                                           parent);
+  root_kernel<<<nb, kThreads, 0, stream>>>(core, orig, parent, n, root, min_orig);
+  first_kernel<<<nb, kThreads, 0, stream>>>(core, orig, root, min_orig, n, first);
+  if (!launched()) return kDbscanCudaError;
+  temp_bytes = L.temp_bytes;
+  if (cub::DeviceScan::ExclusiveSum(temp, temp_bytes, static_cast<const int32_t*>(first), cid, n, stream) !=
+      cudaSuccess)
+    return kDbscanCudaError;
+  core_label_kernel<<<nb, kThreads, 0, stream>>>(core, root, min_orig, cid, n, lab);
+  label_kernel<<<nb, kThreads, 0, stream>>>(P, xs, ys, zs, cell_incl, sub_start, sub_key, rep, ranges, core, lab, orig,
+                                            n, labels);
+  return launched() ? kDbscanOk : kDbscanCudaError;
 }
 
 template int dbscan<float>(const float*, int64_t, double, int32_t, int64_t*, void*, size_t, cudaStream_t);

@@ -37,21 +37,24 @@ at::Tensor dbscan_cuda(const at::Tensor& points, double eps, int64_t min_samples
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   FLX_CHECK(status != cuda::kDbscanNonFinite,
-              "floxels: dbscan points must be finite (found NaN/inf or an overflowing extent)");
-  FLX_CHECK(status == cuda::kDbscanOk, "floxels: dbscan CUDA failure (status ", status, ")");
+            "floxels: dbscan points must be finite (found NaN/inf or an overflowing extent)");
+  FLX_CHECK(status == cuda::kDbscanOk, "floxels: dbscan CUDA failure (status ", status,
+            "; 2 = CUDA error, 3 = bad arguments or workspace)");
   return labels;
 }
 
-// The GPU kernel above intermittently fails on H100/H200 with cudaErrorInvalidAddressSpace
-// (not reproduced under compute-sanitizer; open in issue 5), and a sticky CUDA error would
-// take the whole process down. Until it is fixed, CUDA inputs run the exact CPU kernel
-// (identical labels; ~10 ms for 30k points) unless FLOXELS_EXPERIMENTAL_GPU_DBSCAN=1.
+// CUDA input runs the GPU kernel. Escape hatch: FLOXELS_CPU_DBSCAN=1 (read once per process)
+// routes CUDA input to the exact CPU kernel instead (identical labels, copied back to the
+// input's device). The GPU kernel used to fail intermittently with
+// cudaErrorInvalidAddressSpace; the cause (roots stored into the union-find's parent array
+// while other threads were still path-halving through it, leaving non-roots that indexed
+// min_orig/cid with INT_MAX) is fixed in dbscan.cu, see scripts/dbscan_stress.cu.
 at::Tensor dbscan_cuda_input(const at::Tensor& points, double eps, int64_t min_samples) {
-  static const bool use_gpu_kernel = [] {
-    const char* v = std::getenv("FLOXELS_EXPERIMENTAL_GPU_DBSCAN");
+  static const bool use_cpu_kernel = [] {
+    const char* v = std::getenv("FLOXELS_CPU_DBSCAN");
     return v != nullptr && std::string(v) == "1";
   }();
-  if (use_gpu_kernel) return dbscan_cuda(points, eps, min_samples);
+  if (!use_cpu_kernel) return dbscan_cuda(points, eps, min_samples);
   args::dbscan(points, eps, min_samples);
   static const auto cpu_op = c10::Dispatcher::singleton()
                                  .findSchemaOrThrow("floxels::dbscan", "")

@@ -22,14 +22,15 @@ struct Grid {
   double lo[3];
   double inv_cs[3];
   int64_t dims[3];  // number of cells per axis (>= 1)
-  int bits[3];      // key bits per axis; dims[a] <= 2^bits[a], bits sum <= 63
+  int bits[3];      // key bits per axis; dims[a] <= 2^bits[a], bits sum <= 60
 };
 
-constexpr int kMaxAxisBits = 21;
+// 20 bits per axis: 60 cell bits plus the 3 sub-cell bits of the CUDA sort key fit in 64.
+constexpr int kMaxAxisBits = 20;
 
 // Host only. Cell size slightly above eps so that two points within eps land in cells at
 // most one apart despite the rounding of (v - lo) * inv_cs (relative margin 2^-16, far above
-// the ~1e-9 rounding error for coordinates up to 2^21 cells). An axis whose extent would need
+// the ~1e-9 rounding error for coordinates up to 2^20 cells). An axis whose extent would need
 // more than 2^21 cells (degenerate, very sparse input) gets larger cells: still exact, since
 // only cell size >= eps matters for correctness.
 inline Grid make_grid(const double lo[3], const double hi[3], double eps) {
@@ -84,6 +85,42 @@ FLX_HD double rdist(double ax, double ay, double az, double bx, double by, doubl
 #else
   return (dx * dx + dy * dy) + dz * dz;
 #endif
+}
+
+// Sub-cells (CUDA kernel): each cell split in 2 x 2 x 2 halves. Coordinate in half-cell units;
+// scaling by 2 is exact, so sub_coord >> 1 == cell_coord for every point.
+FLX_HD int64_t sub_coord(const Grid& g, int a, double v) {
+  double u = std::floor((v - g.lo[a]) * (2.0 * g.inv_cs[a]));
+  if (!(u >= 0.0)) u = 0.0;
+  const double top = double(2 * g.dims[a] - 1);
+  if (u > top) u = top;
+  return int64_t(u);
+}
+
+constexpr int kSubBits = 3;
+
+// Cell key << 3 | (x, y, z) half bits: sorting by it keeps every cell contiguous (and in cell
+// key order) and every sub-cell contiguous inside its cell.
+FLX_HD uint64_t point_sub_key(const Grid& g, double x, double y, double z) {
+  const int64_t sx = sub_coord(g, 0, x), sy = sub_coord(g, 1, y), sz = sub_coord(g, 2, z);
+  return (pack(g, sx >> 1, sy >> 1, sz >> 1) << kSubBits) | uint64_t(((sx & 1) << 2) | ((sy & 1) << 1) | (sz & 1));
+}
+
+FLX_HD void unpack_sub(const Grid& g, uint64_t sub_key, int64_t& sx, int64_t& sy, int64_t& sz) {
+  unpack(g, sub_key >> kSubBits, sx, sy, sz);
+  sx = 2 * sx + int64_t((sub_key >> 2) & 1);
+  sy = 2 * sy + int64_t((sub_key >> 1) & 1);
+  sz = 2 * sz + int64_t(sub_key & 1);
+}
+
+// Host only. True when every cell side is <= 1.1 eps (the grid was not enlarged), so a
+// sub-cell's diagonal is <= sqrt(3)/2 * 1.1 eps < 0.96 eps: any two points of one sub-cell
+// are within eps of each other with a margin far above any rounding (the misplacement of a
+// point by the rounding of its cell coordinate is < 2^-28 cell).
+inline bool subcells_within_eps(const Grid& g, double eps) {
+  for (int a = 0; a < 3; ++a)
+    if (!(eps * g.inv_cs[a] * 1.1 >= 1.0)) return false;
+  return true;
 }
 
 // First index in sorted keys[0, n) with keys[k] >= v (upper = false) or > v (upper = true).

@@ -24,8 +24,9 @@ def dbscan(points: torch.Tensor, eps: float = 0.5, min_samples: int = 4) -> torc
     distance <= eps, computed in float64; clusters are numbered in order of their smallest
     core-point index and a border point joins the smallest-numbered neighbouring cluster.
     Not differentiable. The labels are returned on the device of ``points``; CUDA input is
-    currently clustered by the exact CPU kernel (the GPU kernel fails intermittently and is
-    only used with ``FLOXELS_EXPERIMENTAL_GPU_DBSCAN=1``).
+    clustered by the GPU kernel (same labels as the CPU kernel, bit for bit; it synchronises
+    the current stream once). Setting ``FLOXELS_CPU_DBSCAN=1`` before the first call routes
+    CUDA input to the CPU kernel instead (escape hatch).
     """
     points = as_points(points)
     eps = float(eps)
