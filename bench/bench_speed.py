@@ -57,7 +57,7 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=500)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seq-frames", type=int, default=40)
-    ap.add_argument("--batch", type=int, default=8, help="targets optimised together in the sequence run")
+    ap.add_argument("--batch", type=int, default=16, help="targets optimised together in the sequence run")
     ap.add_argument("--no-reference", action="store_true")
     ap.add_argument("--no-cpu", action="store_true", help="skip the CPU-path accuracy comparison")
     ap.add_argument("--quick", action="store_true", help="32 beams, 100 iterations, short sequence")
@@ -112,11 +112,16 @@ def main() -> None:
     seq = scans[:args.seq_frames]
     estimate_sequence(seq[:min(len(seq), 6)], cfg.replace(max_iters=20), device=dev, batch_size=args.batch)  # warm
     _sync(dev)
+    groups = {}  # stage timings of each optimised group (one dict per group)
     t0 = time.perf_counter()
-    estimate_sequence(seq, cfg, device=dev, batch_size=args.batch)
+    estimate_sequence(seq, cfg, device=dev, batch_size=args.batch,
+                      callback=lambda f, r: groups.setdefault(tuple(sorted(r.timings.items())), r.timings))
     _sync(dev)
     seq_s = time.perf_counter() - t0
-    out.update(seq_frames=len(seq), seq_s=seq_s, seq_fps=len(seq) / seq_s, batch=args.batch)
+    seq_stages = {k: sum(g.get(k, 0.0) for g in groups.values()) / len(seq)
+                  for k in ("dt", "dbscan", "setup", "optimise", "total")}
+    out.update(seq_frames=len(seq), seq_s=seq_s, seq_fps=len(seq) / seq_s, batch=args.batch,
+               seq_stages_per_frame=seq_stages)
     _sync(dev)
     t0 = time.perf_counter()
     estimate_sequence(seq, cfg, device=dev, batch_size=1)
@@ -149,6 +154,7 @@ def main() -> None:
         print(f"{'reference (pure PyTorch)':<26} {1e3 * out['ref_s']:>10.1f}   ratio {out['speedup']:.0f}x")
     print(f"\nsequence: {len(seq)} frames in {seq_s:.3f} s = {out['seq_fps']:.1f} frames/s (batch {args.batch}); "
           f"unbatched {out['seq_unbatched_fps']:.1f} frames/s")
+    print("  per frame (ms): " + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in seq_stages.items()))
     print(f"\n{'path':<10} {'dynEPE':>8} {'dynAcc5':>8} {'dynAcc10':>8} {'staticEPE':>10}")
     for name, key in (("ours", "metrics_ours"), ("cpu", "metrics_cpu"), ("reference", "metrics_ref")):
         if key in out:

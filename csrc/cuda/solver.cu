@@ -193,16 +193,12 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
 // through shared memory transposed, and lane j < 24 walks the 32 points summing component
 // j of each run of equal segment ids, with one atomic per run. Runs are long (a segment is
 // one cluster inside one cell), so this is a handful of atomics per warp.
-__device__ void segment_accumulate(const KParams& P, int seg, int i, const float* g, float (*buf)[kSegVals + 1],
-                                   int* segs) {
+__device__ void segment_accumulate(const KParams& P, int seg, const float* w, const float* g,
+                                   float (*buf)[kSegVals + 1], int* segs) {
   const int lane = threadIdx.x & 31;
-  if (seg >= 0) {
-    const float* w = P.corner_w + 8 * int64_t(i);
-    for (int k = 0; k < 8; ++k) {
-      const float wk = w[k];
-      for (int c = 0; c < 3; ++c) buf[lane][3 * k + c] = wk * g[c];
-    }
-  }
+  if (seg >= 0)
+    for (int k = 0; k < 8; ++k)
+      for (int c = 0; c < 3; ++c) buf[lane][3 * k + c] = w[k] * g[c];
   segs[lane] = seg;
   __syncwarp();
   // Common case: the whole warp lies in one segment (long segments near the sensor):
@@ -267,10 +263,16 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
   if (P.state[p * kStateCols + kActive] != 0.0) {  // uniform per block
     const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
     const bool valid = i < P.point_end[p];
-    float g[3] = {0.0f, 0.0f, 0.0f};
-    float loss = 0.0f;
-    if (valid)
+    // Every global read this thread needs is issued here, before the first barrier, so
+    // their latencies overlap instead of adding up along the kernel.
+    float g[3] = {0.0f, 0.0f, 0.0f}, w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    int seg = -1;
+    if (valid) {
       for (int c = 0; c < 3; ++c) g[c] = P.g[3 * int64_t(i) + c];
+      for (int k = 0; k < 8; ++k) w[k] = P.corner_w[8 * int64_t(i) + k];
+      seg = unsigned(P.point_seg[i]) < unsigned(P.num_segments) ? P.point_seg[i] : -1;
+    }
+    float loss = 0.0f;
     if constexpr (kCluster) {
       const int l = valid && unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
       float u[3] = {0.0f, 0.0f, 0.0f};
@@ -283,8 +285,7 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
       }
       cluster_accumulate(P.usum, l, u, smem_table, scratch);
     }
-    const int seg = valid && unsigned(P.point_seg[i]) < unsigned(P.num_segments) ? P.point_seg[i] : -1;
-    segment_accumulate(P, seg, i, g, seg_buf[threadIdx.x >> 5], seg_ids[threadIdx.x >> 5]);
+    segment_accumulate(P, seg, w, g, seg_buf[threadIdx.x >> 5], seg_ids[threadIdx.x >> 5]);
     const double total = block_sum<kThreads>(double(loss));
     if (threadIdx.x == 0) P.part_cluster[blockIdx.x] = total;
   }

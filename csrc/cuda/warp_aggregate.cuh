@@ -16,11 +16,25 @@ namespace floxels::cuda_detail {
 // key < 0. Adds w * v[ch] to dst[key * kstride + ch * cstride] for ch < C. `scratch` is this
 // warp's 32-element shared buffer.
 template <typename T>
+__device__ __forceinline__ T* base_of(T* dst, int64_t key, int64_t kstride) {
+  return dst + key * kstride;
+}
+
+template <typename T>
 __device__ __forceinline__ void warp_add(T* __restrict__ dst, int64_t key, int64_t kstride, int64_t cstride,
                                          const T* __restrict__ v, T w, int C, T* scratch) {
   const unsigned full = 0xffffffffu;
   const int lane = threadIdx.x & 31;
   const unsigned peers = __match_any_sync(full, static_cast<unsigned long long>(key));
+  if (peers == full) {  // one key for the whole warp (sorted keys): butterfly sums, one atomic each
+    if (key < 0) return;
+    for (int ch = 0; ch < C; ++ch) {
+      T s = w * v[ch];
+      for (int o = 16; o > 0; o >>= 1) s += __shfl_xor_sync(full, s, o);
+      if (lane == 0) atomicAdd(base_of(dst, key, kstride) + ch * cstride, s);
+    }
+    return;
+  }
   const bool shared = __any_sync(full, peers != (1u << lane) && key >= 0);
   const bool leader = key >= 0 && (__ffs(peers) - 1) == lane;
   T* base = dst + key * kstride;

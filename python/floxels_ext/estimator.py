@@ -135,6 +135,14 @@ class Floxels:
                         todo.setdefault(id(prep.points[i]), (prep.points[i], []))[1].append((cache, i))
         targets = [prep.points[prep.target] for prep, _ in items if prep.points[prep.target].shape[0] > 0]
         bounds = point_bounds([v[0] for v in todo.values()] + targets)
+        # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
+        # bound) run on the main one: their host synchronisations wait for the side stream
+        # only. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other (stage timings).
+        serial = _serial_stages(device)
+        side = None if serial else _side_stream(device)
+        if side is not None:
+            main = torch.cuda.current_stream(device)
+            side.wait_stream(main)  # the scans are ready; the EDTs are not needed there
         for (pts, users), b in zip(todo.values(), bounds):
             d = _build_dt(pts, cfg, b)
             for cache, i in users:
@@ -155,21 +163,10 @@ class Floxels:
                     offsets.append(float(t))
                     weights.append(cfg.lambda_d * cfg.time_weight(t))
             supports.append((dts, origins, offsets, weights))
-        serial = _serial_stages(device)
         if serial:
             _sync_device(device)
         timings["dt"] = time.perf_counter() - t0
-
-        # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
-        # bound) run on the main one: their host synchronisations wait for the side stream
-        # only. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other (stage timings).
-        side = None if serial or device.type != "cuda" else _side_stream(device)
-        if side is not None:
-            main = torch.cuda.current_stream(device)
-            side.wait_stream(main)
-            stream_ctx = torch.cuda.stream(side)
-        else:
-            stream_ctx = contextlib.nullcontext()
+        stream_ctx = torch.cuda.stream(side) if side is not None else contextlib.nullcontext()
         with stream_ctx:
             labels, problems, orders, grids = self._targets(items, supports, target_bounds, timings)
         if side is not None:
