@@ -17,6 +17,7 @@
 
 #include <climits>
 #include <cstdint>
+#include <cstdlib>
 
 #include "cuda/block_reduce.cuh"
 #include "cuda/solver_launch.h"
@@ -54,6 +55,7 @@ struct KParams {
   int num_vertices;
   int num_points;
   int num_segments;
+  bool smem_tables;  // cluster sums through per-block shared tables (else warp atomics)
   Hyper hyper;
   const float* points;
   const int32_t* corner_idx;
@@ -82,6 +84,14 @@ struct KParams {
   double* part_cluster;  // per point block: cluster loss
   unsigned* done;        // blocks of the cluster kernel finished this iteration
 };
+
+// Programmatic dependent launch (sm_90): a kernel lets the next one in the stream start
+// once all its blocks run (launch_dependents), and the next one reads nothing the previous
+// kernel writes before wait, which returns once that kernel has finished and its writes
+// are visible. This hides the launch gap and each kernel's fixed-data loads behind the
+// tail of the previous kernel. Without the launch attribute both are no-ops.
+__device__ __forceinline__ void pdl_allow_next() { asm volatile("griddepcontrol.launch_dependents;" ::: "memory"); }
+__device__ __forceinline__ void pdl_wait_previous() { asm volatile("griddepcontrol.wait;" ::: "memory"); }
 
 __device__ __forceinline__ int problem_of(int block, const int* begins, int num_problems) {
   int p = 0;
@@ -118,7 +128,12 @@ __global__ void __launch_bounds__(kThreads) segment_setup_kernel(const __grid_co
 // nothing). Labels are sorted, so the block's keys span a short range [lo, hi]: when it
 // fits, the block sums in shared memory first and issues one atomic per (cluster,
 // component); otherwise warp-aggregated global atomics. Every thread must call it.
-__device__ void cluster_accumulate(float* table, int key, const float* v, float* smem, float* scratch) {
+__device__ void cluster_accumulate(float* table, int key, const float* v, float* smem, float* scratch,
+                                   bool smem_tables) {
+  if (!smem_tables) {  // warp-aggregated global atomics (one per warp and cluster)
+    warp_add<float>(table, key, 3, 1, v, 1.0f, 3, scratch + (threadIdx.x & ~31u));
+    return;
+  }
   __shared__ int range[2];
   if (threadIdx.x == 0) {
     range[0] = INT_MAX;
@@ -152,27 +167,40 @@ template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
   __shared__ float scratch[kThreads];
   __shared__ float smem_table[kCluster ? 3 * kSmemClusters : 1];
-  zero_strided(P.seg_grad, int64_t(kSegVals) * P.num_segments);
-  if constexpr (kCluster) zero_strided(P.usum, 3 * int64_t(P.num_clusters));
+  pdl_allow_next();
+  // Fixed per-frame data first (overlaps the previous kernel's tail under PDL).
   const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
-  const double* st = P.state + p * kStateCols;
-  if (st[kActive] == 0.0) return;  // uniform per block; this block's partials are not read
   const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
   const bool valid = i < P.point_end[p];
+  int32_t idx[8];
+  float w[8], px = 0.0f, py = 0.0f, pz = 0.0f;
+  int key = -1;
+  if (valid) {
+    for (int j = 0; j < 8; ++j) {
+      idx[j] = P.corner_idx[8 * int64_t(i) + j];
+      w[j] = P.corner_w[8 * int64_t(i) + j];
+    }
+    px = P.points[3 * int64_t(i)];
+    py = P.points[3 * int64_t(i) + 1];
+    pz = P.points[3 * int64_t(i) + 2];
+    if constexpr (kCluster) key = unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
+  }
+  pdl_wait_previous();
+  zero_strided(P.seg_grad, int64_t(kSegVals) * P.num_segments);
+  if constexpr (kCluster) zero_strided(P.usum, 3 * int64_t(P.num_clusters));
+  const double* st = P.state + p * kStateCols;
+  if (st[kActive] == 0.0) return;  // uniform per block; this block's partials are not read
   float f[3] = {0.0f, 0.0f, 0.0f};
   float loss = 0.0f;
   if (valid) {
-    const int32_t* idx = P.corner_idx + 8 * int64_t(i);
-    const float* w = P.corner_w + 8 * int64_t(i);
     for (int j = 0; j < 8; ++j) {
       if (unsigned(idx[j]) >= unsigned(P.num_vertices)) continue;  // validated in Python; never read outside
       const float* row = P.theta + 3 * int64_t(idx[j]);
       for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
     }
-    const float* pi = P.points + 3 * int64_t(i);
     float g[3];
-    loss = dt_loss::point_loss<true, float, int>(P.scans[p], P.num_support[p], pi[0], pi[1], pi[2], f[0], f[1],
-                                                 f[2], P.hyper.inv_dt_cell, P.hyper.truncation, g);
+    loss = dt_loss::point_loss<true, float, int>(P.scans[p], P.num_support[p], px, py, pz, f[0], f[1], f[2],
+                                                 P.hyper.inv_dt_cell, P.hyper.truncation, g);
     const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
     float unit[3];
     loss += lam * norm_and_unit(f, unit);
@@ -182,8 +210,7 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
       for (int c = 0; c < 3; ++c) P.f[3 * int64_t(i) + c] = f[c];
   }
   if constexpr (kCluster) {
-    const int key = valid && unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
-    cluster_accumulate(P.csum, key, f, smem_table, scratch);
+    cluster_accumulate(P.csum, key, f, smem_table, scratch, P.smem_tables);
   }
   const double total = block_sum<kThreads>(double(loss));
   if (threadIdx.x == 0) P.part_points[blockIdx.x] = total;
@@ -259,22 +286,26 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
   __shared__ float seg_buf[kWarps][32][kSegVals + 1];
   __shared__ int seg_ids[kWarps][32];
   __shared__ bool is_last;
+  pdl_allow_next();
   const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
+  const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
+  const bool valid = i < P.point_end[p];
+  // Fixed data first (overlaps the previous kernel under PDL), then, after the wait,
+  // every read that depends on stage 1 before the first barrier so their latencies overlap.
+  float w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  int seg = -1, l = -1;
+  if (valid) {
+    for (int k = 0; k < 8; ++k) w[k] = P.corner_w[8 * int64_t(i) + k];
+    seg = unsigned(P.point_seg[i]) < unsigned(P.num_segments) ? P.point_seg[i] : -1;
+    if constexpr (kCluster) l = unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
+  }
+  pdl_wait_previous();
   if (P.state[p * kStateCols + kActive] != 0.0) {  // uniform per block
-    const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
-    const bool valid = i < P.point_end[p];
-    // Every global read this thread needs is issued here, before the first barrier, so
-    // their latencies overlap instead of adding up along the kernel.
-    float g[3] = {0.0f, 0.0f, 0.0f}, w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-    int seg = -1;
-    if (valid) {
+    float g[3] = {0.0f, 0.0f, 0.0f};
+    if (valid)
       for (int c = 0; c < 3; ++c) g[c] = P.g[3 * int64_t(i) + c];
-      for (int k = 0; k < 8; ++k) w[k] = P.corner_w[8 * int64_t(i) + k];
-      seg = unsigned(P.point_seg[i]) < unsigned(P.num_segments) ? P.point_seg[i] : -1;
-    }
     float loss = 0.0f;
     if constexpr (kCluster) {
-      const int l = valid && unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
       float u[3] = {0.0f, 0.0f, 0.0f};
       if (l >= 0) {
         const float inv = 1.0f / P.cluster_count[l];
@@ -283,7 +314,7 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
         loss = coef * cluster::residual_unit<float>(P.f + 3 * int64_t(i), mean, 3, u);
         for (int c = 0; c < 3; ++c) g[c] += coef * u[c];
       }
-      cluster_accumulate(P.usum, l, u, smem_table, scratch);
+      cluster_accumulate(P.usum, l, u, smem_table, scratch, P.smem_tables);
     }
     segment_accumulate(P, seg, w, g, seg_buf[threadIdx.x >> 5], seg_ids[threadIdx.x >> 5]);
     const double total = block_sum<kThreads>(double(loss));
@@ -305,6 +336,8 @@ __global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant
 // iteration (stage 2 has read them).
 template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
+  pdl_allow_next();
+  pdl_wait_previous();
   if constexpr (kCluster) zero_strided(P.csum, 3 * int64_t(P.num_clusters));
   const int p = problem_of(blockIdx.x, P.vblock_begin, P.num_problems);
   const double* st = P.state + p * kStateCols;
@@ -348,6 +381,26 @@ __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant_
     adam_update(th[sub], P.adam_m[3 * int64_t(v) + sub], P.adam_v[3 * int64_t(v) + sub], G[sub], P.hyper,
                 step_size, bc2);
   }
+}
+
+// Launch with programmatic stream serialisation (PDL) when `pdl`; see pdl_wait_previous.
+cudaError_t launch(void (*kernel)(const KParams), int blocks, cudaStream_t stream, bool pdl, const KParams& P) {
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = dim3(unsigned(blocks));
+  cfg.blockDim = dim3(kThreads);
+  cfg.stream = stream;
+  cudaLaunchAttribute attr[1];
+  attr[0].id = cudaLaunchAttributeProgrammaticStreamSerialization;
+  attr[0].val.programmaticStreamSerializationAllowed = 1;
+  cfg.attrs = attr;
+  cfg.numAttrs = pdl ? 1 : 0;
+  return cudaLaunchKernelEx(&cfg, kernel, P);
+}
+
+// Runtime switches for measurements (read per call; "0" turns a feature off).
+bool env_flag(const char* name, bool dflt) {
+  const char* v = std::getenv(name);
+  return v == nullptr ? dflt : !(v[0] == '0' && v[1] == '\0');
 }
 
 int64_t align256(int64_t bytes) { return (bytes + 255) / 256 * 256; }
@@ -435,6 +488,7 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   P.num_vertices = int(a.num_vertices);
   P.num_points = int(a.num_points);
   P.num_segments = int(a.num_segments);
+  P.smem_tables = env_flag("FLOXELS_SOLVER_SMEM_TABLES", true);
   P.hyper = a.hyper;
   P.points = a.points;
   P.corner_idx = a.corner_idx;
@@ -474,20 +528,19 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   // The cluster kernel always runs: it folds gradients into segments and its last block
   // runs stage 3, so it needs at least one block even without points.
   const int cb = pb > 0 ? pb : 1;
-  for (int it = 0; it < num_iters; ++it) {
+  const bool pdl = env_flag("FLOXELS_SOLVER_PDL", true);
+  for (int it = 0; it < num_iters && err == cudaSuccess; ++it) {
     if (cl) {
-      if (pb > 0) points_kernel<true><<<pb, kThreads, 0, stream>>>(P);
-      cluster_kernel<true><<<cb, kThreads, 0, stream>>>(P);
-      if (vb > 0) vertex_kernel<true><<<vb, kThreads, 0, stream>>>(P);
+      if (pb > 0) err = launch(points_kernel<true>, pb, stream, pdl, P);
+      if (err == cudaSuccess) err = launch(cluster_kernel<true>, cb, stream, pdl, P);
+      if (err == cudaSuccess && vb > 0) err = launch(vertex_kernel<true>, vb, stream, pdl, P);
     } else {
-      if (pb > 0) points_kernel<false><<<pb, kThreads, 0, stream>>>(P);
-      cluster_kernel<false><<<cb, kThreads, 0, stream>>>(P);
-      if (vb > 0) vertex_kernel<false><<<vb, kThreads, 0, stream>>>(P);
+      if (pb > 0) err = launch(points_kernel<false>, pb, stream, pdl, P);
+      if (err == cudaSuccess) err = launch(cluster_kernel<false>, cb, stream, pdl, P);
+      if (err == cudaSuccess && vb > 0) err = launch(vertex_kernel<false>, vb, stream, pdl, P);
     }
-    err = cudaGetLastError();
-    if (err != cudaSuccess) return err;
   }
-  return cudaSuccess;
+  return err == cudaSuccess ? cudaGetLastError() : err;
 }
 
 }  // namespace floxels::cuda

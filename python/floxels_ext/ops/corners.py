@@ -56,6 +56,10 @@ torch.library.register_autograd("floxels::corner_gather", _gather_backward, setu
 torch.library.register_autograd("floxels::corner_scatter", _scatter_backward, setup_context=_scatter_setup)
 
 
+# corner j = (cx, cy, cz) with j = cz * 4 + cy * 2 + cx, the order of trilinear_gather
+_CORNER_OFFSETS = torch.tensor([[cx, cy, cz] for cz in (0, 1) for cy in (0, 1) for cx in (0, 1)])
+
+
 @dataclass
 class CompactCorners:
     corner_idx: torch.Tensor   # (N, 8) int32 rows into the compact table
@@ -80,29 +84,24 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
     """Trilinear corners of ``points`` on the lattice (same clamping as trilinear_gather),
     renumbered densely over the vertices actually touched."""
     Z, Y, X = (int(s) for s in grid_shape)
-    o = torch.as_tensor(list(origin), dtype=points.dtype, device=points.device)
-    size = torch.tensor([X, Y, Z], device=points.device)
-    u = ((points - o) / spacing).clamp(min=torch.zeros(3, dtype=points.dtype, device=points.device),
-                                       max=(size - 1).to(points.dtype))
+    dev, dt = points.device, points.dtype
+    # All 8 corners at once (a dozen kernels instead of ~120 small ones: this runs once per
+    # frame, where launch overhead matters); same arithmetic as trilinear_gather's clamping.
+    size = torch.tensor([X, Y, Z], device=dev)
+    o = torch.tensor([float(v) for v in origin] + [0.0, 0.0, 0.0], dtype=dt, device=dev)
+    o, hi = o[:3], (size - 1).to(dt)
+    u = torch.minimum(((points - o) / spacing).clamp_min(0), hi)
     i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
-    t = u - i0.to(points.dtype)
-    lin, wts = [], []
-    for cz in (0, 1):
-        for cy in (0, 1):
-            for cx in (0, 1):
-                ix = torch.minimum(i0[:, 0] + cx, size[0] - 1)
-                iy = torch.minimum(i0[:, 1] + cy, size[1] - 1)
-                iz = torch.minimum(i0[:, 2] + cz, size[2] - 1)
-                lin.append((iz * Y + iy) * X + ix)
-                wx = t[:, 0] if cx else 1 - t[:, 0]
-                wy = t[:, 1] if cy else 1 - t[:, 1]
-                wz = t[:, 2] if cz else 1 - t[:, 2]
-                wts.append(wx * wy * wz)
-    lin = torch.stack(lin, dim=1)
+    t = u - i0.to(dt)
+    offs = _CORNER_OFFSETS.to(dev)                                    # (8, 3): x fastest, then y, then z
+    idx = torch.minimum(i0[:, None, :] + offs, size - 1)            # (N, 8, 3)
+    lin = (idx[..., 2] * Y + idx[..., 1]) * X + idx[..., 0]
+    wf = torch.where(offs.bool(), t[:, None, :], 1 - t[:, None, :])  # (N, 8, 3) per-axis weights
+    w = wf[..., 0] * wf[..., 1] * wf[..., 2]
     vertices, inverse = torch.unique(lin, return_inverse=True)
     if vertices.numel() >= 2**31:
         raise ValueError("too many touched voxel corners for int32 indexing")
-    return CompactCorners(inverse.to(torch.int32).contiguous(), torch.stack(wts, dim=1).contiguous(),
+    return CompactCorners(inverse.to(torch.int32).contiguous(), w.contiguous(),
                           vertices, [Z, Y, X])
 
 
