@@ -1,15 +1,18 @@
-"""Profile the device optimiser loop on a ~100k-point frame: per-kernel GPU time (torch
-profiler) and wall time per iteration with and without CUDA graphs.
+"""Profile the device optimiser loop on ~100k-point frames: wall time per iteration (with
+and without CUDA graphs, with and without programmatic dependent launch) and the GPU time
+of each kernel measured with PDL off (with PDL on, a kernel's span includes its wait for the
+previous one, so the profiler's figures overlap).
 
-    python scripts/profile_solver.py [--beams 128] [--iters 100]
+    python scripts/profile_solver.py [--beams 128] [--iters 100] [--batch 1 16]
 """
 import argparse
+import os
 import time
 
 import torch
 
-from floxels_ext import Floxels, FloxelsConfig
-from floxels_ext.demo import prepare_demo_scans  # noqa: F401  (import check)
+from _solver_problems import problems_of, simulated_scans
+from floxels_ext import FloxelsConfig
 from floxels_ext.ops.solver import PackedProblems
 from floxels_ext.solver import run_solver
 
@@ -17,53 +20,44 @@ ap = argparse.ArgumentParser()
 ap.add_argument("--beams", type=int, default=128)
 ap.add_argument("--iters", type=int, default=100)
 ap.add_argument("--scene", default="urban")
+ap.add_argument("--batch", type=int, nargs="+", default=[1, 16])
 args = ap.parse_args()
 
-import sys, os
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "bench"))
-from bench_speed import _frames  # noqa: E402
-
-scans, _, _ = _frames(args.scene, 0, 5, args.beams, 2048)
+scans = simulated_scans(max(args.batch) + 4, args.beams, args.scene)
 cfg = FloxelsConfig(max_iters=args.iters, patience=10**9)
-est = Floxels(cfg, "cuda")
-# capture the problem the estimator builds
-captured = {}
-import floxels_ext.estimator as E
-orig = E.PackedProblems
-def grab(problems, c):
-    p = orig(problems, c)
-    captured["problems"] = problems
-    return p
-E.PackedProblems = grab
-est.fit(scans, 2)
-E.PackedProblems = orig
-probs = captured["problems"]
-print("points", probs[0].points.shape[0], "vertices", probs[0].corners.num_params,
-      "clusters", int(probs[0].labels.max()) + 1, "dt shapes", [tuple(d.shape) for d in probs[0].dts])
 
-for graph in (False, True):
-    for _ in range(2):
+
+def wall_per_iter(probs, graph: bool) -> float:
+    best = float("inf")
+    for _ in range(3):
         p = PackedProblems(probs, cfg)
         torch.cuda.synchronize()
         t0 = time.perf_counter()
         run_solver(p, use_graph=graph)
         torch.cuda.synchronize()
-        dt = time.perf_counter() - t0
-    print(f"graph={graph}: {1e6 * dt / args.iters:.1f} us/iteration (wall, {args.iters} iterations)")
+        best = min(best, time.perf_counter() - t0)
+    return 1e6 * best / args.iters
 
-p = PackedProblems(probs, cfg)
-with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
-    p.run(20)
-    torch.cuda.synchronize()
-print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=12))
 
-# Whole frame: where the host time of the non-optimiser stages goes (syncs, copies, launches).
-est = Floxels(cfg.replace(max_iters=50), "cuda")
-est.fit(scans, 2)
-torch.cuda.synchronize()
-with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU,
-                                        torch.profiler.ProfilerActivity.CUDA]) as prof:
-    res = est.fit(scans, 2)
+for batch in args.batch:
+    probs = problems_of(scans, cfg, batch)
+    npts = sum(p.points.shape[0] for p in probs)
+    print(f"\n=== batch {batch}: {npts} points, {sum(p.corners.num_params for p in probs)} vertices, "
+          f"{sum(int(p.labels.max()) + 1 for p in probs)} clusters")
+    for pdl in ("1", "0"):
+        os.environ["FLOXELS_SOLVER_PDL"] = pdl
+        for graph in (False, True):
+            us = wall_per_iter(probs, graph)
+            print(f"pdl={pdl} graph={int(graph)}: {us:8.1f} us/iteration ({us / batch:6.1f} per problem)")
+    os.environ["FLOXELS_SOLVER_PDL"] = "0"
+    p = PackedProblems(probs, cfg)
+    p.run(5)
     torch.cuda.synchronize()
-print("frame stages (ms):", {k: round(1e3 * v, 2) for k, v in res.timings.items()})
-print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        p.run(20)
+        torch.cuda.synchronize()
+    for ev in prof.key_averages():
+        if getattr(ev, "device_time_total", 0) > 0 and ev.count >= 1:
+            name = ev.key.replace("floxels::cuda::(anonymous namespace)::", "")[:40]
+            print(f"  {name:<42} {ev.device_time_total / ev.count:8.1f} us x {ev.count}")
+    del os.environ["FLOXELS_SOLVER_PDL"]

@@ -224,3 +224,42 @@ def test_sequence_converts_each_scan_once(scene):
     msgs = [str(w.message) for w in caught if "NaN" in str(w.message)]
     assert len(msgs) == 1 and msgs[0].startswith("scan 1:"), msgs
     assert np.isnan(flows[1][3]).all() and np.isfinite(np.delete(flows[1], 3, axis=0)).all()
+
+
+@pytest.mark.cuda
+def test_sequence_pipelined_on_cuda(scene, monkeypatch):
+    """On CUDA the next batch is prepared while this one is optimised: every DT is still
+    built once, callbacks come in frame order, and each frame matches fitting it alone."""
+    scans, _, _ = scene
+    import floxels_ext.estimator as est
+
+    built = []
+    orig = est._build_dt
+    monkeypatch.setattr(est, "_build_dt", lambda p, c, *a: built.append(len(p)) or orig(p, c, *a))
+    cfg = FAST.replace(num_scans=3, max_iters=40)
+    seen = []
+    flows = estimate_sequence(scans, config=cfg, device="cuda", batch_size=2, callback=lambda f, r: seen.append(f))
+    assert seen == list(range(len(scans))) and len(built) == len(scans)
+    monkeypatch.setattr(est, "_build_dt", orig)
+    for f in range(len(scans)):
+        s, e = window_for(f, len(scans), 3)
+        alone = estimate_flow(scans[s:e], target=f - s, config=cfg, device="cuda")
+        assert flows[f].shape == alone.shape and np.isfinite(flows[f]).all()
+        # float atomics on the GPU: same outcome, not the same bits
+        assert np.abs(flows[f] - alone).mean() < 0.02
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_sequence_error_keeps_finished_frames(scene, device):
+    """A scan that fails in a later batch (here: an absurd extent) raises, but the frames
+    of the batches before it are still delivered (on CUDA that batch is being optimised
+    while the failing one is prepared)."""
+    from floxels_ext.ops.grid import GridTooLargeError
+
+    scans = [s.copy() for s in scene[0]]
+    scans[4][0] = [1e5, 0.0, 0.0]
+    seen = []
+    with pytest.raises(GridTooLargeError):
+        estimate_sequence(scans, config=FAST.replace(num_scans=3, max_iters=10), device=device, batch_size=2,
+                          callback=lambda f, r: seen.append(f))
+    assert seen == [0, 1]

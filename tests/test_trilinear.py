@@ -1,5 +1,7 @@
 """trilinear_gather / trilinear_gather_backward / trilinear_scatter vs the reference."""
 
+import zlib
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -28,7 +30,8 @@ def _points(n, shape_zyx, origin, spacing, dtype, gen, margin=0.3):
 @pytest.mark.parametrize("shape", SHAPES)
 @pytest.mark.parametrize("n", [0, 1, 257, 6000])
 def test_gather_scatter_match_reference(dtype, shape, n):
-    gen = torch.Generator().manual_seed(hash((str(dtype), shape, n)) % 2**31)
+    # zlib, not hash(): str hashes are salted per process, which drew new data every run
+    gen = torch.Generator().manual_seed(zlib.crc32(repr((str(dtype), shape, n)).encode()))
     C, Z, Y, X = shape
     origin, spacing = [0.3, -1.2, 0.7], 0.45
     grid = torch.randn(shape, generator=gen, dtype=dtype)
@@ -36,8 +39,11 @@ def test_gather_scatter_match_reference(dtype, shape, n):
     torch.testing.assert_close(OPS.trilinear_gather(grid, pts, origin, spacing),
                                R.trilinear_gather(grid, pts, origin, spacing), **_tol(dtype))
     vals = torch.randn(n, C, generator=gen, dtype=dtype)
+    # a scatter sums up to n / cells terms per cell (hundreds here) in another order than the
+    # reference: float32 rounding grows with the sum, so its tolerance is relative to that size
+    tol = _tol(dtype) if dtype != torch.float32 else dict(rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(OPS.trilinear_scatter(vals, pts, origin, spacing, [Z, Y, X]),
-                               R.trilinear_scatter(vals, pts, origin, spacing, (Z, Y, X)), **_tol(dtype))
+                               R.trilinear_scatter(vals, pts, origin, spacing, (Z, Y, X)), **tol)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

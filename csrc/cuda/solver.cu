@@ -1,21 +1,29 @@
 // CUDA implementation of the device-resident Floxels optimiser (stages in kernels/solver.h).
 //
-// One iteration = three kernels:
-//   points   flow, DT loss, flow norm, cluster sums of f;
-//   cluster  residual to the cluster mean and cluster sums of u, then each warp folds its
-//            points' corner-weighted gradients into their segment's 8x3 table (segments:
-//            kernels/solver_args.h); the last block to finish runs stage 3 (losses, early
-//            stopping, Adam's bias corrections) for every problem;
-//   vertices best copy, gradient = sum over the vertex's (segment, corner) entries, Adam.
-// Segments give every vertex a small fixed fan-in (at most 8 cells times the labels in
-// them), so the vertices near the sensor, which thousands of points touch, cost the same
-// as any other. Cluster sums go through a per-block shared table over the block's label
-// range (points are sorted by label, so a block sees a handful of clusters) and one global
-// atomic per (block, cluster). Nothing synchronises with the host, so any number of
-// iterations can be captured into a CUDA graph.
+// One iteration = two kernels:
+//   points   per point: flow f_i from its 8 vertices, multi-scan DT loss + gradient, flow
+//            norm, residual to the cluster mean and its unit vector u_i (stages 1-2); per
+//            block, the sums of w_k * g_i per segment and of u_i per cluster, and the loss
+//            (one atomic into the problem's total);
+//   vertices stage 3 (loss, early stopping: every block takes the same decision from the
+//            problem's loss and a state snapshot, so no block waits for another), best copy, gradient = sum over the vertex's (segment, corner)
+//            entries minus the cluster-mean term, Adam (stage 4); then the vertex's share of
+//            the next iteration's cluster means.
+// Cluster means need no pass over the points: m_c = (1/|c|) sum_{i in c} sum_k w_ik theta_{v_ik}
+// is a fixed linear combination of vertex parameters (sum over the vertices v of c's points
+// of A_cv theta_v, A_cv = weight of c's points at v / |c|). So the vertex kernel, right after
+// its Adam step, adds A_cv theta_v into the next iteration's means, and the point kernel
+// reads finished means instead of waiting for every point's flow: that is what makes one
+// point kernel per iteration possible.
+// Sums over points use sorted order: points are sorted by (cluster, voxel), so a block's
+// points form runs of equal segment and label, which block_runs sums in a fixed order and
+// stores with one plain write (or one atomic for runs that continue in another block). The
+// means and the u sums alternate between two buffers by iteration parity (a kernel
+// parameter): a point kernel reads one and clears the other, which the next kernel fills.
+// Nothing synchronises with the host, so any number of iterations can be captured into a
+// CUDA graph.
 #include <cuda_runtime.h>
 
-#include <climits>
 #include <cstdint>
 #include <cstdlib>
 
@@ -38,14 +46,20 @@ constexpr int kThreads = 256;
 constexpr int kWarps = kThreads / 32;
 constexpr int kLanesPerVertex = 8;  // stage 4: a group of 8 lanes per vertex
 constexpr int kVerticesPerBlock = kThreads / kLanesPerVertex;
-constexpr int kSegVals = 24;      // 8 corners x 3 components per segment
-constexpr int kSmemClusters = 512;  // label range a block sums in shared memory
+constexpr int kSegVals = 24;  // 8 corners x 3 components per segment
+
+// Support scans of every problem: kMaxProblems x kMaxSupport descriptors (8 KB). They live in
+// device memory (copied there once per call) so that the per-iteration kernels take ~1 KB of
+// parameters: a large parameter block makes every launch slower.
+struct ScanTable {
+  Scan scans[kMaxProblems][kMaxSupport];
+};
 
 struct KParams {
-  Scan scans[kMaxProblems][kMaxSupport];
+  const Scan* scans;  // (kMaxProblems, kMaxSupport) in device memory
   int num_support[kMaxProblems];
-  int block_begin[kMaxProblems + 1];   // point blocks of each problem
-  int vblock_begin[kMaxProblems + 1];  // vertex blocks of each problem
+  int block_begin[kMaxProblems + 1];   // point blocks of each problem (at least one each)
+  int vblock_begin[kMaxProblems + 1];  // vertex blocks of each problem (at least one each)
   int point_begin[kMaxProblems], point_end[kMaxProblems];
   int vertex_begin[kMaxProblems], vertex_end[kMaxProblems];
   float flow_coef[kMaxProblems];     // reg_scale / n: multiplies lambda_g(it) * ||f_i||
@@ -55,7 +69,7 @@ struct KParams {
   int num_vertices;
   int num_points;
   int num_segments;
-  bool smem_tables;  // cluster sums through per-block shared tables (else warp atomics)
+  int parity;  // iteration parity of this launch: selects the mean / u-sum buffers
   Hyper hyper;
   const float* points;
   const int32_t* corner_idx;
@@ -71,25 +85,28 @@ struct KParams {
   float* best;
   double* state;
   double* history;
-  // workspace
-  float* f;          // (N, 3) flow of the iteration (cluster stage)
-  float* g;          // (N, 3) d loss / d f_i without the cluster-mean term
-  float* csum;       // (C, 3) sums of f per cluster
-  float* usum;       // (C, 3) sums of the unit residuals per cluster
-  float* seg_grad;   // (S, 24) sum over the segment's points of w_k * g_i
-  float* seg_wsum;   // (S, 8) sum over the segment's points of w_k (fixed)
-  int32_t* seg_label;  // (S) cluster of the segment's points (fixed)
-  int32_t* point_seg;  // (N) segment of each point (fixed)
-  double* part_points;   // per point block: DT + flow-norm loss
-  double* part_cluster;  // per point block: cluster loss
-  unsigned* done;        // blocks of the cluster kernel finished this iteration
+  // workspace, fixed per call
+  float4* rec;          // (N) x, y, z, segment id (int bits); segment -1 for uncovered points
+  int32_t* seg_corner;  // (S, 8) vertex rows of the segment's corners (-1: invalid)
+  int32_t* seg_label;   // (S) cluster of the segment's points, -1 noise
+  float* seg_wsum;      // (S, 8) sum over the segment's points of w_k
+  int4* ent;            // (8S) per vertex entry: segment * 8 + corner, bits of seg_wsum / |cluster|,
+                        //      cluster, 1 if the segment spans two point blocks (its row is summed
+                        //      by atomics and cleared by its readers)
+  int2* pair;           // (8S) per vertex, its clusters and summed coefficients A_cv (bits)
+  int32_t* num_pairs;   // (M)
+  double* bias;         // (max_iters, 2) Adam bias corrections (bias_corrections)
+  // workspace, per iteration
+  float* seg_grad;  // (S, 24) sum over the segment's points of w_k * g_i
+  float* mbuf;      // (2, C, 3) cluster means, by parity
+  float* ubuf;      // (2, C, 3) sums of the unit residuals per cluster, by parity
+  double* loss;     // (2, kMaxProblems) each problem's loss (sum of its point blocks' atomics), by parity
+  double* snap;     // (B, kStateCols) state rows as the point kernel saw them
 };
 
-// Programmatic dependent launch (sm_90): a kernel lets the next one in the stream start
-// once all its blocks run (launch_dependents), and the next one reads nothing the previous
-// kernel writes before wait, which returns once that kernel has finished and its writes
-// are visible. This hides the launch gap and each kernel's fixed-data loads behind the
-// tail of the previous kernel. Without the launch attribute both are no-ops.
+// Programmatic dependent launch (sm_90; off unless FLOXELS_SOLVER_PDL=1: measured slower
+// here): a kernel lets the next one in the stream start early, and the next one reads
+// nothing the previous kernel writes before wait. Without the launch attribute both are no-ops.
 __device__ __forceinline__ void pdl_allow_next() { asm volatile("griddepcontrol.launch_dependents;" ::: "memory"); }
 __device__ __forceinline__ void pdl_wait_previous() { asm volatile("griddepcontrol.wait;" ::: "memory"); }
 
@@ -104,282 +121,342 @@ __device__ __forceinline__ void zero_strided(float* a, int64_t n) {
     a[j] = 0.0f;
 }
 
-// Per call: each segment's label, weight sums and points' segment ids (a warp per segment,
-// fixed lane order, so deterministic).
+__device__ __forceinline__ int warp_max(int x) {
+  for (int off = 16; off > 0; off >>= 1) x = max(x, __shfl_xor_sync(0xffffffffu, x, off));
+  return x;
+}
+
+// First point of point block `block` of problem p.
+__device__ __forceinline__ int block_first_point(const KParams& P, int p, int block) {
+  return P.point_begin[p] + (block - P.block_begin[p]) * kThreads;
+}
+
+// Sums K values per run of equal keys over the block's threads in thread order (a key's
+// threads must be consecutive, as sorted points make them; key < 0 adds nothing) and calls
+// emit(key, j, sum) once per run and column j < K. The summation order is fixed, so the
+// result is deterministic. Each warp sums its 32 rows per run; a run that continues into
+// later warps is completed by the warp where it starts, from the partials those warps left
+// in `carry`. Every thread of the block must call it. Shared memory: rows (kThreads x
+// row stride floats), keys (kThreads), carry (kWarps x K).
+template <int K>
+constexpr int row_stride() {
+  return K % 2 == 0 ? K + 1 : K;  // odd: row writes and column reads are free of bank conflicts
+}
+
+template <int K, typename Emit>
+__device__ __forceinline__ void block_runs(int key, const float* vals, float* rows, int* keys, float* carry,
+                                           Emit emit) {
+  constexpr int R = row_stride<K>();
+  const int t = threadIdx.x, lane = t & 31, w = t >> 5;
+  keys[t] = key;
+  if (key >= 0)
+    for (int j = 0; j < K; ++j) rows[t * R + j] = vals[j];
+  __syncthreads();
+  float pending = 0.0f;
+  int pending_key = -1;
+  if (lane < K) {
+    const int r0 = 32 * w;
+    const bool cont = w > 0 && keys[r0] >= 0 && keys[r0] == keys[r0 - 1];  // first run began in warp w - 1
+    float acc = 0.0f;
+    bool first = true;
+    for (int r = r0; r < r0 + 32; ++r) {
+      const int k = keys[r];
+      if (k >= 0) acc += rows[r * R + lane];
+      const bool last_row = r == r0 + 31;
+      if (last_row || keys[r + 1] != k) {
+        if (k >= 0) {
+          if (first && cont) {
+            carry[w * K + lane] = acc;  // completed by the warp where the run starts
+          } else if (last_row && w + 1 < kWarps && keys[r + 1] == k) {
+            pending = acc;  // continues in the next warps
+            pending_key = k;
+          } else {
+            emit(k, lane, acc);
+          }
+        }
+        acc = 0.0f;
+        first = false;
+      }
+    }
+  }
+  __syncthreads();
+  if (pending_key >= 0) {
+    for (int w2 = w + 1; w2 < kWarps && keys[32 * w2] == pending_key; ++w2) {
+      pending += carry[w2 * K + lane];
+      if (keys[32 * w2 + 31] != pending_key) break;  // the run ends inside warp w2
+    }
+    emit(pending_key, lane, pending);
+  }
+  __syncthreads();  // rows, keys and carry are free again
+}
+
+// Per call, a warp per segment: corner rows, label, weight sums (fixed lane order, so
+// deterministic) and the point records of its points.
 __global__ void __launch_bounds__(kThreads) segment_setup_kernel(const __grid_constant__ KParams P) {
   const int s = int((int64_t(blockIdx.x) * kThreads + threadIdx.x) >> 5), lane = threadIdx.x & 31;
   if (s >= P.num_segments) return;
   const int b = max(P.seg_ptr[s], 0), e = min(P.seg_ptr[s + 1], P.num_points);
   float w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
   for (int i = b + lane; i < e; i += 32) {
-    P.point_seg[i] = s;
+    P.rec[i] = make_float4(P.points[3 * int64_t(i)], P.points[3 * int64_t(i) + 1], P.points[3 * int64_t(i) + 2],
+                           __int_as_float(s));
     for (int k = 0; k < 8; ++k) w[k] += P.corner_w[8 * int64_t(i) + k];
   }
   for (int k = 0; k < 8; ++k)
     for (int off = 16; off > 0; off >>= 1) w[k] += __shfl_xor_sync(0xffffffffu, w[k], off);
-  if (lane < 8) P.seg_wsum[8 * int64_t(s) + lane] = w[lane];
+  if (lane < 8) {
+    P.seg_wsum[8 * int64_t(s) + lane] = w[lane];
+    const int v = b < e ? P.corner_idx[8 * int64_t(b) + lane] : -1;
+    P.seg_corner[8 * int64_t(s) + lane] = unsigned(v) < unsigned(P.num_vertices) ? v : -1;
+  }
   if (lane == 0) {
     const int l = (P.labels != nullptr && b < e) ? P.labels[b] : -1;
     P.seg_label[s] = unsigned(l) < unsigned(P.num_clusters) ? l : -1;
   }
 }
 
-// Adds v (3 values) to table[key] (global, (C, 3)) for every thread of the block (key < 0:
-// nothing). Labels are sorted, so the block's keys span a short range [lo, hi]: when it
-// fits, the block sums in shared memory first and issues one atomic per (cluster,
-// component); otherwise warp-aggregated global atomics. Every thread must call it.
-__device__ void cluster_accumulate(float* table, int key, const float* v, float* smem, float* scratch,
-                                   bool smem_tables) {
-  if (!smem_tables) {  // warp-aggregated global atomics (one per warp and cluster)
-    warp_add<float>(table, key, 3, 1, v, 1.0f, 3, scratch + (threadIdx.x & ~31u));
-    return;
-  }
-  __shared__ int range[2];
-  if (threadIdx.x == 0) {
-    range[0] = INT_MAX;
-    range[1] = -1;
-  }
-  __syncthreads();
-  if (key >= 0) {
-    atomicMin(range, key);
-    atomicMax(range + 1, key);
-  }
-  __syncthreads();
-  const int lo = range[0], hi = range[1];
-  if (hi < lo) return;  // no labelled point in the block (uniform)
-  const int width = hi - lo + 1;
-  if (width <= kSmemClusters) {
-    for (int j = threadIdx.x; j < 3 * width; j += blockDim.x) smem[j] = 0.0f;
-    __syncthreads();
-    warp_add<float>(smem, key >= 0 ? key - lo : -1, 3, 1, v, 1.0f, 3, scratch + (threadIdx.x & ~31u));
-    __syncthreads();
-    for (int j = threadIdx.x; j < 3 * width; j += blockDim.x)
-      if (smem[j] != 0.0f) atomicAdd(table + 3 * int64_t(lo) + j, smem[j]);
-  } else {
-    warp_add<float>(table, key, 3, 1, v, 1.0f, 3, scratch + (threadIdx.x & ~31u));
-  }
-  __syncthreads();  // the caller may reuse smem / range
+// Whether segment s spans two point blocks of its problem (then its row is summed by atomics).
+__device__ bool segment_spans_blocks(const KParams& P, int s) {
+  const int b = P.seg_ptr[s], e = P.seg_ptr[s + 1];
+  int p = 0;
+  while (p + 1 < P.num_problems && b >= P.point_end[p]) ++p;
+  const int first = P.point_begin[p] + (b - P.point_begin[p]) / kThreads * kThreads;
+  return b < P.point_begin[p] || e > first + kThreads;
 }
 
-// Stage 1. Also clears the segment tables and the u sums of the previous iteration
-// (stage 4 has read them).
+// Per call, a thread per vertex entry: one record instead of a chain of dependent loads in
+// every iteration.
+__global__ void __launch_bounds__(kThreads) entry_setup_kernel(const __grid_constant__ KParams P) {
+  const int64_t e = int64_t(blockIdx.x) * kThreads + threadIdx.x;
+  if (e >= 8 * int64_t(P.num_segments)) return;
+  const int ent = P.vtx_entry[e];
+  const int s = ent >> 3, k = ent & 7;
+  int4 r = make_int4(-1, 0, -1, 0);
+  if (ent >= 0 && s < P.num_segments) {
+    const int l = P.seg_label[s];
+    r = make_int4(ent, __float_as_int(l >= 0 ? P.seg_wsum[8 * int64_t(s) + k] / P.cluster_count[l] : 0.0f), l,
+                  segment_spans_blocks(P, s) ? 1 : 0);
+  }
+  P.ent[e] = r;
+}
+
+// Per call, a thread per vertex: its entries' mean coefficients summed per cluster (the
+// entries of a vertex are in segment order, so a cluster's entries are consecutive).
+__global__ void __launch_bounds__(kThreads) pair_setup_kernel(const __grid_constant__ KParams P) {
+  const int v = blockIdx.x * kThreads + threadIdx.x;
+  if (v >= P.num_vertices) return;
+  const int b = max(P.vtx_ptr[v], 0), e = min(P.vtx_ptr[v + 1], 8 * P.num_segments);
+  int n = 0, cur = -1;
+  float acc = 0.0f;
+  for (int x = b; x < e; ++x) {
+    const int4 r = P.ent[x];
+    if (r.z < 0) continue;
+    if (r.z != cur) {
+      if (cur >= 0) P.pair[b + n++] = make_int2(cur, __float_as_int(acc));
+      cur = r.z;
+      acc = 0.0f;
+    }
+    acc += __int_as_float(r.y);
+  }
+  if (cur >= 0) P.pair[b + n++] = make_int2(cur, __float_as_int(acc));
+  P.num_pairs[v] = n;
+}
+
+// Per call: the support scans to device memory.
+__global__ void scans_setup_kernel(const __grid_constant__ ScanTable T, Scan* dst) {
+  for (int j = threadIdx.x; j < kMaxProblems * kMaxSupport; j += blockDim.x) dst[j] = (&T.scans[0][0])[j];
+}
+
+// Per call: Adam's bias corrections of every step (stage 3 looks them up).
+__global__ void bias_kernel(const __grid_constant__ KParams P) {
+  const int it = blockIdx.x * blockDim.x + threadIdx.x;
+  if (it < P.hyper.max_iters) bias_corrections(P.hyper, it + 1, &P.bias[2 * it], &P.bias[2 * it + 1]);
+}
+
+// Stages 1-2, a thread per point.
 template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
-  __shared__ float scratch[kThreads];
-  __shared__ float smem_table[kCluster ? 3 * kSmemClusters : 1];
+  __shared__ float rows[kThreads * row_stride<kSegVals>()];
+  __shared__ int keys[kThreads];
+  __shared__ float carry[kWarps * kSegVals];
   pdl_allow_next();
-  // Fixed per-frame data first (overlaps the previous kernel's tail under PDL).
+  // Fixed per-call data first (overlaps the previous kernel's tail under PDL).
   const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
-  const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
-  const bool valid = i < P.point_end[p];
-  int32_t idx[8];
-  float w[8], px = 0.0f, py = 0.0f, pz = 0.0f;
-  int key = -1;
+  const int first = block_first_point(P, p, blockIdx.x);
+  const int i = first + int(threadIdx.x);
+  int seg = -1;
+  float4 pt = make_float4(0.0f, 0.0f, 0.0f, 0.0f);
+  float w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  if (i < P.point_end[p]) {
+    pt = P.rec[i];
+    const int s = __float_as_int(pt.w);
+    seg = unsigned(s) < unsigned(P.num_segments) ? s : -1;
+    const float4* wp = reinterpret_cast<const float4*>(P.corner_w + 8 * int64_t(i));
+    const float4 w0 = wp[0], w1 = wp[1];
+    w[0] = w0.x, w[1] = w0.y, w[2] = w0.z, w[3] = w0.w, w[4] = w1.x, w[5] = w1.y, w[6] = w1.z, w[7] = w1.w;
+  }
+  const bool valid = seg >= 0;
+  int idx[8] = {-1, -1, -1, -1, -1, -1, -1, -1};
+  int label = -1;
   if (valid) {
-    for (int j = 0; j < 8; ++j) {
-      idx[j] = P.corner_idx[8 * int64_t(i) + j];
-      w[j] = P.corner_w[8 * int64_t(i) + j];
-    }
-    px = P.points[3 * int64_t(i)];
-    py = P.points[3 * int64_t(i) + 1];
-    pz = P.points[3 * int64_t(i) + 2];
-    if constexpr (kCluster) key = unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
+    const int4* cp = reinterpret_cast<const int4*>(P.seg_corner + 8 * int64_t(seg));
+    const int4 c0 = cp[0], c1 = cp[1];
+    idx[0] = c0.x, idx[1] = c0.y, idx[2] = c0.z, idx[3] = c0.w, idx[4] = c1.x, idx[5] = c1.y, idx[6] = c1.z,
+    idx[7] = c1.w;
+    if constexpr (kCluster) label = P.seg_label[seg];
   }
   pdl_wait_previous();
-  zero_strided(P.seg_grad, int64_t(kSegVals) * P.num_segments);
-  if constexpr (kCluster) zero_strided(P.usum, 3 * int64_t(P.num_clusters));
+  const int C3 = 3 * P.num_clusters;
+  if constexpr (kCluster) {  // the other parity's buffers: the next kernel fills them
+    zero_strided(P.ubuf + (P.parity ? 0 : C3), C3);
+    zero_strided(P.mbuf + (P.parity ? 0 : C3), C3);
+  }
   const double* st = P.state + p * kStateCols;
-  if (st[kActive] == 0.0) return;  // uniform per block; this block's partials are not read
-  float f[3] = {0.0f, 0.0f, 0.0f};
+  if (blockIdx.x == unsigned(P.block_begin[p]) && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
+    P.snap[p * kStateCols + threadIdx.x] = st[threadIdx.x];
+  if (blockIdx.x == 0 && threadIdx.x < kMaxProblems)  // the other parity's losses: the next kernel fills them
+    P.loss[(P.parity ? 0 : kMaxProblems) + threadIdx.x] = 0.0;
   float loss = 0.0f;
-  if (valid) {
-    for (int j = 0; j < 8; ++j) {
-      if (unsigned(idx[j]) >= unsigned(P.num_vertices)) continue;  // validated in Python; never read outside
-      const float* row = P.theta + 3 * int64_t(idx[j]);
-      for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
-    }
-    float g[3];
-    loss = dt_loss::point_loss<true, float, int>(P.scans[p], P.num_support[p], px, py, pz, f[0], f[1], f[2],
-                                                 P.hyper.inv_dt_cell, P.hyper.truncation, g);
-    const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
-    float unit[3];
-    loss += lam * norm_and_unit(f, unit);
-    float* gi = P.g + 3 * int64_t(i);
-    for (int c = 0; c < 3; ++c) gi[c] = g[c] + lam * unit[c];
-    if constexpr (kCluster)
-      for (int c = 0; c < 3; ++c) P.f[3 * int64_t(i) + c] = f[c];
-  }
-  if constexpr (kCluster) {
-    cluster_accumulate(P.csum, key, f, smem_table, scratch, P.smem_tables);
-  }
-  const double total = block_sum<kThreads>(double(loss));
-  if (threadIdx.x == 0) P.part_points[blockIdx.x] = total;
-}
-
-// Each warp adds w_k * g_i of its points to their segments' (S, 24) rows: the values go
-// through shared memory transposed, and lane j < 24 walks the 32 points summing component
-// j of each run of equal segment ids, with one atomic per run. Runs are long (a segment is
-// one cluster inside one cell), so this is a handful of atomics per warp.
-__device__ void segment_accumulate(const KParams& P, int seg, const float* w, const float* g,
-                                   float (*buf)[kSegVals + 1], int* segs) {
-  const int lane = threadIdx.x & 31;
-  if (seg >= 0)
-    for (int k = 0; k < 8; ++k)
-      for (int c = 0; c < 3; ++c) buf[lane][3 * k + c] = w[k] * g[c];
-  segs[lane] = seg;
-  __syncwarp();
-  // Common case: the whole warp lies in one segment (long segments near the sensor):
-  // an unrolled, branch-free column sum and one atomic per value.
-  if (__all_sync(0xffffffffu, seg == segs[0]) && seg >= 0) {
-    if (lane < kSegVals) {
-      float acc = 0.0f;
-#pragma unroll
-      for (int r = 0; r < 32; ++r) acc += buf[r][lane];
-      atomicAdd(P.seg_grad + int64_t(kSegVals) * seg + lane, acc);
-    }
-    __syncwarp();
-    return;
-  }
-  if (lane < kSegVals) {
-    float acc = 0.0f;
-    for (int r = 0; r < 32; ++r) {
-      const int s = segs[r];
-      if (s >= 0) acc += buf[r][lane];
-      if (r == 31 || segs[r + 1] != s) {
-        if (s >= 0) atomicAdd(P.seg_grad + int64_t(kSegVals) * s + lane, acc);
-        acc = 0.0f;
+  if (st[kActive] != 0.0) {  // uniform per block
+    float f[3] = {0.0f, 0.0f, 0.0f};
+    float mean[3] = {0.0f, 0.0f, 0.0f};
+    if (valid) {
+      for (int j = 0; j < 8; ++j) {
+        if (idx[j] < 0) continue;  // invalid tables (validated in Python): never read outside
+        const float* row = P.theta + 3 * int64_t(idx[j]);
+        for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
+      }
+      if (kCluster && label >= 0) {
+        const float* m = P.mbuf + (P.parity ? C3 : 0) + 3 * label;
+        for (int c = 0; c < 3; ++c) mean[c] = m[c];
       }
     }
-  }
-  __syncwarp();
-}
-
-// Stage 3 for every problem, by the last block of the cluster kernel: a warp per problem
-// sums its blocks' partials in a fixed order.
-template <bool kCluster>
-__device__ void control_all(const KParams& P) {
-  const int warp = threadIdx.x >> 5, lane = threadIdx.x & 31;
-  for (int p = warp; p < P.num_problems; p += kWarps) {
-    double* st = P.state + p * kStateCols;
-    double* hist = P.history + int64_t(p) * P.hyper.max_iters;
-    if (st[kActive] == 0.0) {
-      if (lane == 0) control_update(st, 0.0, hist, P.hyper);
-      continue;
-    }
-    // Unrolled so that several partials are in flight per lane (this runs on the
-    // critical path of every iteration); the summation order stays fixed.
-    double s = 0.0;
-#pragma unroll 8
-    for (int b = P.block_begin[p] + lane; b < P.block_begin[p + 1]; b += 32)
-      s += __ldcg(P.part_points + b) + (kCluster ? __ldcg(P.part_cluster + b) : 0.0);
-    for (int off = 16; off > 0; off >>= 1) s += __shfl_down_sync(0xffffffffu, s, off);
-    if (lane == 0) control_update(st, s, hist, P.hyper);
-  }
-}
-
-// Stage 2 (+ stage 3 in the last block). Adds cluster_coef * u_i to the point's gradient;
-// stage 4 subtracts cluster_coef * mean(u) of the cluster through the segment weight sums.
-template <bool kCluster>
-__global__ void __launch_bounds__(kThreads) cluster_kernel(const __grid_constant__ KParams P) {
-  __shared__ float scratch[kThreads];
-  __shared__ float smem_table[kCluster ? 3 * kSmemClusters : 1];
-  __shared__ float seg_buf[kWarps][32][kSegVals + 1];
-  __shared__ int seg_ids[kWarps][32];
-  __shared__ bool is_last;
-  pdl_allow_next();
-  const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
-  const int i = P.point_begin[p] + (int(blockIdx.x) - P.block_begin[p]) * kThreads + int(threadIdx.x);
-  const bool valid = i < P.point_end[p];
-  // Fixed data first (overlaps the previous kernel under PDL), then, after the wait,
-  // every read that depends on stage 1 before the first barrier so their latencies overlap.
-  float w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-  int seg = -1, l = -1;
-  if (valid) {
-    for (int k = 0; k < 8; ++k) w[k] = P.corner_w[8 * int64_t(i) + k];
-    seg = unsigned(P.point_seg[i]) < unsigned(P.num_segments) ? P.point_seg[i] : -1;
-    if constexpr (kCluster) l = unsigned(P.labels[i]) < unsigned(P.num_clusters) ? P.labels[i] : -1;
-  }
-  pdl_wait_previous();
-  if (P.state[p * kStateCols + kActive] != 0.0) {  // uniform per block
     float g[3] = {0.0f, 0.0f, 0.0f};
-    if (valid)
-      for (int c = 0; c < 3; ++c) g[c] = P.g[3 * int64_t(i) + c];
-    float loss = 0.0f;
-    if constexpr (kCluster) {
-      float u[3] = {0.0f, 0.0f, 0.0f};
-      if (l >= 0) {
-        const float inv = 1.0f / P.cluster_count[l];
-        const float mean[3] = {P.csum[3 * l] * inv, P.csum[3 * l + 1] * inv, P.csum[3 * l + 2] * inv};
+    float u[3] = {0.0f, 0.0f, 0.0f};
+    if (valid) {
+      loss = dt_loss::point_loss<true, float, int>(P.scans + p * kMaxSupport, P.num_support[p], pt.x, pt.y, pt.z, f[0], f[1], f[2],
+                                                   P.hyper.inv_dt_cell, P.hyper.truncation, g);
+      const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
+      float unit[3];
+      loss += lam * norm_and_unit(f, unit);
+      for (int c = 0; c < 3; ++c) g[c] += lam * unit[c];
+      if (kCluster && label >= 0) {
         const float coef = P.cluster_coef[p];
-        loss = coef * cluster::residual_unit<float>(P.f + 3 * int64_t(i), mean, 3, u);
+        loss += coef * cluster::residual_unit<float>(f, mean, 3, u);
         for (int c = 0; c < 3; ++c) g[c] += coef * u[c];
       }
-      cluster_accumulate(P.usum, l, u, smem_table, scratch, P.smem_tables);
     }
-    segment_accumulate(P, seg, w, g, seg_buf[threadIdx.x >> 5], seg_ids[threadIdx.x >> 5]);
-    const double total = block_sum<kThreads>(double(loss));
-    if (threadIdx.x == 0) P.part_cluster[blockIdx.x] = total;
+    // Segment sums of w_k * g_i: one writer per segment, unless it spans two blocks.
+    float wg[kSegVals];
+    for (int k = 0; k < 8; ++k)
+      for (int c = 0; c < 3; ++c) wg[3 * k + c] = w[k] * g[c];
+    block_runs<kSegVals>(seg, wg, rows, keys, carry, [&](int s, int j, float sum) {
+      float* dst = P.seg_grad + int64_t(kSegVals) * s + j;
+      if (P.seg_ptr[s] >= first && P.seg_ptr[s + 1] <= first + kThreads)
+        *dst = sum;
+      else
+        atomicAdd(dst, sum);  // cleared by its readers (entry flag)
+    });
+    if constexpr (kCluster) {
+      float* ub = P.ubuf + (P.parity ? C3 : 0);
+      block_runs<3>(valid ? label : -1, u, rows, keys, carry,
+                    [&](int l, int j, float sum) { atomicAdd(ub + 3 * l + j, sum); });
+    }
   }
-  // Last block: every partial of this iteration is written (threadfence before the ticket).
-  if (threadIdx.x == 0) {
-    __threadfence();
-    is_last = atomicAdd(P.done, 1u) == gridDim.x - 1;
-  }
-  __syncthreads();
-  if (!is_last) return;
-  __threadfence();
-  control_all<kCluster>(P);
-  if (threadIdx.x == 0) *P.done = 0u;
+  // One double atomic per block: the sum order varies between runs (last bits of the loss),
+  // like the float atomics of the other sums; a per-block table re-read by every vertex
+  // block cost more than the whole vertex gradient with 16 problems.
+  const double total = block_sum<kThreads>(double(loss));
+  if (threadIdx.x == 0 && total != 0.0) atomicAdd(P.loss + (P.parity ? kMaxProblems : 0) + p, total);
 }
 
-// Stage 4, a group of 8 lanes per vertex. Also clears the cluster sums of f for the next
-// iteration (stage 2 has read them).
-template <bool kCluster>
+// Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
+// iteration's cluster means. kInitMeans: only the means, of the current parameters (once
+// per call, before the first iteration).
+template <bool kCluster, bool kInitMeans>
 __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
+  __shared__ float scratch[kThreads];
+  __shared__ double st[kStateCols];
   pdl_allow_next();
-  pdl_wait_previous();
-  if constexpr (kCluster) zero_strided(P.csum, 3 * int64_t(P.num_clusters));
   const int p = problem_of(blockIdx.x, P.vblock_begin, P.num_problems);
-  const double* st = P.state + p * kStateCols;
-  const bool step = st[kStep] != 0.0, copy = st[kCopyBest] != 0.0;
-  if (!step && !copy) return;  // uniform per block
-  const int sub = threadIdx.x & (kLanesPerVertex - 1);
+  const int sub = threadIdx.x & (kLanesPerVertex - 1), lane = threadIdx.x & 31;
   const int v = P.vertex_begin[p] + (int(blockIdx.x) - P.vblock_begin[p]) * kVerticesPerBlock +
                 int(threadIdx.x / kLanesPerVertex);
   const bool has_v = v < P.vertex_end[p];
-  float* th = P.theta + 3 * int64_t(v);
-  if (has_v && copy && sub < 3) P.best[3 * int64_t(v) + sub] = th[sub];
-  if (!step) return;  // uniform per block
-  float G[3] = {0.0f, 0.0f, 0.0f};
+  int e_begin = 0, e_end = 0;
   if (has_v) {
+    e_begin = max(P.vtx_ptr[v], 0);
+    e_end = min(P.vtx_ptr[v + 1], 8 * P.num_segments);
+  }
+  pdl_wait_previous();
+  const int C3 = 3 * P.num_clusters;
+  if constexpr (!kInitMeans) {
+    if (P.snap[p * kStateCols + kActive] == 0.0) return;  // stopped earlier: nothing changes (uniform)
+    if (threadIdx.x == 0) {
+      // Stage 3, by every block from the same loss and state snapshot (so all take the same
+      // decision; the others gather gradients meanwhile); the problem's first block keeps
+      // the record.
+      for (int c = 0; c < kStateCols; ++c) st[c] = P.snap[p * kStateCols + c];
+      const double loss = P.loss[(P.parity ? kMaxProblems : 0) + p];
+      const bool keeper = blockIdx.x == unsigned(P.vblock_begin[p]);
+      control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias);
+      if (keeper)
+        for (int c = 0; c < kStateCols; ++c) P.state[p * kStateCols + c] = st[c];
+    }
+    const float* ub = P.ubuf + (P.parity ? C3 : 0);
     const float ccoef = P.cluster_coef[p];
-    const int e_end = min(P.vtx_ptr[v + 1], 8 * P.num_segments);
-    for (int e = max(P.vtx_ptr[v], 0) + sub; e < e_end; e += kLanesPerVertex) {
-      const int ent = P.vtx_entry[e];
-      const int s = ent >> 3, k = ent & 7;
-      if (unsigned(s) >= unsigned(P.num_segments)) continue;  // validated in Python; never read outside
-      const float* sg = P.seg_grad + int64_t(kSegVals) * s + 3 * k;
+    float G[3] = {0.0f, 0.0f, 0.0f};
+    for (int e = e_begin + sub; e < e_end; e += kLanesPerVertex) {
+      const int4 r = P.ent[e];
+      if (r.x < 0) continue;  // invalid tables (validated in Python): never read outside
+      float* sg = P.seg_grad + 3 * int64_t(r.x);
       float gx = sg[0], gy = sg[1], gz = sg[2];
-      if constexpr (kCluster) {
-        const int l = P.seg_label[s];
-        if (l >= 0) {
-          const float c = ccoef * P.seg_wsum[8 * int64_t(s) + k] / P.cluster_count[l];
-          gx -= c * P.usum[3 * l];
-          gy -= c * P.usum[3 * l + 1];
-          gz -= c * P.usum[3 * l + 2];
-        }
+      if (r.w) sg[0] = sg[1] = sg[2] = 0.0f;  // summed by atomics: clear for the next iteration
+      if (kCluster && r.z >= 0) {
+        const float c = ccoef * __int_as_float(r.y);
+        gx -= c * ub[3 * r.z];
+        gy -= c * ub[3 * r.z + 1];
+        gz -= c * ub[3 * r.z + 2];
       }
       G[0] += gx;
       G[1] += gy;
       G[2] += gz;
     }
+    for (int c = 0; c < 3; ++c)
+      for (int off = kLanesPerVertex / 2; off > 0; off >>= 1) G[c] += __shfl_xor_sync(0xffffffffu, G[c], off);
+    __syncthreads();  // stage 3 done
+    const bool step = st[kStep] != 0.0, copy = st[kCopyBest] != 0.0;
+    if (!step && !copy) return;  // uniform per block
+    float* th = P.theta + 3 * int64_t(v);
+    if (has_v && copy && sub < 3) P.best[3 * int64_t(v) + sub] = th[sub];
+    if (!step) return;  // uniform per block
+    if (has_v && sub < 3)
+      adam_update(th[sub], P.adam_m[3 * int64_t(v) + sub], P.adam_v[3 * int64_t(v) + sub], G[sub], P.hyper,
+                  float(st[kStepSize]), float(st[kBc2Sqrt]));
   }
-  for (int c = 0; c < 3; ++c)
-    for (int off = kLanesPerVertex / 2; off > 0; off >>= 1) G[c] += __shfl_xor_sync(0xffffffffu, G[c], off);
-  if (has_v && sub < 3) {
-    const float step_size = float(st[kStepSize]), bc2 = float(st[kBc2Sqrt]);
-    adam_update(th[sub], P.adam_m[3 * int64_t(v) + sub], P.adam_v[3 * int64_t(v) + sub], G[sub], P.hyper,
-                step_size, bc2);
+  if constexpr (kCluster) {
+    // this vertex's (updated) parameters to every lane of its group
+    const float mine = (has_v && sub < 3) ? P.theta[3 * int64_t(v) + sub] : 0.0f;
+    const int g0 = lane & ~(kLanesPerVertex - 1);
+    const float t[3] = {__shfl_sync(0xffffffffu, mine, g0), __shfl_sync(0xffffffffu, mine, g0 + 1),
+                        __shfl_sync(0xffffffffu, mine, g0 + 2)};
+    float* mdst = P.mbuf + ((kInitMeans || P.parity) ? 0 : C3);  // the means of the next iteration
+    const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
+    const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
+    const int rounds = warp_max(mine_n);
+    for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
+      int key = -1;
+      float val[3] = {0.0f, 0.0f, 0.0f};
+      if (r < mine_n) {
+        const int2 pr = P.pair[e_begin + sub + r * kLanesPerVertex];
+        if (unsigned(pr.x) < unsigned(P.num_clusters)) {
+          key = pr.x;
+          const float a = __int_as_float(pr.y);
+          for (int c = 0; c < 3; ++c) val[c] = a * t[c];
+        }
+      }
+      warp_add<float>(mdst, key, 3, 1, val, 1.0f, 3, scratch + (threadIdx.x & ~31u));
+    }
   }
 }
 
@@ -397,7 +474,7 @@ cudaError_t launch(void (*kernel)(const KParams), int blocks, cudaStream_t strea
   return cudaLaunchKernelEx(&cfg, kernel, P);
 }
 
-// Runtime switches for measurements (read per call; "0" turns a feature off).
+// Runtime switches for measurements (read per call; "0" turns a feature off, "1" on).
 bool env_flag(const char* name, bool dflt) {
   const char* v = std::getenv(name);
   return v == nullptr ? dflt : !(v[0] == '0' && v[1] == '\0');
@@ -406,24 +483,21 @@ bool env_flag(const char* name, bool dflt) {
 int64_t align256(int64_t bytes) { return (bytes + 255) / 256 * 256; }
 
 int64_t blocks_for(int64_t n) { return (n + kThreads - 1) / kThreads; }
-int64_t vertex_blocks_for(int64_t m) { return (m + kVerticesPerBlock - 1) / kVerticesPerBlock; }
-
-int64_t total_point_blocks(const Args& a) {
-  int64_t b = 0;
-  for (int p = 0; p < a.num_problems; ++p) b += blocks_for(a.problems[p].point_end - a.problems[p].point_begin);
-  return b;
-}
+// Every problem gets at least one block of each kernel: stage 3 runs in vertex blocks and
+// reads the state snapshot a point block takes, also for a problem without points.
+int64_t point_blocks_for(int64_t n) { return n > 0 ? blocks_for(n) : 1; }
+int64_t vertex_blocks_for(int64_t m) { return m > 0 ? (m + kVerticesPerBlock - 1) / kVerticesPerBlock : 1; }
 
 bool use_cluster(const Args& a) { return a.labels != nullptr && a.num_clusters > 0; }
 
-// Workspace pieces in order; sizes in bytes.
+// Workspace pieces in order; offsets in bytes.
 struct Layout {
-  int64_t f, g, csum, usum, seg_grad, seg_wsum, seg_label, point_seg, part_points, part_cluster, done, total;
+  int64_t scans, rec, seg_corner, seg_label, seg_wsum, ent, pair, num_pairs, bias, seg_grad, mbuf, ubuf, loss,
+      snap, total;
 };
 
 Layout layout(const Args& a) {
-  const int64_t n = a.num_points, c = a.num_clusters, s = a.num_segments;
-  const int64_t blocks = total_point_blocks(a) > 0 ? total_point_blocks(a) : 1;  // the cluster kernel runs >= 1
+  const int64_t n = a.num_points, c = a.num_clusters, s = a.num_segments, m = a.num_vertices;
   Layout L{};
   int64_t off = 0;
   auto take = [&](int64_t bytes) {
@@ -431,17 +505,20 @@ Layout layout(const Args& a) {
     off += align256(bytes);
     return at;
   };
-  L.f = take(3 * n * 4);
-  L.g = take(3 * n * 4);
-  L.csum = take(3 * c * 4);
-  L.usum = take(3 * c * 4);
-  L.seg_grad = take(kSegVals * s * 4);
-  L.seg_wsum = take(8 * s * 4);
-  L.seg_label = take(s * 4);
-  L.point_seg = take(n * 4);
-  L.part_points = take(blocks * 8);
-  L.part_cluster = take(blocks * 8);
-  L.done = take(4);
+  L.scans = take(int64_t(sizeof(ScanTable)));
+  L.rec = take(16 * n);
+  L.seg_corner = take(32 * s);
+  L.seg_label = take(4 * s);
+  L.seg_wsum = take(32 * s);
+  L.ent = take(16 * 8 * s);
+  L.pair = take(8 * 8 * s);
+  L.num_pairs = take(4 * m);
+  L.bias = take(16 * int64_t(a.hyper.max_iters));
+  L.seg_grad = take(4 * kSegVals * s);
+  L.mbuf = take(2 * 12 * c);
+  L.ubuf = take(2 * 12 * c);
+  L.loss = take(8 * 2 * kMaxProblems);
+  L.snap = take(8 * kStateCols * int64_t(a.num_problems));
   L.total = off;
   return L;
 }
@@ -454,14 +531,16 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   if (a.num_problems < 1 || a.num_problems > kMaxProblems || a.num_dts > kMaxDts || num_iters < 0)
     return cudaErrorInvalidValue;
   if (num_iters == 0) return cudaSuccess;
+  if (reinterpret_cast<uintptr_t>(a.corner_w) % 16 != 0) return cudaErrorMisalignedAddress;  // read as float4
   KParams P{};
+  ScanTable T{};
   int pb = 0, vb = 0;
   for (int p = 0; p < a.num_problems; ++p) {
     const Problem& pr = a.problems[p];
     const int64_t n = pr.point_end - pr.point_begin;
     P.block_begin[p] = pb;
     P.vblock_begin[p] = vb;
-    pb += int(blocks_for(n));
+    pb += int(point_blocks_for(n));
     vb += int(vertex_blocks_for(pr.vertex_end - pr.vertex_begin));
     P.point_begin[p] = int(pr.point_begin);
     P.point_end[p] = int(pr.point_end);
@@ -476,7 +555,7 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
       const Support& s = pr.support[k];
       if (s.dt < 0 || s.dt >= a.num_dts) return cudaErrorInvalidValue;
       const DtDesc& d = a.dts[s.dt];
-      P.scans[p][k] = Scan{d.data, int(d.nx), int(d.ny), int(d.nz), float(d.ox), float(d.oy), float(d.oz),
+      T.scans[p][k] = Scan{d.data, int(d.nx), int(d.ny), int(d.nz), float(d.ox), float(d.oy), float(d.oz),
                            float(s.t), float(s.weight * inv_n)};
     }
   }
@@ -488,7 +567,6 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   P.num_vertices = int(a.num_vertices);
   P.num_points = int(a.num_points);
   P.num_segments = int(a.num_segments);
-  P.smem_tables = env_flag("FLOXELS_SOLVER_SMEM_TABLES", true);
   P.hyper = a.hyper;
   P.points = a.points;
   P.corner_idx = a.corner_idx;
@@ -506,38 +584,46 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   P.history = a.history;
   const Layout L = layout(a);
   char* w = static_cast<char*>(workspace);
-  P.f = reinterpret_cast<float*>(w + L.f);
-  P.g = reinterpret_cast<float*>(w + L.g);
-  P.csum = reinterpret_cast<float*>(w + L.csum);
-  P.usum = reinterpret_cast<float*>(w + L.usum);
-  P.seg_grad = reinterpret_cast<float*>(w + L.seg_grad);
-  P.seg_wsum = reinterpret_cast<float*>(w + L.seg_wsum);
+  Scan* scans = reinterpret_cast<Scan*>(w + L.scans);
+  P.scans = scans;
+  P.rec = reinterpret_cast<float4*>(w + L.rec);
+  P.seg_corner = reinterpret_cast<int32_t*>(w + L.seg_corner);
   P.seg_label = reinterpret_cast<int32_t*>(w + L.seg_label);
-  P.point_seg = reinterpret_cast<int32_t*>(w + L.point_seg);
-  P.part_points = reinterpret_cast<double*>(w + L.part_points);
-  P.part_cluster = reinterpret_cast<double*>(w + L.part_cluster);
-  P.done = reinterpret_cast<unsigned*>(w + L.done);
+  P.seg_wsum = reinterpret_cast<float*>(w + L.seg_wsum);
+  P.ent = reinterpret_cast<int4*>(w + L.ent);
+  P.pair = reinterpret_cast<int2*>(w + L.pair);
+  P.num_pairs = reinterpret_cast<int32_t*>(w + L.num_pairs);
+  P.bias = reinterpret_cast<double*>(w + L.bias);
+  P.seg_grad = reinterpret_cast<float*>(w + L.seg_grad);
+  P.mbuf = reinterpret_cast<float*>(w + L.mbuf);
+  P.ubuf = reinterpret_cast<float*>(w + L.ubuf);
+  P.loss = reinterpret_cast<double*>(w + L.loss);
+  P.snap = reinterpret_cast<double*>(w + L.snap);
 
-  // Points outside every segment (invalid tables) read segment -1: fill with -1 first.
-  cudaError_t err = cudaMemsetAsync(P.point_seg, 0xff, a.num_points * sizeof(int32_t), stream);
-  if (err == cudaSuccess && cl) err = cudaMemsetAsync(P.csum, 0, 3 * a.num_clusters * sizeof(float), stream);
-  if (err == cudaSuccess) err = cudaMemsetAsync(P.done, 0, sizeof(unsigned), stream);
+  // Points outside every segment (invalid tables) read segment -1: fill the records with
+  // ones first. The per-iteration tables start at zero.
+  const int64_t S = a.num_segments, M = a.num_vertices;
+  cudaError_t err = cudaMemsetAsync(P.rec, 0xff, 16 * a.num_points, stream);
+  if (err == cudaSuccess) err = cudaMemsetAsync(w + L.seg_grad, 0, L.snap - L.seg_grad, stream);  // seg_grad .. loss
+  if (err == cudaSuccess && M > 0) err = cudaMemsetAsync(P.num_pairs, 0, 4 * M, stream);
   if (err != cudaSuccess) return err;
-  if (a.num_segments > 0)
-    segment_setup_kernel<<<unsigned((a.num_segments * 32 + kThreads - 1) / kThreads), kThreads, 0, stream>>>(P);
-  // The cluster kernel always runs: it folds gradients into segments and its last block
-  // runs stage 3, so it needs at least one block even without points.
-  const int cb = pb > 0 ? pb : 1;
-  const bool pdl = env_flag("FLOXELS_SOLVER_PDL", true);
+  scans_setup_kernel<<<1, kThreads, 0, stream>>>(T, scans);
+  if (S > 0) {
+    segment_setup_kernel<<<unsigned((S * 32 + kThreads - 1) / kThreads), kThreads, 0, stream>>>(P);
+    entry_setup_kernel<<<unsigned(blocks_for(8 * S)), kThreads, 0, stream>>>(P);
+    if (cl && M > 0) pair_setup_kernel<<<unsigned(blocks_for(M)), kThreads, 0, stream>>>(P);
+  }
+  bias_kernel<<<unsigned((a.hyper.max_iters + 127) / 128), 128, 0, stream>>>(P);
+  if (cl) vertex_kernel<true, true><<<unsigned(vb), kThreads, 0, stream>>>(P);  // the first means
+  const bool pdl = env_flag("FLOXELS_SOLVER_PDL", false);
   for (int it = 0; it < num_iters && err == cudaSuccess; ++it) {
+    P.parity = it & 1;
     if (cl) {
-      if (pb > 0) err = launch(points_kernel<true>, pb, stream, pdl, P);
-      if (err == cudaSuccess) err = launch(cluster_kernel<true>, cb, stream, pdl, P);
-      if (err == cudaSuccess && vb > 0) err = launch(vertex_kernel<true>, vb, stream, pdl, P);
+      err = launch(points_kernel<true>, pb, stream, pdl, P);
+      if (err == cudaSuccess) err = launch(vertex_kernel<true, false>, vb, stream, pdl, P);
     } else {
-      if (pb > 0) err = launch(points_kernel<false>, pb, stream, pdl, P);
-      if (err == cudaSuccess) err = launch(cluster_kernel<false>, cb, stream, pdl, P);
-      if (err == cudaSuccess && vb > 0) err = launch(vertex_kernel<false>, vb, stream, pdl, P);
+      err = launch(points_kernel<false>, pb, stream, pdl, P);
+      if (err == cudaSuccess) err = launch(vertex_kernel<false, false>, vb, stream, pdl, P);
     }
   }
   return err == cudaSuccess ? cudaGetLastError() : err;

@@ -8,6 +8,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
+#include <cstdint>
 #include <optional>
 
 #include "common/solver_torch.h"
@@ -30,6 +31,9 @@ void solver_run_cuda(const at::Tensor& points, const at::Tensor& corner_idx, con
                                            dts, dt_origins, point_ranges, vertex_ranges, support_ranges, support_dt,
                                            support_t, support_w, reg_scale, hyper, theta, adam_m, adam_v, best,
                                            state, history, num_iters);
+  FLX_CHECK(reinterpret_cast<uintptr_t>(corner_w.data_ptr()) % 16 == 0,
+            "floxels: solver_run: corner_w must be 16-byte aligned on CUDA (read as float4); pass a fresh "
+            "contiguous copy");
   const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor ws = at::empty({cuda::solver_workspace_bytes(a)}, points.options().dtype(at::kByte));
   C10_CUDA_CHECK(cuda::solver_launch(a, static_cast<int>(num_iters), ws.data_ptr(),

@@ -11,7 +11,8 @@ namespace floxels::cuda {
 // Bytes of device workspace solver_launch needs for `args` (256-byte aligned pieces).
 int64_t solver_workspace_bytes(const solver::Args& args);
 
-// Enqueues `num_iters` iterations (four kernels each) on `stream`; no host synchronisation
+// Enqueues a few per-call setup kernels, then `num_iters` iterations (two kernels each) on
+// `stream`; no host synchronisation
 // and no allocation, so the call can be captured into a CUDA graph. Problems whose state
 // row is inactive are skipped by every kernel, so extra iterations are cheap no-ops.
 cudaError_t solver_launch(const solver::Args& args, int num_iters, void* workspace, cudaStream_t stream);

@@ -13,7 +13,8 @@
 //      gradient = sum over the vertex's (segment, corner) entries of the segment's
 //      corner-weighted gradient sum (segments: solver_args.h), Adam update.
 // All state (iteration counters, best losses, flags) lives in a small float64 table, so
-// iterations never need the host: the CUDA version replays them from a CUDA graph.
+// iterations never need the host: the CUDA version enqueues a chunk of iterations per call
+// (two kernels each, see cuda/solver.cu), which can also be captured into a CUDA graph.
 #pragma once
 #include <cmath>
 #include <cstdint>
@@ -59,18 +60,29 @@ FLX_HD double lambda_g(const Hyper& h, double it) {
   return h.lambda_g_start + a * (double(h.lambda_g_end) - h.lambda_g_start);
 }
 
+// Adam's bias corrections of step t (1-based), in double like torch.optim.Adam:
+// step_size = lr / (1 - beta1^t) and sqrt(1 - beta2^t). The CUDA solver tabulates them once
+// per call with this same function (pow in double is slow on the device's critical path).
+FLX_HD void bias_corrections(const Hyper& h, double t, double* step_size, double* bc2_sqrt) {
+  *step_size = h.lr / (1.0 - pow(double(h.beta1), t));
+  *bc2_sqrt = sqrt(1.0 - pow(double(h.beta2), t));
+}
+
 // Stage 3 for one problem: records `loss` and sets the flags that stage 4 reads. Same
 // rules as floxels_ext.early_stopping.EarlyStopping and the Python loop: the flow of the
 // lowest loss is kept; stop after `patience` iterations without an improvement of
-// min_delta, or after max_iters; no Adam step after the last recorded loss.
-FLX_HD void control_update(double* st, double loss, double* history, const Hyper& h) {
+// min_delta, or after max_iters; no Adam step after the last recorded loss. `history` may
+// be null (no record kept); `bias`, if given, holds bias_corrections for t = 1..max_iters
+// as (step_size, bc2_sqrt) pairs.
+FLX_HD void control_update(double* st, double loss, double* history, const Hyper& h,
+                           const double* bias = nullptr) {
   if (st[kActive] == 0.0) {
     st[kStep] = 0.0;
     st[kCopyBest] = 0.0;
     return;
   }
   const double it = st[kIter];
-  history[int64_t(it)] = loss;
+  if (history != nullptr) history[int64_t(it)] = loss;
   const bool is_best = loss < st[kBestLoss];
   if (is_best) {
     st[kBestLoss] = loss;
@@ -87,10 +99,15 @@ FLX_HD void control_update(double* st, double loss, double* history, const Hyper
   st[kStep] = stop ? 0.0 : 1.0;
   st[kIter] = it + 1;
   if (stop) st[kActive] = 0.0;
-  // Adam's bias corrections for step t = it + 1 (torch.optim.Adam computes them in double too)
-  const double t = it + 1;
-  st[kStepSize] = h.lr / (1.0 - pow(double(h.beta1), t));
-  st[kBc2Sqrt] = sqrt(1.0 - pow(double(h.beta2), t));
+  // Adam's bias corrections for step t = it + 1 (no step follows the last iteration, so a
+  // table of max_iters pairs covers every step)
+  if (stop) return;
+  if (bias != nullptr) {
+    st[kStepSize] = bias[2 * int64_t(it)];
+    st[kBc2Sqrt] = bias[2 * int64_t(it) + 1];
+  } else {
+    bias_corrections(h, it + 1, &st[kStepSize], &st[kBc2Sqrt]);
+  }
 }
 
 // Fresh state row: active, no loss recorded, best = inf.

@@ -28,7 +28,7 @@ from .ops.grid import grid_from_bounds, point_bounds
 from .ops.corners import CompactCorners
 from .ops.solver import MAX_DTS, MAX_PROBLEMS, PackedProblems, SolverProblem
 from .scans import PreparedScans, prepare_scans, resolve_device, restore_output
-from .solver import run_solver
+from .solver import SolverRun
 
 F = torch.ops.floxels
 
@@ -117,6 +117,14 @@ class Floxels:
 
     def _fit_group(self, items: list) -> list[FloxelsResult]:
         """Optimise the targets of ``items`` ([(PreparedScans, dt cache)]) together."""
+        return self._solve_group(self._prepare_group(items)).finish()
+
+    def _prepare_group(self, items: list, pipelined: bool = False, poll: Callable[[], object] | None = None):
+        """Everything before the optimisation: the distance transforms still missing from the
+        caches, DBSCAN of every target, points sorted by (cluster, voxel) and their compact
+        corners. ``pipelined``: all of it is enqueued on the current stream (the caller's
+        side stream, while the GPU still optimises other frames) with no device
+        synchronisation, and ``poll`` is called between targets to keep that work queued."""
         cfg = self.config
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
@@ -139,7 +147,7 @@ class Floxels:
         # bound) run on the main one: their host synchronisations wait for the side stream
         # only. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other (stage timings).
         serial = _serial_stages(device)
-        side = None if serial else _side_stream(device)
+        side = None if serial or pipelined else _side_stream(device)
         if side is not None:
             main = torch.cuda.current_stream(device)
             side.wait_stream(main)  # the scans are ready; the EDTs are not needed there
@@ -168,60 +176,43 @@ class Floxels:
         timings["dt"] = time.perf_counter() - t0
         stream_ctx = torch.cuda.stream(side) if side is not None else contextlib.nullcontext()
         with stream_ctx:
-            labels, problems, orders, grids = self._targets(items, supports, target_bounds, timings)
+            labels, problems, orders, grids = self._targets(items, supports, target_bounds, timings, poll)
         if side is not None:
-            # tensors made on the side stream and used on the main one: keep the caching
-            # allocator from handing their memory to the side stream while main still uses it
-            for pr, order in zip(problems, orders):
-                if pr is not None:
-                    for t in (pr.points, pr.corners.corner_idx, pr.corners.corner_w, pr.corners.vertices, order,
-                              pr.labels):
-                        if t is not None:
-                            t.record_stream(main)
-            for lab in labels:
-                if lab is not None:
-                    lab.record_stream(main)
+            _used_on(main, items, problems, orders, labels)
             main.wait_stream(side)
             t1 = time.perf_counter()
             _sync_device(device)  # the EDTs not hidden behind DBSCAN and the sorting
             timings["dt"] += time.perf_counter() - t1
+        return _Prepared(items, labels, problems, orders, grids, timings, t_start)
 
+    def _solve_group(self, prepared: "_Prepared", wait_for=None) -> "_Solving":
+        """Pack the prepared problems and start their optimisation on the current stream
+        (after ``wait_for``, the stream the preparation ran on, if any)."""
         t0 = time.perf_counter()
-        live = [k for k, p in enumerate(problems) if p is not None]
-        solved: dict[int, tuple] = {}
-        for group in _groups(live, problems):
-            packed = PackedProblems([problems[k] for k in group], cfg)
-            run_solver(packed)
-            for b, (k, (losses, best_iter)) in enumerate(zip(group, packed.summaries())):
-                solved[k] = (packed.best_params(b).clone(), losses, best_iter)
-        timings["optimise"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - t_start
-        if len(items) > 1:
-            timings["group_size"] = float(len(items))
+        if wait_for is not None:
+            main = torch.cuda.current_stream()
+            _used_on(main, prepared.items, prepared.problems, prepared.orders, prepared.labels)
+            main.wait_stream(wait_for)
+        live = [k for k, p in enumerate(prepared.problems) if p is not None]
+        runs = []
+        for group in _groups(live, prepared.problems):
+            packed = PackedProblems([prepared.problems[k] for k in group], self.config)
+            run = SolverRun(packed)
+            run.poll()
+            runs.append((group, packed, run))
+        return _Solving(self, prepared, runs, t0)
 
-        results = []
-        for k, ((prep, _), lab) in enumerate(zip(items, labels)):
-            if problems[k] is None:
-                empty = prep.points[prep.target].new_zeros(0, 3)
-                results.append(FloxelsResult(restore_output(empty, prep), empty, None, timings=dict(timings),
-                                             voxel_size=cfg.voxel_size))
-                continue
-            params, losses, best_iter = solved[k]
-            corners = problems[k].corners
-            flow_s = F.corner_gather(params, corners.corner_idx, corners.corner_w)
-            flow = torch.empty_like(flow_s)
-            flow[orders[k]] = flow_s
-            results.append(FloxelsResult(restore_output(flow, prep), flow, lab, losses, best_iter, len(losses),
-                                         dict(timings), grids[k], cfg.voxel_size, corners, params))
-        return results
-
-    def _targets(self, items, supports, target_bounds, timings):
+    def _targets(self, items, supports, target_bounds, timings, poll=None):
         """DBSCAN of every target, then its points sorted by (cluster, voxel) with their
         compact corners: the per-target part of :meth:`_fit_group` before the solver."""
         cfg = self.config
         t0 = time.perf_counter()
-        labels = [F.dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
-                  if cfg.cluster_loss and prep.points[prep.target].shape[0] else None for prep, _ in items]
+        labels = []
+        for prep, _ in items:
+            if poll is not None:
+                poll()
+            labels.append(F.dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
+                          if cfg.cluster_loss and prep.points[prep.target].shape[0] else None)
         present = [lab for lab in labels if lab is not None and lab.shape[0] > 0]
         # clusters per target (one host synchronisation for all)
         maxes = iter(torch.stack([lab.max() for lab in present]).tolist() if present else [])
@@ -231,6 +222,8 @@ class Floxels:
         t0 = time.perf_counter()
         problems, orders, grids = [], [], []
         for (prep, _), lab, ncl, (dts, origins, offsets, weights) in zip(items, labels, num_clusters, supports):
+            if poll is not None:
+                poll()
             P = prep.points[prep.target]
             if P.shape[0] == 0:
                 problems.append(None)
@@ -254,6 +247,76 @@ class Floxels:
             grids.append(g_origin)
         timings["setup"] = time.perf_counter() - t0
         return labels, problems, orders, grids
+
+
+@dataclass
+class _Prepared:
+    """What :meth:`Floxels._prepare_group` hands to :meth:`Floxels._solve_group`."""
+
+    items: list
+    labels: list
+    problems: list
+    orders: list
+    grids: list
+    timings: dict
+    t_start: float
+
+
+class _Solving:
+    """Optimisations under way for one prepared group: ``poll()`` keeps them queued,
+    ``finish()`` waits for them and builds the results."""
+
+    def __init__(self, est: Floxels, prepared: _Prepared, runs: list, t0: float) -> None:
+        self.est, self.prepared, self.runs, self.t0 = est, prepared, runs, t0
+
+    def poll(self) -> None:
+        for _, _, run in self.runs:
+            run.poll()
+
+    def finish(self) -> list[FloxelsResult]:
+        pr, cfg = self.prepared, self.est.config
+        solved: dict[int, tuple] = {}
+        for group, packed, run in self.runs:
+            run.finish()
+            for b, (k, (losses, best_iter)) in enumerate(zip(group, packed.summaries())):
+                solved[k] = (packed.best_params(b).clone(), losses, best_iter)
+        timings = dict(pr.timings)
+        timings["optimise"] = time.perf_counter() - self.t0
+        timings["total"] = time.perf_counter() - pr.t_start
+        if len(pr.items) > 1:
+            timings["group_size"] = float(len(pr.items))
+
+        results = []
+        for k, ((prep, _), lab) in enumerate(zip(pr.items, pr.labels)):
+            if pr.problems[k] is None:
+                empty = prep.points[prep.target].new_zeros(0, 3)
+                results.append(FloxelsResult(restore_output(empty, prep), empty, None, timings=dict(timings),
+                                             voxel_size=cfg.voxel_size))
+                continue
+            params, losses, best_iter = solved[k]
+            corners = pr.problems[k].corners
+            flow_s = F.corner_gather(params, corners.corner_idx, corners.corner_w)
+            flow = torch.empty_like(flow_s)
+            flow[pr.orders[k]] = flow_s
+            results.append(FloxelsResult(restore_output(flow, prep), flow, lab, losses, best_iter, len(losses),
+                                         dict(timings), pr.grids[k], cfg.voxel_size, corners, params))
+        return results
+
+
+def _used_on(stream, items, problems, orders, labels) -> None:
+    """Tensors made on another stream and used on ``stream``: keep the caching allocator
+    from handing their memory out again while ``stream`` may still use it."""
+    for pr, order in zip(problems, orders):
+        if pr is not None:
+            for t in (pr.points, pr.corners.corner_idx, pr.corners.corner_w, pr.corners.vertices, order, pr.labels,
+                      *pr.dts):
+                if t is not None:
+                    t.record_stream(stream)
+    for lab in labels:
+        if lab is not None:
+            lab.record_stream(stream)
+    for prep, _ in items:
+        prep.finite_masks[prep.target].record_stream(stream)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:
@@ -345,7 +408,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
 
     ``batch_size`` target frames are optimised together (default: 8 on CUDA, where
     sharing kernel launches raises throughput, 1 on the CPU); each frame's result is the
-    same as optimising it alone.
+    same as optimising it alone. On CUDA the next batch is prepared (distance transforms,
+    DBSCAN, sorting) while the GPU optimises the current one.
 
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk).
@@ -367,17 +431,44 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     cache: dict[int, DistanceTransform | None] = {}
     converted: dict = {}  # sequence index -> scan on the device (converted and NaN-checked once)
+    batches = [frames[k0:k0 + batch_size] for k0 in range(0, len(frames), batch_size)]
+    if not batches:
+        return []
+    dev = resolve_device(device, scans[0])
+    # On CUDA, the next batch is prepared (scans, distance transforms, DBSCAN, sorting: mostly
+    # host-bound work) on a side stream while the GPU optimises this one.
+    # FLOXELS_PIPELINE=0 turns this off (measurements).
+    pipelined = (dev.type == "cuda" and len(batches) > 1 and not _serial_stages(dev)
+                 and os.environ.get("FLOXELS_PIPELINE", "1") != "0")
+    side = _side_stream(dev) if pipelined else None
+
+    def prepare(batch, poll=None):
+        def items():
+            out = []
+            for f in batch:
+                start, stop = window_for(f, n, cfg.num_scans)
+                out.append((prepare_scans(scans[start:stop], f - start, device, converted, start),
+                            _WindowCache(cache, start)))
+            return out
+        if side is None:
+            return est._prepare_group(items())
+        with torch.cuda.stream(side):
+            return est._prepare_group(items(), pipelined=True, poll=poll)
+
     out = []
-    for k0 in range(0, len(frames), batch_size):
-        batch = frames[k0:k0 + batch_size]
-        items = []
-        for f in batch:
-            start, stop = window_for(f, n, cfg.num_scans)
-            items.append((prepare_scans(scans[start:stop], f - start, device, converted, start),
-                          _WindowCache(cache, start)))
-        results = est._fit_group(items)
+    prepared = prepare(batches[0])
+    for k, batch in enumerate(batches):
+        solving = est._solve_group(prepared, wait_for=side)
+        error = None
+        if k + 1 < len(batches):
+            try:
+                prepared = prepare(batches[k + 1], poll=solving.poll)
+            except BaseException as e:  # deliver this batch's flows first, then raise
+                error = e
+        results = solving.finish()
+        del solving
         # free the DTs and device scans that no later window will use
-        later = [window_for(g, n, cfg.num_scans)[0] for g in frames[k0 + batch_size:]]
+        later = [window_for(g, n, cfg.num_scans)[0] for g in frames[(k + 1) * batch_size:]]
         horizon = min(later) if later else math.inf
         for d in (cache, converted):
             for i in [i for i in d if i < horizon]:
@@ -386,4 +477,6 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
             out.append(res.flow)
             if callback is not None:
                 callback(f, res)
+        if error is not None:
+            raise error
     return out

@@ -1,11 +1,17 @@
 """Driving ``floxels::solver_run``: the whole optimisation without per-iteration host work.
 
 On the CPU the op runs every iteration itself and returns when all problems have stopped.
-On CUDA the iterations are enqueued in chunks; each chunk is replayed from a CUDA graph
-(captured once per call group, after a first eager chunk has loaded the kernels). The host
-only looks at the problems' "active" flags once per chunk, one chunk behind the GPU (the
-next chunk is already queued), so the GPU never waits for the host; chunks enqueued after
-every problem stopped are no-ops.
+On CUDA the iterations are enqueued in chunks (one op call enqueues a chunk's kernels, no
+Python per iteration). The host only looks at the problems' "active" flags once per chunk,
+one chunk behind the GPU (the next chunk is already queued), so the GPU never waits for the
+host; chunks enqueued after every problem stopped are cheap no-ops. :class:`SolverRun` can
+also be advanced without blocking (:meth:`SolverRun.poll`), which lets the estimator prepare
+the next frames on the host while the GPU optimises these.
+
+Chunks are launched directly by default. ``FLOXELS_CUDA_GRAPHS=1`` replays them from a CUDA
+graph captured per call group instead: on an H100 that was slower for single frames (a
+graph must be captured and instantiated for every new problem, ~1 ms, and the eager chunk is
+already enqueued by one C++ call), so it is an option for other set-ups.
 """
 
 from __future__ import annotations
@@ -20,45 +26,90 @@ DEFAULT_CHUNK = 50
 
 
 def graphs_enabled() -> bool:
-    """CUDA graphs are used unless FLOXELS_CUDA_GRAPHS=0 (for debugging and comparisons)."""
-    return os.environ.get("FLOXELS_CUDA_GRAPHS", "1") != "0"
+    """CUDA graphs are used when FLOXELS_CUDA_GRAPHS=1 (default: direct launches)."""
+    return os.environ.get("FLOXELS_CUDA_GRAPHS", "0") == "1"
+
+
+class SolverRun:
+    """The iterations of one :class:`PackedProblems`, enqueued chunk by chunk on the stream
+    that is current when the run is created. ``poll()`` tops up the queue without blocking
+    (returns False once nothing is left to enqueue); ``finish()`` runs to the end and waits."""
+
+    def __init__(self, packed: PackedProblems, chunk: int = DEFAULT_CHUNK, use_graph: bool | None = None,
+                 depth: int = 2) -> None:
+        self.packed = packed
+        self.max_iters = packed.cfg.max_iters
+        self.cuda = packed.points.is_cuda
+        self.use_graph = graphs_enabled() if use_graph is None else use_graph
+        self.chunk = max(1, min(chunk, self.max_iters))
+        self.depth = max(1, depth)  # chunks kept queued while polling
+        self.done = 0               # iterations enqueued
+        self.stopped = False        # every problem has stopped (seen on the host)
+        self.graph = None
+        self.pending: list[tuple[torch.cuda.Event, torch.Tensor]] = []
+        if self.cuda:
+            self.stream = torch.cuda.current_stream(packed.points.device)
+            self.flags = [torch.empty(packed.num_problems, dtype=torch.float64, pin_memory=True)
+                          for _ in range(self.depth + 1)]
+            self.k = 0
+
+    def _enqueue(self) -> None:
+        n = min(self.chunk, self.max_iters - self.done)
+        with torch.cuda.stream(self.stream):
+            if self.graph is None and self.use_graph and self.done > 0 and n == self.chunk:
+                self.graph = _capture(self.packed, self.chunk)
+            if self.graph is not None and n == self.chunk:
+                self.graph.replay()
+            else:
+                self.packed.run(n)
+            self.done += n
+            buf = self.flags[self.k % len(self.flags)]
+            self.k += 1
+            buf.copy_(self.packed.state[:, COL_ACTIVE], non_blocking=True)
+            ev = torch.cuda.Event()
+            ev.record(self.stream)
+        self.pending.append((ev, buf))
+
+    def _retire(self, block: bool) -> None:
+        """Look at the oldest queued chunk's flags (waiting for it if ``block``)."""
+        ev, buf = self.pending[0]
+        if not block and not ev.query():
+            return
+        ev.synchronize()
+        self.pending.pop(0)
+        if not bool(buf.any()):
+            self.stopped = True
+
+    def poll(self) -> bool:
+        """Non-blocking: retire finished chunks, keep ``depth`` chunks queued."""
+        if not self.cuda:
+            return False
+        while self.pending and not self.stopped:
+            before = len(self.pending)
+            self._retire(block=False)
+            if len(self.pending) == before:
+                break
+        while not self.stopped and self.done < self.max_iters and len(self.pending) < self.depth:
+            self._enqueue()
+        return not self.stopped and self.done < self.max_iters
+
+    def finish(self) -> None:
+        """Run until every problem has stopped (at most ``cfg.max_iters`` iterations)."""
+        if not self.cuda:
+            if self.done == 0:
+                self.packed.run(self.max_iters)
+                self.done = self.max_iters
+            return
+        while not self.stopped and self.done < self.max_iters:
+            self._enqueue()
+            if len(self.pending) > 1:  # look one chunk behind: the chunk just queued keeps the GPU busy
+                self._retire(block=True)
+        self.stream.synchronize()
 
 
 def run_solver(packed: PackedProblems, chunk: int = DEFAULT_CHUNK, use_graph: bool | None = None) -> None:
     """Run ``packed`` until every problem has stopped (at most ``cfg.max_iters`` iterations)."""
-    max_iters = packed.cfg.max_iters
-    if not packed.points.is_cuda:
-        packed.run(max_iters)
-        return
-    use_graph = graphs_enabled() if use_graph is None else use_graph
-    chunk = max(1, min(chunk, max_iters))
-    stream = torch.cuda.current_stream()
-    flags = [torch.empty(packed.num_problems, dtype=torch.float64, pin_memory=True) for _ in range(2)]
-    pending: list[tuple[torch.cuda.Event, torch.Tensor]] = []
-    graph = None
-    done = 0
-    k = 0
-    while done < max_iters:
-        n = min(chunk, max_iters - done)
-        if graph is None and use_graph and done > 0 and n == chunk:
-            graph = _capture(packed, chunk)
-        if graph is not None and n == chunk:
-            graph.replay()
-        else:
-            packed.run(n)
-        done += n
-        buf = flags[k % 2]
-        k += 1
-        buf.copy_(packed.state[:, COL_ACTIVE], non_blocking=True)
-        ev = torch.cuda.Event()
-        ev.record(stream)
-        pending.append((ev, buf))
-        if len(pending) > 1:  # look one chunk behind: the chunk just queued keeps the GPU busy
-            ev0, buf0 = pending.pop(0)
-            ev0.synchronize()
-            if not bool(buf0.any()):
-                break
-    torch.cuda.current_stream().synchronize()
+    SolverRun(packed, chunk, use_graph).finish()
 
 
 def _capture(packed: PackedProblems, n: int) -> torch.cuda.CUDAGraph:
