@@ -424,8 +424,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         if not 0 <= f < n:
             raise IndexError(f"frame {f} is out of range for {n} scans")
     est = Floxels(cfg, device)
+    dev = resolve_device(device, scans[0])
     if batch_size is None:
-        dev = resolve_device(device, scans[0])
         batch_size = 8 if dev.type == "cuda" else 1
     if not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
@@ -434,7 +434,6 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     batches = [frames[k0:k0 + batch_size] for k0 in range(0, len(frames), batch_size)]
     if not batches:
         return []
-    dev = resolve_device(device, scans[0])
     # On CUDA, the next batch is prepared (scans, distance transforms, DBSCAN, sorting: mostly
     # host-bound work) on a side stream while the GPU optimises this one.
     # FLOXELS_PIPELINE=0 turns this off (measurements).
