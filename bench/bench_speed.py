@@ -58,6 +58,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seq-frames", type=int, default=40)
     ap.add_argument("--batch", type=int, default=16, help="targets optimised together in the sequence run")
+    ap.add_argument("--seq-repeats", type=int, default=3, help="timed passes over the sequence (median)")
     ap.add_argument("--no-reference", action="store_true")
     ap.add_argument("--no-cpu", action="store_true", help="skip the CPU-path accuracy comparison")
     ap.add_argument("--quick", action="store_true", help="32 beams, 100 iterations, short sequence")
@@ -65,6 +66,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.quick:
         args.beams, args.azimuth_steps, args.iters, args.seq_frames, args.repeats = 32, 512, 100, 8, 2
+        args.seq_repeats = 1
     dev = args.device
     # every run does the full iteration count: comparable work, comparable timings
     cfg = FloxelsConfig(max_iters=args.iters, patience=10**9)
@@ -112,16 +114,19 @@ def main() -> None:
     seq = scans[:args.seq_frames]
     estimate_sequence(seq[:min(len(seq), 6)], cfg.replace(max_iters=20), device=dev, batch_size=args.batch)  # warm
     _sync(dev)
-    groups = {}  # stage timings of each optimised group (one dict per group)
-    t0 = time.perf_counter()
-    estimate_sequence(seq, cfg, device=dev, batch_size=args.batch,
-                      callback=lambda f, r: groups.setdefault(tuple(sorted(r.timings.items())), r.timings))
-    _sync(dev)
-    seq_s = time.perf_counter() - t0
+    seq_runs = []
+    for _ in range(args.seq_repeats):
+        groups = {}  # stage timings of each optimised group (one dict per group)
+        t0 = time.perf_counter()
+        estimate_sequence(seq, cfg, device=dev, batch_size=args.batch,
+                          callback=lambda f, r: groups.setdefault(tuple(sorted(r.timings.items())), r.timings))
+        _sync(dev)
+        seq_runs.append(time.perf_counter() - t0)
+    seq_s = statistics.median(seq_runs)
     seq_stages = {k: sum(g.get(k, 0.0) for g in groups.values()) / len(seq)
                   for k in ("dt", "dbscan", "setup", "optimise", "total")}
     out.update(seq_frames=len(seq), seq_s=seq_s, seq_fps=len(seq) / seq_s, batch=args.batch,
-               seq_stages_per_frame=seq_stages)
+               seq_fps_runs=[len(seq) / v for v in seq_runs], seq_stages_per_frame=seq_stages)
     _sync(dev)
     t0 = time.perf_counter()
     estimate_sequence(seq, cfg, device=dev, batch_size=1)
@@ -152,7 +157,8 @@ def main() -> None:
     print(f"{'  optimise per iteration':<26} {1e6 * out['stages_serial']['optimise'] / out['iters']:>10.1f} us")
     if "ref_s" in out:
         print(f"{'reference (pure PyTorch)':<26} {1e3 * out['ref_s']:>10.1f}   ratio {out['speedup']:.0f}x")
-    print(f"\nsequence: {len(seq)} frames in {seq_s:.3f} s = {out['seq_fps']:.1f} frames/s (batch {args.batch}); "
+    print(f"\nsequence: {len(seq)} frames in {seq_s:.3f} s = {out['seq_fps']:.1f} frames/s (batch {args.batch}; median of "
+          f"{len(seq_runs)} passes: {', '.join(f'{v:.1f}' for v in out['seq_fps_runs'])}); "
           f"unbatched {out['seq_unbatched_fps']:.1f} frames/s")
     print("  per frame (ms, host time of each stage; on CUDA the next batch's dt/dbscan/setup run while "
           "this batch is optimised, so they overlap): "

@@ -91,4 +91,8 @@ TORCH_LIBRARY(floxels, m) {
         "int[] vertex_ranges, int[] support_ranges, int[] support_dt, float[] support_t, float[] support_w, "
         "float[] reg_scale, float[] hyper, Tensor(a!) theta, Tensor(b!) adam_m, Tensor(c!) adam_v, "
         "Tensor(d!) best, Tensor(e!) state, Tensor(f!) history, int num_iters) -> ()");
+  // Blocks of the persistent loop kernel that solver_run would launch for problems with
+  // these point / vertex ranges on `points`' device (0: two kernels per iteration, which
+  // the caller enqueues in chunks; CPU: 0). FLOXELS_SOLVER_PERSISTENT=0/1 forces the choice.
+  m.def("solver_loop_blocks(Tensor points, int[] point_ranges, int[] vertex_ranges, bool cluster) -> int");
 }

@@ -44,11 +44,25 @@ for batch in args.batch:
     npts = sum(p.points.shape[0] for p in probs)
     print(f"\n=== batch {batch}: {npts} points, {sum(p.corners.num_params for p in probs)} vertices, "
           f"{sum(int(p.labels.max()) + 1 for p in probs)} clusters")
-    for pdl in ("1", "0"):
-        os.environ["FLOXELS_SOLVER_PDL"] = pdl
-        for graph in (False, True):
-            us = wall_per_iter(probs, graph)
-            print(f"pdl={pdl} graph={int(graph)}: {us:8.1f} us/iteration ({us / batch:6.1f} per problem)")
+    for pers in ("auto", "1", "0"):
+        if pers == "auto":
+            os.environ.pop("FLOXELS_SOLVER_PERSISTENT", None)
+        else:
+            os.environ["FLOXELS_SOLVER_PERSISTENT"] = pers
+        blocks = PackedProblems(probs, cfg).loop_blocks()
+        for pdl in (("1", "0") if pers == "0" else ("0",)):
+            os.environ["FLOXELS_SOLVER_PDL"] = pdl
+            for graph in ((False, True) if pers == "0" else (False,)):
+                us = wall_per_iter(probs, graph)
+                print(f"persistent={pers} (loop blocks {blocks}) pdl={pdl} graph={int(graph)}: {us:8.1f} us/iteration "
+                      f"({us / batch:6.1f} per problem)")
+    # phase times inside the persistent loop (printed by the kernel)
+    os.environ["FLOXELS_SOLVER_PERSISTENT"] = "1"
+    os.environ["FLOXELS_SOLVER_TRACE"] = "1"
+    run_solver(PackedProblems(probs, cfg))
+    torch.cuda.synchronize()
+    del os.environ["FLOXELS_SOLVER_TRACE"]
+    os.environ["FLOXELS_SOLVER_PERSISTENT"] = "0"
     os.environ["FLOXELS_SOLVER_PDL"] = "0"
     p = PackedProblems(probs, cfg)
     p.run(5)
@@ -61,3 +75,4 @@ for batch in args.batch:
             name = ev.key.replace("floxels::cuda::(anonymous namespace)::", "")[:40]
             print(f"  {name:<42} {ev.device_time_total / ev.count:8.1f} us x {ev.count}")
     del os.environ["FLOXELS_SOLVER_PDL"]
+    del os.environ["FLOXELS_SOLVER_PERSISTENT"]

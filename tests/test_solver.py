@@ -226,16 +226,19 @@ def test_cuda_matches_cpu(graph, cluster):
 
 
 @pytest.mark.cuda
-def test_cuda_early_stopping_per_problem():
+@pytest.mark.parametrize("chunk", [7, None])  # None: the whole run in one persistent launch
+@pytest.mark.parametrize("persistent", ["1", "0"])
+def test_cuda_early_stopping_per_problem(monkeypatch, persistent, chunk):
     """Problems of one call stop on their own (other patience outcomes, odd chunk sizes), and
     the recorded losses follow the stopping rule exactly."""
+    monkeypatch.setenv("FLOXELS_SOLVER_PERSISTENT", persistent)
     cfg = FloxelsConfig(max_iters=90, patience=6, min_delta=1e-3, lr=0.3)
     probs = []
     for seed, shift in ((10, (0.3, 0.1, 0.0)), (11, (0.0, 0.0, 0.0)), (12, (-0.5, 0.2, 0.0))):
         P, sup = _scene(seed, n=1500, shift=shift)
         probs.append(_to_cuda(_problem(P, sup, cfg, sort=True)))
     gpu = PackedProblems(probs, cfg)
-    run_solver(gpu, chunk=7)
+    run_solver(gpu, chunk=chunk)
     for b in range(3):
         losses = gpu.losses(b)
         assert all(math.isfinite(v) for v in losses)
@@ -244,3 +247,33 @@ def test_cuda_early_stopping_per_problem():
             _, stop = es.update(l, it)
             assert stop == (it == len(losses) - 1) or it == cfg.max_iters - 1
         assert gpu.best_iter(b) == int(np.argmin(losses)) == es.best_iter
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("max_grid", [None, 5])
+@pytest.mark.parametrize("cluster", [True, False])
+def test_cuda_persistent_matches_two_kernel(monkeypatch, cluster, max_grid):
+    """The persistent loop (grid barriers instead of kernel boundaries) follows the same
+    trajectory as the two-kernel iteration: same first losses, same outcome. A grid of 5
+    blocks makes every block walk many point and vertex blocks, of several problems."""
+    if max_grid is not None:
+        monkeypatch.setenv("FLOXELS_SOLVER_MAX_GRID", str(max_grid))
+    cfg = FloxelsConfig(max_iters=60, patience=1000, cluster_loss=cluster)
+    probs = []
+    for seed in range(20, 28):  # 8 problems x 4 DTs: the most distinct DTs one call takes
+        P, sup = _scene(seed, n=2500 + 40 * seed)
+        probs.append(_to_cuda(_problem(P, sup, cfg, labels=cluster, sort=True)))
+    runs = {}
+    for mode in ("0", "1"):
+        monkeypatch.setenv("FLOXELS_SOLVER_PERSISTENT", mode)
+        packed = PackedProblems(probs, cfg)
+        run_solver(packed)
+        runs[mode] = packed
+    for b in range(len(probs)):
+        l0, l1 = runs["0"].losses(b), runs["1"].losses(b)
+        assert len(l0) == len(l1) == cfg.max_iters
+        np.testing.assert_allclose(l1[:2], l0[:2], rtol=1e-4)
+        assert min(l1) == pytest.approx(min(l0), rel=3e-2)
+        d = (runs["1"].best_params(b) - runs["0"].best_params(b)).norm(dim=1)
+        assert d.mean() < 0.05
+

@@ -289,4 +289,14 @@ void solver_run_cpu(const at::Tensor& points, const at::Tensor& corner_idx, cons
 }  // namespace
 }  // namespace floxels
 
-TORCH_LIBRARY_IMPL(floxels, CPU, m) { m.impl("solver_run", &floxels::solver_run_cpu); }
+namespace floxels {
+namespace {
+// The CPU loop has no persistent kernel.
+int64_t solver_loop_blocks_cpu(const at::Tensor&, c10::ArrayRef<int64_t>, c10::ArrayRef<int64_t>, bool) { return 0; }
+}  // namespace
+}  // namespace floxels
+
+TORCH_LIBRARY_IMPL(floxels, CPU, m) {
+  m.impl("solver_run", &floxels::solver_run_cpu);
+  m.impl("solver_loop_blocks", &floxels::solver_loop_blocks_cpu);
+}

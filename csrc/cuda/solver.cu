@@ -22,8 +22,10 @@
 // parameter): a point kernel reads one and clears the other, which the next kernel fills.
 // Nothing synchronises with the host, so any number of iterations can be captured into a
 // CUDA graph.
+#include <cooperative_groups.h>
 #include <cuda_runtime.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <cstdlib>
 
@@ -41,6 +43,7 @@ using namespace floxels::solver;
 using cuda_detail::block_sum;
 using cuda_detail::warp_add;
 using Scan = dt_loss::Scan<float, int>;
+namespace cg = cooperative_groups;
 
 constexpr int kThreads = 256;
 constexpr int kWarps = kThreads / 32;
@@ -273,16 +276,40 @@ __global__ void bias_kernel(const __grid_constant__ KParams P) {
   if (it < P.hyper.max_iters) bias_corrections(P.hyper, it + 1, &P.bias[2 * it], &P.bias[2 * it + 1]);
 }
 
-// Stages 1-2, a thread per point.
+// Shared memory of one block of the iteration kernels (the persistent loop uses both parts).
+struct PointSmem {
+  float rows[kThreads * row_stride<kSegVals>()];
+  int keys[kThreads];
+  float carry[kWarps * kSegVals];
+};
+struct VertexSmem {
+  float scratch[kThreads];
+  double st[kStateCols];
+};
+
+// Per iteration, by the whole grid: clear the other parity's means, u sums and losses (the
+// vertex stage of this iteration fills them for the next one).
 template <bool kCluster>
-__global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
-  __shared__ float rows[kThreads * row_stride<kSegVals>()];
-  __shared__ int keys[kThreads];
-  __shared__ float carry[kWarps * kSegVals];
-  pdl_allow_next();
+__device__ __forceinline__ void clear_other_parity(const KParams& P, int parity) {
+  const int C3 = 3 * P.num_clusters;
+  if constexpr (kCluster) {
+    zero_strided(P.ubuf + (parity ? 0 : C3), C3);
+    zero_strided(P.mbuf + (parity ? 0 : C3), C3);
+  }
+  if (blockIdx.x == 0 && threadIdx.x < kMaxProblems) P.loss[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0.0;
+}
+
+// Stages 1-2 of point block `vb`, a thread per point.
+// `clear`: also run clear_other_parity (the per-iteration kernel; the persistent loop clears
+// once per iteration instead).
+template <bool kCluster>
+__device__ __forceinline__ void points_body(const KParams& P, int parity, int vb, bool clear, PointSmem& sm) {
+  float* rows = sm.rows;
+  int* keys = sm.keys;
+  float* carry = sm.carry;
   // Fixed per-call data first (overlaps the previous kernel's tail under PDL).
-  const int p = problem_of(blockIdx.x, P.block_begin, P.num_problems);
-  const int first = block_first_point(P, p, blockIdx.x);
+  const int p = problem_of(vb, P.block_begin, P.num_problems);
+  const int first = block_first_point(P, p, vb);
   const int i = first + int(threadIdx.x);
   int seg = -1;
   float4 pt = make_float4(0.0f, 0.0f, 0.0f, 0.0f);
@@ -306,16 +333,11 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
     if constexpr (kCluster) label = P.seg_label[seg];
   }
   pdl_wait_previous();
+  if (clear) clear_other_parity<kCluster>(P, parity);
   const int C3 = 3 * P.num_clusters;
-  if constexpr (kCluster) {  // the other parity's buffers: the next kernel fills them
-    zero_strided(P.ubuf + (P.parity ? 0 : C3), C3);
-    zero_strided(P.mbuf + (P.parity ? 0 : C3), C3);
-  }
   const double* st = P.state + p * kStateCols;
-  if (blockIdx.x == unsigned(P.block_begin[p]) && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
+  if (vb == P.block_begin[p] && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
     P.snap[p * kStateCols + threadIdx.x] = st[threadIdx.x];
-  if (blockIdx.x == 0 && threadIdx.x < kMaxProblems)  // the other parity's losses: the next kernel fills them
-    P.loss[(P.parity ? 0 : kMaxProblems) + threadIdx.x] = 0.0;
   float loss = 0.0f;
   if (st[kActive] != 0.0) {  // uniform per block
     float f[3] = {0.0f, 0.0f, 0.0f};
@@ -327,7 +349,7 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
         for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
       }
       if (kCluster && label >= 0) {
-        const float* m = P.mbuf + (P.parity ? C3 : 0) + 3 * label;
+        const float* m = P.mbuf + (parity ? C3 : 0) + 3 * label;
         for (int c = 0; c < 3; ++c) mean[c] = m[c];
       }
     }
@@ -358,7 +380,7 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
         atomicAdd(dst, sum);  // cleared by its readers (entry flag)
     });
     if constexpr (kCluster) {
-      float* ub = P.ubuf + (P.parity ? C3 : 0);
+      float* ub = P.ubuf + (parity ? C3 : 0);
       block_runs<3>(valid ? label : -1, u, rows, keys, carry,
                     [&](int l, int j, float sum) { atomicAdd(ub + 3 * l + j, sum); });
     }
@@ -367,20 +389,26 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
   // like the float atomics of the other sums; a per-block table re-read by every vertex
   // block cost more than the whole vertex gradient with 16 problems.
   const double total = block_sum<kThreads>(double(loss));
-  if (threadIdx.x == 0 && total != 0.0) atomicAdd(P.loss + (P.parity ? kMaxProblems : 0) + p, total);
+  if (threadIdx.x == 0 && total != 0.0) atomicAdd(P.loss + (parity ? kMaxProblems : 0) + p, total);
+}
+
+template <bool kCluster>
+__global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
+  __shared__ PointSmem sm;
+  pdl_allow_next();
+  points_body<kCluster>(P, P.parity, int(blockIdx.x), true, sm);
 }
 
 // Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
 // iteration's cluster means. kInitMeans: only the means, of the current parameters (once
 // per call, before the first iteration).
 template <bool kCluster, bool kInitMeans>
-__global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
-  __shared__ float scratch[kThreads];
-  __shared__ double st[kStateCols];
-  pdl_allow_next();
-  const int p = problem_of(blockIdx.x, P.vblock_begin, P.num_problems);
+__device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm) {
+  float* scratch = sm.scratch;
+  double* st = sm.st;
+  const int p = problem_of(vb, P.vblock_begin, P.num_problems);
   const int sub = threadIdx.x & (kLanesPerVertex - 1), lane = threadIdx.x & 31;
-  const int v = P.vertex_begin[p] + (int(blockIdx.x) - P.vblock_begin[p]) * kVerticesPerBlock +
+  const int v = P.vertex_begin[p] + (vb - P.vblock_begin[p]) * kVerticesPerBlock +
                 int(threadIdx.x / kLanesPerVertex);
   const bool has_v = v < P.vertex_end[p];
   int e_begin = 0, e_end = 0;
@@ -397,13 +425,13 @@ __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant_
       // decision; the others gather gradients meanwhile); the problem's first block keeps
       // the record.
       for (int c = 0; c < kStateCols; ++c) st[c] = P.snap[p * kStateCols + c];
-      const double loss = P.loss[(P.parity ? kMaxProblems : 0) + p];
-      const bool keeper = blockIdx.x == unsigned(P.vblock_begin[p]);
+      const double loss = P.loss[(parity ? kMaxProblems : 0) + p];
+      const bool keeper = vb == P.vblock_begin[p];
       control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias);
       if (keeper)
         for (int c = 0; c < kStateCols; ++c) P.state[p * kStateCols + c] = st[c];
     }
-    const float* ub = P.ubuf + (P.parity ? C3 : 0);
+    const float* ub = P.ubuf + (parity ? C3 : 0);
     const float ccoef = P.cluster_coef[p];
     float G[3] = {0.0f, 0.0f, 0.0f};
     for (int e = e_begin + sub; e < e_end; e += kLanesPerVertex) {
@@ -440,7 +468,7 @@ __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant_
     const int g0 = lane & ~(kLanesPerVertex - 1);
     const float t[3] = {__shfl_sync(0xffffffffu, mine, g0), __shfl_sync(0xffffffffu, mine, g0 + 1),
                         __shfl_sync(0xffffffffu, mine, g0 + 2)};
-    float* mdst = P.mbuf + ((kInitMeans || P.parity) ? 0 : C3);  // the means of the next iteration
+    float* mdst = P.mbuf + ((kInitMeans || parity) ? 0 : C3);  // the means of the next iteration
     const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
     const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
     const int rounds = warp_max(mine_n);
@@ -456,6 +484,100 @@ __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant_
         }
       }
       warp_add<float>(mdst, key, 3, 1, val, 1.0f, 3, scratch + (threadIdx.x & ~31u));
+    }
+  }
+}
+
+template <bool kCluster, bool kInitMeans>
+__global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
+  __shared__ VertexSmem sm;
+  pdl_allow_next();
+  vertex_body<kCluster, kInitMeans>(P, P.parity, int(blockIdx.x), sm);
+}
+
+// All iterations in one cooperative launch: every block of a grid that fits on the GPU at
+// once walks over the point blocks, the grid waits at a barrier, walks over the vertex
+// blocks, and waits again; the barriers take the place of the kernel boundaries of the
+// two-kernel iteration (same bodies, same buffers, same order of every write and read).
+// This saves the launch and the fill/drain of two kernels per iteration, which dominate at
+// one frame (~100k points fill the GPU less than once). The loop ends early once every
+// problem has stopped: the state rows are only written before a barrier, so all blocks
+// read the same rows after it and leave together.
+// Measurement only (FLOXELS_SOLVER_TRACE=1): per block, the time spent in each phase and at
+// each barrier, summed over the iterations; block 0 prints the slowest block's phase times
+// and its own barrier waits per iteration.
+__device__ unsigned long long g_trace[8];
+
+__device__ __forceinline__ unsigned long long now_ns() {
+  unsigned long long t;
+  asm volatile("mov.u64 %0, %globaltimer;" : "=l"(t));
+  return t;
+}
+
+template <bool kCluster, bool trace = false>
+__global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant__ KParams P, int num_iters,
+                                                        int point_blocks, int vertex_blocks) {
+  __shared__ PointSmem psm;
+  __shared__ VertexSmem vsm;
+  __shared__ int any_active;
+  cg::grid_group grid = cg::this_grid();
+  unsigned long long acc[4] = {0, 0, 0, 0}, t_begin = 0;
+  int done = 0;
+  if constexpr (trace) {
+    if (blockIdx.x == 0 && threadIdx.x < 8) g_trace[threadIdx.x] = 0;
+    grid.sync();
+    t_begin = now_ns();
+  }
+  for (int it = 0; it < num_iters; ++it) {
+    if (threadIdx.x == 0) {
+      int a = 0;
+      for (int p = 0; p < P.num_problems; ++p) a |= P.state[p * kStateCols + kActive] != 0.0;
+      any_active = a;
+    }
+    __syncthreads();
+    if (!any_active) break;  // uniform over the grid (see above)
+    const unsigned long long t0 = trace ? now_ns() : 0;
+    const int parity = it & 1;
+    clear_other_parity<kCluster>(P, parity);
+    // A block that walks several point or vertex blocks reuses its shared memory: the
+    // barrier after each body keeps the next one from overwriting what a slower thread of
+    // this one still reads (stage 3's state row in the vertex body).
+    for (int b = int(blockIdx.x); b < point_blocks; b += int(gridDim.x)) {
+      points_body<kCluster>(P, parity, b, false, psm);
+      __syncthreads();
+    }
+    const unsigned long long t1 = trace ? now_ns() : 0;
+    grid.sync();
+    const unsigned long long t2 = trace ? now_ns() : 0;
+    for (int b = int(blockIdx.x); b < vertex_blocks; b += int(gridDim.x)) {
+      vertex_body<kCluster, false>(P, parity, b, vsm);
+      __syncthreads();
+    }
+    const unsigned long long t3 = trace ? now_ns() : 0;
+    grid.sync();
+    if constexpr (trace) {
+      const unsigned long long t4 = now_ns();
+      acc[0] += t1 - t0, acc[1] += t2 - t1, acc[2] += t3 - t2, acc[3] += t4 - t3;
+      ++done;
+    }
+  }
+  if constexpr (trace) {
+    const unsigned long long total = now_ns() - t_begin;
+    if (threadIdx.x == 0) {
+      atomicMax(&g_trace[0], acc[0]);
+      atomicMax(&g_trace[2], acc[2]);
+      atomicAdd(&g_trace[4], acc[0]);
+      atomicAdd(&g_trace[5], acc[2]);
+    }
+    grid.sync();
+    if (blockIdx.x == 0 && threadIdx.x == 0 && done > 0) {
+      const double n = done, nb = gridDim.x;
+      printf("FLOXELS_SOLVER_TRACE %d iterations, %d blocks: per iteration %.2f us; points phase %.2f us (slowest "
+             "block; mean %.2f), vertex phase %.2f us (slowest; mean %.2f); block 0: points %.2f, barrier %.2f, "
+             "vertex %.2f, barrier %.2f us\n",
+             done, int(gridDim.x), 1e-3 * total / n, 1e-3 * g_trace[0] / n, 1e-3 * g_trace[4] / n / nb,
+             1e-3 * g_trace[2] / n, 1e-3 * g_trace[5] / n / nb, 1e-3 * acc[0] / n, 1e-3 * acc[1] / n,
+             1e-3 * acc[2] / n, 1e-3 * acc[3] / n);
     }
   }
 }
@@ -478,6 +600,37 @@ cudaError_t launch(void (*kernel)(const KParams), int blocks, cudaStream_t strea
 bool env_flag(const char* name, bool dflt) {
   const char* v = std::getenv(name);
   return v == nullptr ? dflt : !(v[0] == '0' && v[1] == '\0');
+}
+
+// Blocks of the persistent loop kernel (all resident at once), or 0 for the two-kernel
+// iteration: FLOXELS_SOLVER_PERSISTENT=0, a stream being captured into a CUDA graph (a
+// graph replays fixed chunks; the two-kernel iteration is the tested path there), or a
+// device without cooperative launch.
+int persistent_grid(bool cluster, cudaStream_t stream) {
+  cudaStreamCaptureStatus cap = cudaStreamCaptureStatusNone;
+  if (cudaStreamIsCapturing(stream, &cap) != cudaSuccess || cap != cudaStreamCaptureStatusNone) return 0;
+  int dev = 0;
+  if (cudaGetDevice(&dev) != cudaSuccess) return 0;
+  // per device and variant; occupancy queries cost microseconds, a launch is ~10 us of work
+  static thread_local int cached[64][2] = {};
+  if (dev < 0 || dev >= 64) return 0;
+  int& c = cached[dev][cluster ? 1 : 0];
+  if (c == 0) {
+    int coop = 0, sms = 0, per_sm = 0;
+    cudaDeviceGetAttribute(&coop, cudaDevAttrCooperativeLaunch, dev);
+    cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
+    const cudaError_t e = cluster
+        ? cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, loop_kernel<true>, kThreads, 0)
+        : cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, loop_kernel<false>, kThreads, 0);
+    c = (coop && e == cudaSuccess && per_sm > 0) ? sms * per_sm : -1;
+    cudaGetLastError();  // a failed query leaves no sticky error behind
+  }
+  if (c <= 0) return 0;
+  // FLOXELS_SOLVER_MAX_GRID caps the grid (tests: every block then walks many point and
+  // vertex blocks, as with large batches)
+  const char* cap_env = std::getenv("FLOXELS_SOLVER_MAX_GRID");
+  const int cap_blocks = cap_env != nullptr ? std::atoi(cap_env) : 0;
+  return cap_blocks > 0 ? std::min(c, cap_blocks) : c;
 }
 
 int64_t align256(int64_t bytes) { return (bytes + 255) / 256 * 256; }
@@ -523,7 +676,27 @@ Layout layout(const Args& a) {
   return L;
 }
 
+// See solver_loop_blocks; pb / vb: point and vertex blocks of the call.
+int loop_blocks(int64_t pb, int64_t vb, bool cluster, cudaStream_t stream) {
+  const char* mode = std::getenv("FLOXELS_SOLVER_PERSISTENT");
+  if (mode != nullptr && mode[0] == '0' && mode[1] == '\0') return 0;
+  const bool force = mode != nullptr && mode[0] == '1' && mode[1] == '\0';
+  const int grid = persistent_grid(cluster, stream);
+  if (grid <= 0 || (!force && pb > grid)) return 0;
+  return int(std::min<int64_t>(grid, std::max(pb, vb)));
+}
+
 }  // namespace
+
+int solver_loop_blocks(const int64_t* point_ranges, const int64_t* vertex_ranges, int num_problems, bool cluster,
+                       cudaStream_t stream) {
+  int64_t pb = 0, vb = 0;
+  for (int p = 0; p < num_problems; ++p) {
+    pb += point_blocks_for(point_ranges[p + 1] - point_ranges[p]);
+    vb += vertex_blocks_for(vertex_ranges[p + 1] - vertex_ranges[p]);
+  }
+  return loop_blocks(pb, vb, cluster, stream);
+}
 
 int64_t solver_workspace_bytes(const Args& a) { return layout(a).total; }
 
@@ -615,6 +788,24 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   }
   bias_kernel<<<unsigned((a.hyper.max_iters + 127) / 128), 128, 0, stream>>>(P);
   if (cl) vertex_kernel<true, true><<<unsigned(vb), kThreads, 0, stream>>>(P);  // the first means
+  if (const int grid = loop_blocks(pb, vb, cl, stream); grid > 0) {
+    cudaLaunchConfig_t cfg{};
+    cfg.gridDim = dim3(unsigned(grid));
+    cfg.blockDim = dim3(kThreads);
+    cfg.stream = stream;
+    cudaLaunchAttribute attr[1];
+    attr[0].id = cudaLaunchAttributeCooperative;
+    attr[0].val.cooperative = 1;
+    cfg.attrs = attr;
+    cfg.numAttrs = 1;
+    if (env_flag("FLOXELS_SOLVER_TRACE", false))  // measurement only: phase times printed by the kernel
+      err = cl ? cudaLaunchKernelEx(&cfg, loop_kernel<true, true>, P, num_iters, int(pb), int(vb))
+               : cudaLaunchKernelEx(&cfg, loop_kernel<false, true>, P, num_iters, int(pb), int(vb));
+    else
+      err = cl ? cudaLaunchKernelEx(&cfg, loop_kernel<true>, P, num_iters, int(pb), int(vb))
+               : cudaLaunchKernelEx(&cfg, loop_kernel<false>, P, num_iters, int(pb), int(vb));
+    return err == cudaSuccess ? cudaGetLastError() : err;
+  }
   const bool pdl = env_flag("FLOXELS_SOLVER_PDL", false);
   for (int it = 0; it < num_iters && err == cudaSuccess; ++it) {
     P.parity = it & 1;

@@ -40,7 +40,19 @@ void solver_run_cuda(const at::Tensor& points, const at::Tensor& corner_idx, con
                                      at::cuda::getCurrentCUDAStream()));
 }
 
+int64_t solver_loop_blocks_cuda(const at::Tensor& points, c10::ArrayRef<int64_t> point_ranges,
+                                c10::ArrayRef<int64_t> vertex_ranges, bool cluster) {
+  FLX_CHECK(point_ranges.size() == vertex_ranges.size() && point_ranges.size() >= 2,
+            "floxels: solver_loop_blocks needs B + 1 point and vertex offsets");
+  const c10::cuda::CUDAGuard guard(points.device());
+  return cuda::solver_loop_blocks(point_ranges.data(), vertex_ranges.data(), int(point_ranges.size()) - 1, cluster,
+                                  at::cuda::getCurrentCUDAStream());
+}
+
 }  // namespace
 }  // namespace floxels
 
-TORCH_LIBRARY_IMPL(floxels, CUDA, m) { m.impl("solver_run", &floxels::solver_run_cuda); }
+TORCH_LIBRARY_IMPL(floxels, CUDA, m) {
+  m.impl("solver_run", &floxels::solver_run_cuda);
+  m.impl("solver_loop_blocks", &floxels::solver_loop_blocks_cuda);
+}

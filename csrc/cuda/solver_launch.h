@@ -17,4 +17,12 @@ int64_t solver_workspace_bytes(const solver::Args& args);
 // row is inactive are skipped by every kernel, so extra iterations are cheap no-ops.
 cudaError_t solver_launch(const solver::Args& args, int num_iters, void* workspace, cudaStream_t stream);
 
+// Blocks of the persistent loop kernel solver_launch would use for problems with these
+// B + 1 point / vertex offsets (all iterations of a call in one cooperative launch), or 0
+// for two kernels per iteration. Default: the loop when every point block fits on the GPU
+// at once (single frames, small batches), where launches and kernel fill/drain dominate;
+// FLOXELS_SOLVER_PERSISTENT=0/1 forces either.
+int solver_loop_blocks(const int64_t* point_ranges, const int64_t* vertex_ranges, int num_problems, bool cluster,
+                       cudaStream_t stream);
+
 }  // namespace floxels::cuda

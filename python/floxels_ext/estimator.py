@@ -26,8 +26,8 @@ from .config import FloxelsConfig
 from .ops import compact_corners, distance_transform
 from .ops.grid import grid_from_bounds, point_bounds
 from .ops.corners import CompactCorners
-from .ops.solver import MAX_DTS, MAX_PROBLEMS, PackedProblems, SolverProblem
-from .scans import PreparedScans, prepare_scans, resolve_device, restore_output
+from .ops.solver import MAX_DTS, MAX_PROBLEMS, PackedProblems, SolverProblem, problem_segments
+from .scans import PreparedScans, prepare_scans, resolve_device, restore_outputs
 from .solver import SolverRun
 
 F = torch.ops.floxels
@@ -144,17 +144,29 @@ class Floxels:
         targets = [prep.points[prep.target] for prep, _ in items if prep.points[prep.target].shape[0] > 0]
         bounds = point_bounds([v[0] for v in todo.values()] + targets)
         # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
-        # bound) run on the main one: their host synchronisations wait for the side stream
-        # only. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other (stage timings).
+        # bound) run on another: the host synchronisations of DBSCAN and the sorting then
+        # wait for their own kernels only. Single frames: EDTs on the caller's stream, the
+        # rest on the side stream. Pipelined (the caller's stream is the side stream): EDTs
+        # on a third stream. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other
+        # (stage timings).
         serial = _serial_stages(device)
-        side = None if serial or pipelined else _side_stream(device)
-        if side is not None:
-            main = torch.cuda.current_stream(device)
-            side.wait_stream(main)  # the scans are ready; the EDTs are not needed there
-        for (pts, users), b in zip(todo.values(), bounds):
-            d = _build_dt(pts, cfg, b)
-            for cache, i in users:
-                cache[i] = d
+        main = torch.cuda.current_stream(device) if device.type == "cuda" else None
+        side = dt_stream = None
+        if not serial:
+            side = None if pipelined else _side_stream(device)
+            dt_stream = _dt_stream(device) if pipelined else main
+            (side or dt_stream).wait_stream(main)  # the scans are ready
+        dt_events = None
+        if dt_stream is not None and todo:
+            dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
+            dt_events[0].record(dt_stream)
+        with torch.cuda.stream(dt_stream) if dt_stream is not None else contextlib.nullcontext():
+            for (pts, users), b in zip(todo.values(), bounds):
+                d = _build_dt(pts, cfg, b)
+                for cache, i in users:
+                    cache[i] = d
+        if dt_events is not None:
+            dt_events[1].record(dt_stream)
         target_bounds = iter(bounds[len(todo):])
         supports = []  # per item: (dts, origins, offsets, weights)
         for prep, cache in items:
@@ -173,34 +185,45 @@ class Floxels:
             supports.append((dts, origins, offsets, weights))
         if serial:
             _sync_device(device)
-        timings["dt"] = time.perf_counter() - t0
+        timings["dt"] = time.perf_counter() - t0  # serial: wall time; else replaced by GPU time (dt_events)
         stream_ctx = torch.cuda.stream(side) if side is not None else contextlib.nullcontext()
         with stream_ctx:
             labels, problems, orders, grids = self._targets(items, supports, target_bounds, timings, poll)
+        work = side if side is not None else (torch.cuda.current_stream(device) if pipelined else None)
+        if pipelined and dt_stream is not None:
+            # the DTs were made on the EDT stream and are used on the preparing stream's
+            # successors: that stream waits for them, and the allocator learns of the use
+            work.wait_stream(dt_stream)
+            for d in {id(t): t for pr in problems if pr is not None for t in pr.dts}.values():
+                d.record_stream(work)
         if side is not None:
             _used_on(main, items, problems, orders, labels)
             main.wait_stream(side)
-            t1 = time.perf_counter()
-            _sync_device(device)  # the EDTs not hidden behind DBSCAN and the sorting
-            timings["dt"] += time.perf_counter() - t1
-        return _Prepared(items, labels, problems, orders, grids, timings, t_start)
+        return _Prepared(items, labels, problems, orders, grids, timings, t_start, dt_events)
 
     def _solve_group(self, prepared: "_Prepared", wait_for=None) -> "_Solving":
         """Pack the prepared problems and start their optimisation on the current stream
         (after ``wait_for``, the stream the preparation ran on, if any)."""
         t0 = time.perf_counter()
+        packs = prepared.packs if prepared.packs is not None else self._pack(prepared)
         if wait_for is not None:
             main = torch.cuda.current_stream()
             _used_on(main, prepared.items, prepared.problems, prepared.orders, prepared.labels)
+            for _, packed in packs:
+                packed.record_stream(main)
             main.wait_stream(wait_for)
-        live = [k for k, p in enumerate(prepared.problems) if p is not None]
         runs = []
-        for group in _groups(live, prepared.problems):
-            packed = PackedProblems([prepared.problems[k] for k in group], self.config)
+        for group, packed in packs:
             run = SolverRun(packed)
             run.poll()
             runs.append((group, packed, run))
         return _Solving(self, prepared, runs, t0)
+
+    def _pack(self, prepared: "_Prepared") -> list:
+        """The solver calls of a prepared group: [(indices of its problems, PackedProblems)]."""
+        live = [k for k, p in enumerate(prepared.problems) if p is not None]
+        return [(group, PackedProblems([prepared.problems[k] for k in group], self.config))
+                for group in _groups(live, prepared.problems)]
 
     def _targets(self, items, supports, target_bounds, timings, poll=None):
         """DBSCAN of every target, then its points sorted by (cluster, voxel) with their
@@ -241,8 +264,10 @@ class Floxels:
             Ps = P[order].contiguous()
             corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
             lab_s = lab[order].contiguous() if lab is not None else None
+            # the solver's segment tables, here (while the EDTs run) rather than when packing
+            segs = problem_segments(corners.corner_idx, lab_s, corners.num_params)
             problems.append(SolverProblem(Ps, corners, lab_s, dts, origins, offsets, weights,
-                                          cfg.regulariser_scale(len(prep.supports)), ncl))
+                                          cfg.regulariser_scale(len(prep.supports)), ncl, segs))
             orders.append(order)
             grids.append(g_origin)
         timings["setup"] = time.perf_counter() - t0
@@ -260,6 +285,8 @@ class _Prepared:
     grids: list
     timings: dict
     t_start: float
+    dt_events: tuple | None = None  # CUDA events around the EDT launches (their GPU time)
+    packs: list | None = None       # Floxels._pack, if packed during the preparation
 
 
 class _Solving:
@@ -281,25 +308,31 @@ class _Solving:
             for b, (k, (losses, best_iter)) in enumerate(zip(group, packed.summaries())):
                 solved[k] = (packed.best_params(b).clone(), losses, best_iter)
         timings = dict(pr.timings)
+        if pr.dt_events is not None:  # the EDTs overlapped other work: their GPU time
+            timings["dt"] = 1e-3 * pr.dt_events[0].elapsed_time(pr.dt_events[1])
         timings["optimise"] = time.perf_counter() - self.t0
         timings["total"] = time.perf_counter() - pr.t_start
         if len(pr.items) > 1:
             timings["group_size"] = float(len(pr.items))
 
-        results = []
+        flows, parts = [], []  # flow of the kept rows, (labels, fields of the result) per frame
         for k, ((prep, _), lab) in enumerate(zip(pr.items, pr.labels)):
             if pr.problems[k] is None:
                 empty = prep.points[prep.target].new_zeros(0, 3)
-                results.append(FloxelsResult(restore_output(empty, prep), empty, None, timings=dict(timings),
-                                             voxel_size=cfg.voxel_size))
+                flows.append(empty)
+                parts.append((None, [], -1, 0, dict(timings), None, cfg.voxel_size, None, None))
                 continue
             params, losses, best_iter = solved[k]
             corners = pr.problems[k].corners
             flow_s = F.corner_gather(params, corners.corner_idx, corners.corner_w)
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
-            results.append(FloxelsResult(restore_output(flow, prep), flow, lab, losses, best_iter, len(losses),
-                                         dict(timings), pr.grids[k], cfg.voxel_size, corners, params))
+            flows.append(flow)
+            parts.append((lab, losses, best_iter, len(losses), dict(timings), pr.grids[k], cfg.voxel_size, corners,
+                          params))
+        # every frame's output in one transfer (numpy outputs of CUDA flows)
+        outs = restore_outputs(flows, [prep for prep, _ in pr.items])
+        results = [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
         return results
 
 
@@ -309,7 +342,7 @@ def _used_on(stream, items, problems, orders, labels) -> None:
     for pr, order in zip(problems, orders):
         if pr is not None:
             for t in (pr.points, pr.corners.corner_idx, pr.corners.corner_w, pr.corners.vertices, order, pr.labels,
-                      *pr.dts):
+                      *pr.dts, *(pr.segments or ())):
                 if t is not None:
                     t.record_stream(stream)
     for lab in labels:
@@ -352,7 +385,7 @@ class _WindowCache:
 
 def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:
     Z, Y, X = shape
-    o = torch.tensor(origin, dtype=P.dtype, device=P.device)
+    o = torch.tensor(origin, dtype=P.dtype).to(P.device, non_blocking=True)  # no wait for queued work
     i = ((P - o) / spacing).floor().long()
     return (i[:, 2].clamp(0, Z - 1) * Y + i[:, 1].clamp(0, Y - 1)) * X + i[:, 0].clamp(0, X - 1)
 
@@ -360,13 +393,22 @@ def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:
 _SIDE_STREAMS: dict = {}
 
 
-def _side_stream(device: torch.device):
-    """One persistent side stream per device (a new stream per frame would strand cached
-    allocator blocks on streams never used again)."""
-    key = device.index if device.index is not None else torch.cuda.current_device()
+def _side_stream(device: torch.device, kind: str = "side"):
+    """Persistent side streams per device (a new stream per frame would strand cached
+    allocator blocks on streams never used again). "side" (DBSCAN, sorting: short kernels
+    whose results the host waits for) has high priority, so that its kernels are scheduled
+    ahead of the optimiser's queued blocks; "dt" (the EDTs, long and memory bound) has
+    normal priority."""
+    key = (device.index if device.index is not None else torch.cuda.current_device(), kind)
     if key not in _SIDE_STREAMS:
-        _SIDE_STREAMS[key] = torch.cuda.Stream(device=torch.device("cuda", key))
+        # (a priority beyond the device's range maps to its highest)
+        _SIDE_STREAMS[key] = torch.cuda.Stream(device=torch.device("cuda", key[0]),
+                                               priority=-8 if kind == "side" else 0)
     return _SIDE_STREAMS[key]
+
+
+def _dt_stream(device: torch.device):
+    return _side_stream(device, "dt")
 
 
 def _serial_stages(device: torch.device) -> bool:
@@ -390,6 +432,19 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     return Floxels(config, device).fit(scans, target).flow
 
 
+def _batches(frames: list[int], size: int, ramp: bool) -> list[list[int]]:
+    """Consecutive batches of at most ``size`` frames. ``ramp`` (pipelined sequences): the
+    first batches are smaller (4, 8, ... frames) so the GPU starts optimising after a short
+    first preparation, and each later batch is prepared while a batch about half its size is
+    optimised; results do not depend on the batching."""
+    out, k, cur = [], 0, min(size, 4) if ramp else size
+    while k < len(frames):
+        out.append(frames[k:k + cur])
+        k += cur
+        cur = min(size, 2 * cur)
+    return out
+
+
 def window_for(frame: int, num_frames: int, num_scans: int) -> tuple[int, int]:
     """[start, stop) of the window of ``num_scans`` scans used for ``frame``: centred on it,
     shifted inwards at the ends of the sequence (so the target may be the first/last scan)."""
@@ -406,10 +461,11 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
     every window that needs it (and freed once no later window does).
 
-    ``batch_size`` target frames are optimised together (default: 8 on CUDA, where
+    ``batch_size`` target frames are optimised together (default: 16 on CUDA, where
     sharing kernel launches raises throughput, 1 on the CPU); each frame's result is the
     same as optimising it alone. On CUDA the next batch is prepared (distance transforms,
-    DBSCAN, sorting) while the GPU optimises the current one.
+    DBSCAN, sorting) while the GPU optimises the current one; the first batches are then
+    smaller (4, 8, ... up to ``batch_size``) so that the GPU starts early.
 
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk).
@@ -426,19 +482,19 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     est = Floxels(cfg, device)
     dev = resolve_device(device, scans[0])
     if batch_size is None:
-        batch_size = 8 if dev.type == "cuda" else 1
+        batch_size = MAX_PROBLEMS if dev.type == "cuda" else 1
     if not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     cache: dict[int, DistanceTransform | None] = {}
     converted: dict = {}  # sequence index -> scan on the device (converted and NaN-checked once)
-    batches = [frames[k0:k0 + batch_size] for k0 in range(0, len(frames), batch_size)]
-    if not batches:
-        return []
     # On CUDA, the next batch is prepared (scans, distance transforms, DBSCAN, sorting: mostly
     # host-bound work) on a side stream while the GPU optimises this one.
-    # FLOXELS_PIPELINE=0 turns this off (measurements).
-    pipelined = (dev.type == "cuda" and len(batches) > 1 and not _serial_stages(dev)
+    # FLOXELS_PIPELINE=0 turns this off, FLOXELS_RAMP=0 the smaller first batches (measurements).
+    pipelined = (dev.type == "cuda" and len(frames) > batch_size and not _serial_stages(dev)
                  and os.environ.get("FLOXELS_PIPELINE", "1") != "0")
+    batches = _batches(frames, batch_size, ramp=pipelined and os.environ.get("FLOXELS_RAMP", "1") != "0")
+    if not batches:
+        return []
     side = _side_stream(dev) if pipelined else None
 
     def prepare(batch, poll=None):
@@ -452,7 +508,9 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         if side is None:
             return est._prepare_group(items())
         with torch.cuda.stream(side):
-            return est._prepare_group(items(), pipelined=True, poll=poll)
+            prepared = est._prepare_group(items(), pipelined=True, poll=poll)
+            prepared.packs = est._pack(prepared)  # packing, too, before the current batch ends
+            return prepared
 
     out = []
     prepared = prepare(batches[0])
@@ -467,7 +525,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         results = solving.finish()
         del solving
         # free the DTs and device scans that no later window will use
-        later = [window_for(g, n, cfg.num_scans)[0] for g in frames[(k + 1) * batch_size:]]
+        later = [window_for(g, n, cfg.num_scans)[0] for b in batches[k + 1:] for g in b]
         horizon = min(later) if later else math.inf
         for d in (cache, converted):
             for i in [i for i in d if i < horizon]:

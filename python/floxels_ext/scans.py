@@ -95,15 +95,17 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
         raise IndexError(f"target index {target} is out of range for {n} scans")
     dev = resolve_device(device, scans[0])
 
+    todo = [i for i in range(n) if converted is None or first_index + i not in converted]
+    fresh = dict(zip(todo, _finite_rows([tensors[i] for i in todo], dev, [first_index + i for i in todo],
+                                        [i == target for i in todo])))
     points, masks = [], []
-    for i, t in enumerate(tensors):
-        key = first_index + i
-        if converted is not None and key in converted:
-            t, finite = converted[key]
-        else:
-            t, finite = _finite_rows(t, dev, key, i == target)
+    for i in range(n):
+        if i in fresh:
+            t, finite = fresh[i]
             if converted is not None:
-                converted[key] = (t, finite)
+                converted[first_index + i] = (t, finite)
+        else:
+            t, finite = converted[first_index + i]
         points.append(t)
         masks.append(finite)
     supports = [i for i in range(n) if i != target]
@@ -113,30 +115,69 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
                          in_device=tensors[0].device, num_target_points=tensors[target].shape[0])
 
 
-def _finite_rows(t: torch.Tensor, dev: torch.device, index: int, is_target: bool):
-    """float32 contiguous copy on ``dev`` without the NaN/inf rows (warned about), and the mask."""
-    t = t.to(device=dev, dtype=torch.float32)
-    finite = torch.isfinite(t).all(dim=1)
-    bad = int((~finite).sum())
-    if bad:
-        warnings.warn(f"scan {index}: dropping {bad} point(s) with NaN/inf coordinates"
-                      + (" (their flow is NaN)" if is_target else ""), UserWarning, stacklevel=4)
-        t = t[finite]
-    return t.contiguous(), finite
+def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool]):
+    """Per scan: a float32 contiguous copy on ``dev`` without the NaN/inf rows (warned
+    about), and the mask. The uploads do not block (pageable memory is staged at once) and
+    the numbers of bad rows of all scans come back in one host synchronisation."""
+    if not scans:
+        return []
+    moved = [t.to(device=dev, dtype=torch.float32, non_blocking=True) for t in scans]
+    finite = [torch.isfinite(t).all(dim=1) for t in moved]
+    bad = torch.stack([(~f).sum() for f in finite]).tolist()
+    out = []
+    for t, f, b, index, tgt in zip(moved, finite, bad, indices, is_target):
+        if b:
+            warnings.warn(f"scan {index}: dropping {b} point(s) with NaN/inf coordinates"
+                          + (" (their flow is NaN)" if tgt else ""), UserWarning, stacklevel=4)
+            t = t[f]
+        out.append((t.contiguous(), f))
+    return out
 
 
 def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):
     """Scatter the flow of the kept target rows back to all input rows (NaN for dropped ones)
     and convert to what the caller passed in: numpy float32, or a tensor of the input's
     dtype on the input's device."""
-    mask = prep.finite_masks[prep.target]
-    if flow_kept.shape[0] == prep.num_target_points:
-        full = flow_kept
-    else:
-        full = torch.full((prep.num_target_points, 3), float("nan"), dtype=flow_kept.dtype,
-                          device=flow_kept.device)
-        full[mask] = flow_kept
-    if prep.was_numpy:
-        return full.detach().cpu().numpy().astype(np.float32, copy=False)
-    return full.detach().to(device=prep.in_device, dtype=prep.in_dtype)
+    return restore_outputs([flow_kept], [prep])[0]
+
+
+def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans]) -> list:
+    """:func:`restore_output` of several frames; the numpy outputs of CUDA flows come back in
+    one copy through page-locked memory (per-frame copies from pageable memory cost a host
+    synchronisation and ~0.3 ms per 100k points each)."""
+    fulls = []
+    for flow_kept, prep in zip(flows_kept, preps):
+        if flow_kept.shape[0] == prep.num_target_points:
+            full = flow_kept
+        else:
+            full = torch.full((prep.num_target_points, 3), float("nan"), dtype=flow_kept.dtype,
+                              device=flow_kept.device)
+            full[prep.finite_masks[prep.target]] = flow_kept
+        fulls.append(full.detach())
+    out: list = [None] * len(fulls)
+    to_host = [k for k, prep in enumerate(preps) if prep.was_numpy]
+    for k, arr in zip(to_host, _numpy_float32([fulls[k] for k in to_host])):
+        out[k] = arr
+    for k, prep in enumerate(preps):
+        if not prep.was_numpy:
+            out[k] = fulls[k].to(device=prep.in_device, dtype=prep.in_dtype)
+    return out
+
+
+def _numpy_float32(tensors: list[torch.Tensor]) -> list[np.ndarray]:
+    """float32 numpy copies of (N_i, 3) tensors; CUDA ones in one page-locked transfer (the
+    arrays are views of one buffer)."""
+    if not tensors or not any(t.is_cuda for t in tensors):
+        return [t.cpu().numpy().astype(np.float32, copy=False) for t in tensors]
+    flat = torch.cat([t.reshape(-1).to(torch.float32) for t in tensors])
+    host = torch.empty(flat.shape, dtype=torch.float32, pin_memory=True)
+    host.copy_(flat, non_blocking=True)
+    torch.cuda.current_stream(flat.device).synchronize()
+    arr = host.numpy()  # keeps `host` alive
+    out, at = [], 0
+    for t in tensors:
+        n = t.numel()
+        out.append(arr[at:at + n].reshape(t.shape))
+        at += n
+    return out
 

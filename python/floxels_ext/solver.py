@@ -8,6 +8,11 @@ host; chunks enqueued after every problem stopped are cheap no-ops. :class:`Solv
 also be advanced without blocking (:meth:`SolverRun.poll`), which lets the estimator prepare
 the next frames on the host while the GPU optimises these.
 
+Where the op uses its persistent loop kernel (``floxels::solver_loop_blocks``: single
+frames and small batches, whose point blocks all fit on the GPU at once) one call runs every
+iteration in a single cooperative launch that ends by itself once every problem has
+stopped, so the default chunk is then the whole run.
+
 Chunks are launched directly by default. ``FLOXELS_CUDA_GRAPHS=1`` replays them from a CUDA
 graph captured per call group instead: on an H100 that was slower for single frames (a
 graph must be captured and instantiated for every new problem, ~1 ms, and the eager chunk is
@@ -35,12 +40,14 @@ class SolverRun:
     that is current when the run is created. ``poll()`` tops up the queue without blocking
     (returns False once nothing is left to enqueue); ``finish()`` runs to the end and waits."""
 
-    def __init__(self, packed: PackedProblems, chunk: int = DEFAULT_CHUNK, use_graph: bool | None = None,
+    def __init__(self, packed: PackedProblems, chunk: int | None = None, use_graph: bool | None = None,
                  depth: int = 2) -> None:
         self.packed = packed
         self.max_iters = packed.cfg.max_iters
         self.cuda = packed.points.is_cuda
         self.use_graph = graphs_enabled() if use_graph is None else use_graph
+        if chunk is None:  # one launch for the whole run where the op loops on the device
+            chunk = self.max_iters if self.cuda and not self.use_graph and packed.loop_blocks() > 0 else DEFAULT_CHUNK
         self.chunk = max(1, min(chunk, self.max_iters))
         self.depth = max(1, depth)  # chunks kept queued while polling
         self.done = 0               # iterations enqueued
@@ -107,7 +114,7 @@ class SolverRun:
         self.stream.synchronize()
 
 
-def run_solver(packed: PackedProblems, chunk: int = DEFAULT_CHUNK, use_graph: bool | None = None) -> None:
+def run_solver(packed: PackedProblems, chunk: int | None = None, use_graph: bool | None = None) -> None:
     """Run ``packed`` until every problem has stopped (at most ``cfg.max_iters`` iterations)."""
     SolverRun(packed, chunk, use_graph).finish()
 

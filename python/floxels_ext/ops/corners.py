@@ -87,13 +87,14 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
     dev, dt = points.device, points.dtype
     # All 8 corners at once (a dozen kernels instead of ~120 small ones: this runs once per
     # frame, where launch overhead matters); same arithmetic as trilinear_gather's clamping.
-    size = torch.tensor([X, Y, Z], device=dev)
-    o = torch.tensor([float(v) for v in origin] + [0.0, 0.0, 0.0], dtype=dt, device=dev)
-    o, hi = o[:3], (size - 1).to(dt)
+    # constants copied without blocking: a blocking copy would wait for the stream's queued work
+    size = torch.tensor([X, Y, Z]).to(dev, non_blocking=True)
+    o = torch.tensor([float(v) for v in origin], dtype=dt).to(dev, non_blocking=True)
+    hi = (size - 1).to(dt)
     u = torch.minimum(((points - o) / spacing).clamp_min(0), hi)
     i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
     t = u - i0.to(dt)
-    offs = _CORNER_OFFSETS.to(dev)                                    # (8, 3): x fastest, then y, then z
+    offs = _CORNER_OFFSETS.to(dev, non_blocking=True)                 # (8, 3): x fastest, then y, then z
     idx = torch.minimum(i0[:, None, :] + offs, size - 1)            # (N, 8, 3)
     lin = (idx[..., 2] * Y + idx[..., 1]) * X + idx[..., 0]
     wf = torch.where(offs.bool(), t[:, None, :], 1 - t[:, None, :])  # (N, 8, 3) per-axis weights

@@ -47,6 +47,10 @@ class SolverProblem:
     weights: list[float]
     reg_scale: float
     num_clusters: int | None = None  # labels.max() + 1 if known (saves a host synchronisation)
+    # (seg_ptr, vtx_ptr, vtx_entry) of this problem alone (problem_segments), if already built:
+    # the estimator builds them while the distance transforms are still running, so packing
+    # needs no host synchronisation
+    segments: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
 
 def solver_hyper(cfg) -> list[float]:
@@ -113,25 +117,36 @@ class PackedProblems:
             lab_all = torch.cat(labels)
         else:
             lab_all = None
-        self.seg_ptr, self.vtx_ptr, self.vtx_entry = _segments(self.corner_idx, lab_all, self.point_ranges, M)
+        own = [p.segments for p in problems]
+        # a problem's own segments are only valid with the labels they were built from
+        if all(sg is not None for sg in own) and all((p.labels is not None) == (lab_all is not None) for p in problems):
+            self.seg_ptr, self.vtx_ptr, self.vtx_entry = _concat_segments(own, self.point_ranges)
+        else:
+            self.seg_ptr, self.vtx_ptr, self.vtx_entry = _segments(self.corner_idx, lab_all, self.point_ranges, M)
         if lab_all is not None:
             lab = lab_all
             self.labels = lab.to(torch.int32).contiguous()
-            self.cluster_count = torch.bincount(lab[lab >= 0], minlength=ncl).to(torch.float32).contiguous()
+            # points per cluster, without bincount's host synchronisation
+            self.cluster_count = torch.zeros(ncl, dtype=torch.float32, device=dev).index_add_(
+                0, lab.clamp_min(0), (lab >= 0).to(torch.float32))
         else:
             self.labels = self.cluster_count = None
         self.hyper = solver_hyper(cfg)
-        f32 = dict(dtype=torch.float32, device=dev)
-        self.theta = torch.zeros(M, 3, **f32)
-        self.adam_m = torch.zeros(M, 3, **f32)
-        self.adam_v = torch.zeros(M, 3, **f32)
-        self.best = torch.zeros(M, 3, **f32)
-        self.state = torch.zeros(self.num_problems, STATE_COLS, dtype=torch.float64, device=dev)
-        self.state[:, COL_ACTIVE] = 1.0
-        self.state[:, COL_BEST_LOSS] = float("inf")
-        self.state[:, 3] = float("inf")  # early stopping's reference loss
-        self.state[:, COL_BEST_ITER] = -1.0
+        # theta, Adam's moments and the best copy in one allocation (one fill)
+        self._params = torch.zeros(4, M, 3, dtype=torch.float32, device=dev)
+        self.theta, self.adam_m, self.adam_v, self.best = self._params.unbind(0)
+        row = [0.0] * STATE_COLS
+        row[COL_ACTIVE], row[COL_BEST_LOSS], row[3], row[COL_BEST_ITER] = 1.0, float("inf"), float("inf"), -1.0
+        # 3: early stopping's reference loss
+        self.state = torch.tensor([row] * self.num_problems, dtype=torch.float64).to(dev, non_blocking=True)
         self.history = torch.full((self.num_problems, cfg.max_iters), float("nan"), dtype=torch.float64, device=dev)
+
+    def record_stream(self, stream) -> None:
+        """Mark every device tensor of the call as used on ``stream`` (packed on another one)."""
+        for t in (self.points, self.corner_idx, self.corner_w, self.seg_ptr, self.vtx_ptr, self.vtx_entry, self.labels,
+                  self.cluster_count, self._params, self.state, self.history, *self.dts):
+            if t is not None and t.is_cuda:
+                t.record_stream(stream)
 
     def op_args(self, num_iters: int) -> tuple:
         """The arguments of ``torch.ops.floxels.solver_run`` for ``num_iters`` iterations."""
@@ -139,6 +154,11 @@ class PackedProblems:
                 self.cluster_count, self.dts, self.dt_origins, self.point_ranges, self.vertex_ranges,
                 self.support_ranges, self.support_dt, self.support_t, self.support_w, self.reg_scale, self.hyper,
                 self.theta, self.adam_m, self.adam_v, self.best, self.state, self.history, int(num_iters))
+
+    def loop_blocks(self) -> int:
+        """Blocks of the persistent loop kernel a call would launch (0: two kernels per iteration)."""
+        return int(ops_ns.solver_loop_blocks(self.points, self.point_ranges, self.vertex_ranges,
+                                             self.labels is not None))
 
     def run(self, num_iters: int) -> None:
         """Enqueue ``num_iters`` iterations (no host synchronisation on CUDA)."""
@@ -165,6 +185,31 @@ class PackedProblems:
         return int(self.state[b, COL_BEST_ITER].item())
 
 
+def problem_segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, num_vertices: int):
+    """(seg_ptr, vtx_ptr, vtx_entry) of one problem (see :func:`_segments`), for
+    :attr:`SolverProblem.segments`."""
+    return _segments(corner_idx, labels, [0, corner_idx.shape[0]], num_vertices)
+
+
+def _concat_segments(own: list, point_ranges: list[int]):
+    """The segment tables of several problems from each problem's own (segments, entries
+    and vertices are numbered per problem; offsets make them global)."""
+    if len(own) == 1:
+        return own[0]
+    seg_ptr, vtx_ptr, vtx_entry = [], [], []
+    segs = ents = 0
+    for (sp, vp, ve), p0 in zip(own, point_ranges):
+        seg_ptr.append(sp[:-1] + p0)
+        vtx_ptr.append(vp[:-1] + ents)
+        vtx_entry.append(ve + 8 * segs)
+        segs += sp.shape[0] - 1
+        ents += ve.shape[0]
+    dev = own[0][0].device
+    seg_ptr.append(torch.tensor([point_ranges[-1]], dtype=torch.int32).to(dev, non_blocking=True))
+    vtx_ptr.append(torch.tensor([ents], dtype=torch.int32).to(dev, non_blocking=True))
+    return (torch.cat(seg_ptr).contiguous(), torch.cat(vtx_ptr).contiguous(), torch.cat(vtx_entry).contiguous())
+
+
 def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_ranges: list[int], num_vertices: int):
     """Segments (runs of points with equal corner rows and labels inside one problem) and,
     per vertex, its (segment * 8 + corner) entries: the vertex gradient is then a gather of
@@ -178,13 +223,14 @@ def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_range
     new[1:] = (corner_idx[1:] != corner_idx[:-1]).any(1)
     if labels is not None:
         new[1:] |= labels[1:] != labels[:-1]
-    starts = torch.tensor([b for b, e in zip(point_ranges[:-1], point_ranges[1:]) if e > b], dtype=torch.int64,
-                          device=dev)
-    new[starts] = True
+    if len(point_ranges) > 2:  # problem boundaries (one problem: new[0] is set already)
+        starts = torch.tensor([b for b, e in zip(point_ranges[:-1], point_ranges[1:]) if e > b], dtype=torch.int64)
+        new[starts.to(dev, non_blocking=True)] = True  # non_blocking: no wait for the stream's queued work
     first = torch.nonzero(new).reshape(-1)
     seg_ptr = torch.cat([first, first.new_full((1,), N)]).to(torch.int32).contiguous()
     flat = corner_idx[first].reshape(-1).to(torch.int64)  # (8S) vertex of each (segment, corner)
     order = torch.argsort(flat, stable=True)
-    counts = torch.bincount(flat, minlength=num_vertices)
+    # entries per vertex (index_add_: bincount would synchronise with the host)
+    counts = torch.zeros(num_vertices, dtype=torch.int64, device=dev).index_add_(0, flat, torch.ones_like(flat))
     vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32).contiguous()
     return seg_ptr, vtx_ptr, order.to(torch.int32).contiguous()
