@@ -21,6 +21,10 @@ ap.add_argument("--beams", type=int, default=128)
 ap.add_argument("--iters", type=int, default=100)
 ap.add_argument("--scene", default="urban")
 ap.add_argument("--batch", type=int, nargs="+", default=[1, 16])
+ap.add_argument("--skip", type=int, nargs="*", default=[],
+                help="also trace the persistent loop with these FLOXELS_SOLVER_SKIP masks (parts left out: "
+                     "1 DT, 2 segment sums, 4 cluster u sums, 8 loss reduction, 16 flow gather, "
+                     "32 vertex gradient gather, 64 next means)")
 args = ap.parse_args()
 
 scans = simulated_scans(max(args.batch) + 4, args.beams, args.scene)
@@ -61,6 +65,13 @@ for batch in args.batch:
     os.environ["FLOXELS_SOLVER_TRACE"] = "1"
     run_solver(PackedProblems(probs, cfg))
     torch.cuda.synchronize()
+    # the same with parts left out (measurement only; FLOXELS_SOLVER_SKIP bits in solver.cu)
+    for mask in args.skip:
+        os.environ["FLOXELS_SOLVER_SKIP"] = str(mask)
+        print(f"skip mask {mask}:", flush=True)
+        run_solver(PackedProblems(probs, cfg))
+        torch.cuda.synchronize()
+    os.environ.pop("FLOXELS_SOLVER_SKIP", None)
     del os.environ["FLOXELS_SOLVER_TRACE"]
     os.environ["FLOXELS_SOLVER_PERSISTENT"] = "0"
     os.environ["FLOXELS_SOLVER_PDL"] = "0"

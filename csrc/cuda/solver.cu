@@ -73,6 +73,7 @@ struct KParams {
   int num_points;
   int num_segments;
   int parity;  // iteration parity of this launch: selects the mean / u-sum buffers
+  int debug_skip;  // measurement only (FLOXELS_SOLVER_SKIP, traced loop): parts left out
   Hyper hyper;
   const float* points;
   const int32_t* corner_idx;
@@ -302,8 +303,11 @@ __device__ __forceinline__ void clear_other_parity(const KParams& P, int parity)
 // Stages 1-2 of point block `vb`, a thread per point.
 // `clear`: also run clear_other_parity (the per-iteration kernel; the persistent loop clears
 // once per iteration instead).
-template <bool kCluster>
+// kDebug (measurement only, the traced loop): P.debug_skip leaves parts out (see
+// FLOXELS_SOLVER_SKIP in solver_launch); the results are then wrong.
+template <bool kCluster, bool kDebug = false>
 __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb, bool clear, PointSmem& sm) {
+  const int skip = kDebug ? P.debug_skip : 0;
   float* rows = sm.rows;
   int* keys = sm.keys;
   float* carry = sm.carry;
@@ -342,7 +346,7 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   if (st[kActive] != 0.0) {  // uniform per block
     float f[3] = {0.0f, 0.0f, 0.0f};
     float mean[3] = {0.0f, 0.0f, 0.0f};
-    if (valid) {
+    if (valid && !(skip & 16)) {
       for (int j = 0; j < 8; ++j) {
         if (idx[j] < 0) continue;  // invalid tables (validated in Python): never read outside
         const float* row = P.theta + 3 * int64_t(idx[j]);
@@ -355,9 +359,10 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
     }
     float g[3] = {0.0f, 0.0f, 0.0f};
     float u[3] = {0.0f, 0.0f, 0.0f};
-    if (valid) {
+    if (valid && !(skip & 1))
       loss = dt_loss::point_loss<true, float, int>(P.scans + p * kMaxSupport, P.num_support[p], pt.x, pt.y, pt.z, f[0], f[1], f[2],
                                                    P.hyper.inv_dt_cell, P.hyper.truncation, g);
+    if (valid) {
       const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
       float unit[3];
       loss += lam * norm_and_unit(f, unit);
@@ -372,14 +377,14 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
     float wg[kSegVals];
     for (int k = 0; k < 8; ++k)
       for (int c = 0; c < 3; ++c) wg[3 * k + c] = w[k] * g[c];
-    block_runs<kSegVals>(seg, wg, rows, keys, carry, [&](int s, int j, float sum) {
+    if (!(skip & 2)) block_runs<kSegVals>(seg, wg, rows, keys, carry, [&](int s, int j, float sum) {
       float* dst = P.seg_grad + int64_t(kSegVals) * s + j;
       if (P.seg_ptr[s] >= first && P.seg_ptr[s + 1] <= first + kThreads)
         *dst = sum;
       else
         atomicAdd(dst, sum);  // cleared by its readers (entry flag)
     });
-    if constexpr (kCluster) {
+    if (kCluster && !(skip & 4)) {
       float* ub = P.ubuf + (parity ? C3 : 0);
       block_runs<3>(valid ? label : -1, u, rows, keys, carry,
                     [&](int l, int j, float sum) { atomicAdd(ub + 3 * l + j, sum); });
@@ -388,6 +393,7 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   // One double atomic per block: the sum order varies between runs (last bits of the loss),
   // like the float atomics of the other sums; a per-block table re-read by every vertex
   // block cost more than the whole vertex gradient with 16 problems.
+  if (skip & 8) return;
   const double total = block_sum<kThreads>(double(loss));
   if (threadIdx.x == 0 && total != 0.0) atomicAdd(P.loss + (parity ? kMaxProblems : 0) + p, total);
 }
@@ -402,8 +408,9 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
 // Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
 // iteration's cluster means. kInitMeans: only the means, of the current parameters (once
 // per call, before the first iteration).
-template <bool kCluster, bool kInitMeans>
+template <bool kCluster, bool kInitMeans, bool kDebug = false>
 __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm) {
+  const int skip = kDebug ? P.debug_skip : 0;
   float* scratch = sm.scratch;
   double* st = sm.st;
   const int p = problem_of(vb, P.vblock_begin, P.num_problems);
@@ -434,7 +441,7 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     const float* ub = P.ubuf + (parity ? C3 : 0);
     const float ccoef = P.cluster_coef[p];
     float G[3] = {0.0f, 0.0f, 0.0f};
-    for (int e = e_begin + sub; e < e_end; e += kLanesPerVertex) {
+    for (int e = e_begin + sub; e < ((skip & 32) ? e_begin : e_end); e += kLanesPerVertex) {
       const int4 r = P.ent[e];
       if (r.x < 0) continue;  // invalid tables (validated in Python): never read outside
       float* sg = P.seg_grad + 3 * int64_t(r.x);
@@ -471,7 +478,7 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     float* mdst = P.mbuf + ((kInitMeans || parity) ? 0 : C3);  // the means of the next iteration
     const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
     const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
-    const int rounds = warp_max(mine_n);
+    const int rounds = (skip & 64) ? 0 : warp_max(mine_n);
     for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
       int key = -1;
       float val[3] = {0.0f, 0.0f, 0.0f};
@@ -543,14 +550,14 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
     // barrier after each body keeps the next one from overwriting what a slower thread of
     // this one still reads (stage 3's state row in the vertex body).
     for (int b = int(blockIdx.x); b < point_blocks; b += int(gridDim.x)) {
-      points_body<kCluster>(P, parity, b, false, psm);
+      points_body<kCluster, trace>(P, parity, b, false, psm);
       __syncthreads();
     }
     const unsigned long long t1 = trace ? now_ns() : 0;
     grid.sync();
     const unsigned long long t2 = trace ? now_ns() : 0;
     for (int b = int(blockIdx.x); b < vertex_blocks; b += int(gridDim.x)) {
-      vertex_body<kCluster, false>(P, parity, b, vsm);
+      vertex_body<kCluster, false, trace>(P, parity, b, vsm);
       __syncthreads();
     }
     const unsigned long long t3 = trace ? now_ns() : 0;
@@ -798,6 +805,11 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
     attr[0].val.cooperative = 1;
     cfg.attrs = attr;
     cfg.numAttrs = 1;
+    // FLOXELS_SOLVER_SKIP (with the trace): bit mask of parts left out, to attribute time:
+    // 1 DT look-ups, 2 segment sums, 4 cluster u sums, 8 loss reduction, 16 flow gather,
+    // 32 vertex gradient gather, 64 next means
+    const char* skip_env = std::getenv("FLOXELS_SOLVER_SKIP");
+    P.debug_skip = skip_env != nullptr ? std::atoi(skip_env) : 0;
     if (env_flag("FLOXELS_SOLVER_TRACE", false))  // measurement only: phase times printed by the kernel
       err = cl ? cudaLaunchKernelEx(&cfg, loop_kernel<true, true>, P, num_iters, int(pb), int(vb))
                : cudaLaunchKernelEx(&cfg, loop_kernel<false, true>, P, num_iters, int(pb), int(vb));
