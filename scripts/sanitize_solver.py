@@ -2,6 +2,10 @@
 
     compute-sanitizer --tool memcheck python3 scripts/sanitize_solver.py
     compute-sanitizer --tool racecheck --kernel-name kns=points_kernel python3 scripts/sanitize_solver.py
+
+These small problems run the persistent loop kernel by default; FLOXELS_SOLVER_PERSISTENT=0
+selects the two-kernel iteration, and FLOXELS_SOLVER_PERSISTENT=1 FLOXELS_SOLVER_MAX_GRID=7
+makes every loop block walk several point and vertex blocks (racecheck: kns=loop_kernel).
 """
 import torch
 
