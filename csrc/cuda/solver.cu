@@ -589,18 +589,27 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
   }
 }
 
-// Launch with programmatic stream serialisation (PDL) when `pdl`; see pdl_wait_previous.
-cudaError_t launch(void (*kernel)(const KParams), int blocks, cudaStream_t stream, bool pdl, const KParams& P) {
+// Launches `kernel` with kThreads per block and, if given, one launch attribute.
+template <typename... Params, typename... Args>
+cudaError_t launch_ex(void (*kernel)(Params...), int blocks, cudaStream_t stream, const cudaLaunchAttribute* attr,
+                      Args... args) {
   cudaLaunchConfig_t cfg{};
   cfg.gridDim = dim3(unsigned(blocks));
   cfg.blockDim = dim3(kThreads);
   cfg.stream = stream;
-  cudaLaunchAttribute attr[1];
-  attr[0].id = cudaLaunchAttributeProgrammaticStreamSerialization;
-  attr[0].val.programmaticStreamSerializationAllowed = 1;
-  cfg.attrs = attr;
-  cfg.numAttrs = pdl ? 1 : 0;
-  return cudaLaunchKernelEx(&cfg, kernel, P);
+  cudaLaunchAttribute a[1];
+  if (attr != nullptr) a[0] = *attr;
+  cfg.attrs = a;
+  cfg.numAttrs = attr != nullptr ? 1 : 0;
+  return cudaLaunchKernelEx(&cfg, kernel, args...);
+}
+
+// Launch with programmatic stream serialisation (PDL) when `pdl`; see pdl_wait_previous.
+cudaError_t launch(void (*kernel)(const KParams), int blocks, cudaStream_t stream, bool pdl, const KParams& P) {
+  cudaLaunchAttribute attr{};
+  attr.id = cudaLaunchAttributeProgrammaticStreamSerialization;
+  attr.val.programmaticStreamSerializationAllowed = 1;
+  return launch_ex(kernel, blocks, stream, pdl ? &attr : nullptr, P);
 }
 
 // Runtime switches for measurements (read per call; "0" turns a feature off, "1" on).
@@ -609,10 +618,9 @@ bool env_flag(const char* name, bool dflt) {
   return v == nullptr ? dflt : !(v[0] == '0' && v[1] == '\0');
 }
 
-// Blocks of the persistent loop kernel (all resident at once), or 0 for the two-kernel
-// iteration: FLOXELS_SOLVER_PERSISTENT=0, a stream being captured into a CUDA graph (a
-// graph replays fixed chunks; the two-kernel iteration is the tested path there), or a
-// device without cooperative launch.
+// Blocks of the persistent loop kernel that can be resident at once, or 0 where it cannot
+// be used: a stream being captured into a CUDA graph (a graph replays fixed chunks; the
+// two-kernel iteration is the tested path there), or a device without cooperative launch.
 int persistent_grid(bool cluster, cudaStream_t stream) {
   cudaStreamCaptureStatus cap = cudaStreamCaptureStatusNone;
   if (cudaStreamIsCapturing(stream, &cap) != cudaSuccess || cap != cudaStreamCaptureStatusNone) return 0;
@@ -796,26 +804,18 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   bias_kernel<<<unsigned((a.hyper.max_iters + 127) / 128), 128, 0, stream>>>(P);
   if (cl) vertex_kernel<true, true><<<unsigned(vb), kThreads, 0, stream>>>(P);  // the first means
   if (const int grid = loop_blocks(pb, vb, cl, stream); grid > 0) {
-    cudaLaunchConfig_t cfg{};
-    cfg.gridDim = dim3(unsigned(grid));
-    cfg.blockDim = dim3(kThreads);
-    cfg.stream = stream;
-    cudaLaunchAttribute attr[1];
-    attr[0].id = cudaLaunchAttributeCooperative;
-    attr[0].val.cooperative = 1;
-    cfg.attrs = attr;
-    cfg.numAttrs = 1;
+    cudaLaunchAttribute coop{};
+    coop.id = cudaLaunchAttributeCooperative;
+    coop.val.cooperative = 1;
     // FLOXELS_SOLVER_SKIP (with the trace): bit mask of parts left out, to attribute time:
     // 1 DT look-ups, 2 segment sums, 4 cluster u sums, 8 loss reduction, 16 flow gather,
     // 32 vertex gradient gather, 64 next means
     const char* skip_env = std::getenv("FLOXELS_SOLVER_SKIP");
     P.debug_skip = skip_env != nullptr ? std::atoi(skip_env) : 0;
-    if (env_flag("FLOXELS_SOLVER_TRACE", false))  // measurement only: phase times printed by the kernel
-      err = cl ? cudaLaunchKernelEx(&cfg, loop_kernel<true, true>, P, num_iters, int(pb), int(vb))
-               : cudaLaunchKernelEx(&cfg, loop_kernel<false, true>, P, num_iters, int(pb), int(vb));
-    else
-      err = cl ? cudaLaunchKernelEx(&cfg, loop_kernel<true>, P, num_iters, int(pb), int(vb))
-               : cudaLaunchKernelEx(&cfg, loop_kernel<false>, P, num_iters, int(pb), int(vb));
+    const bool trace = env_flag("FLOXELS_SOLVER_TRACE", false);  // measurement only: the kernel prints phase times
+    auto* kernel = cl ? (trace ? loop_kernel<true, true> : loop_kernel<true>)
+                      : (trace ? loop_kernel<false, true> : loop_kernel<false>);
+    err = launch_ex(kernel, grid, stream, &coop, P, num_iters, int(pb), int(vb));
     return err == cudaSuccess ? cudaGetLastError() : err;
   }
   const bool pdl = env_flag("FLOXELS_SOLVER_PDL", false);
