@@ -10,7 +10,7 @@ import torch
 from floxels_ext import FloxelsConfig
 from floxels_ext.early_stopping import EarlyStopping
 from floxels_ext.ops import compact_corners, dbscan, distance_transform, grid_for_points
-from floxels_ext.ops.solver import PackedProblems, SolverProblem
+from floxels_ext.ops.solver import PackedProblems, SolverProblem, problem_segments
 from floxels_ext.solver import run_solver
 
 F = torch.ops.floxels
@@ -277,3 +277,29 @@ def test_cuda_persistent_matches_two_kernel(monkeypatch, cluster, max_grid):
         d = (runs["1"].best_params(b) - runs["0"].best_params(b)).norm(dim=1)
         assert d.mean() < 0.05
 
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("persistent", ["1", "0"])
+def test_cuda_segments_across_tiles(monkeypatch, persistent):
+    """Segment tables whose segments cross the 32-point tiles of the CUDA point phase (built
+    with tiles of 4096 points, as another caller might) take the atomic path: same losses as
+    the tiled tables the estimator builds."""
+    monkeypatch.setenv("FLOXELS_SOLVER_PERSISTENT", persistent)
+    cfg = FloxelsConfig(max_iters=40, patience=1000)
+    P, sup = _scene(31, n=3000)
+    pr = _to_cuda(_problem(P, sup, cfg, sort=True))
+    losses = {}
+    for tile in (None, 4096):
+        segs = problem_segments(pr.corners.corner_idx, pr.labels, pr.corners.num_params, tile=tile)
+        if tile is None:
+            assert int(segs[0].shape[0]) > int(problem_segments(pr.corners.corner_idx, pr.labels,
+                                                                pr.corners.num_params, tile=4096)[0].shape[0])
+        q = SolverProblem(pr.points, pr.corners, pr.labels, pr.dts, pr.origins, pr.time_offsets, pr.weights,
+                          pr.reg_scale, segments=segs)
+        packed = PackedProblems([q], cfg)
+        run_solver(packed)
+        losses[tile] = packed.losses(0)
+    # the sums' order differs (atomics), so the trajectories drift apart by rounding only
+    np.testing.assert_allclose(losses[4096][:3], losses[None][:3], rtol=1e-4)
+    assert min(losses[4096]) == pytest.approx(min(losses[None]), rel=1e-2)

@@ -8,10 +8,12 @@
 //      step of the lock-stepped scans reads/writes consecutive addresses. The lower envelope's
 //      stack lives in a scratch buffer with the line's own layout (entry k at k*stride), so it
 //      needs no shared memory and any line length works; the top two entries are cached in
-//      registers. The output is written for x = 0..n-1 in lock step (coalesced); only the
-//      envelope advances read divergently, and those hit L1/L2.
-// Buffers: pass 1 writes `out` viewed as int32; pass 2 reads it, stacks in scratch[0:N] and
-// writes scratch[N:2N]; pass 3 reads that, stacks in scratch[0:N] and writes float `out`.
+//      registers, and entries hold the sample value too (the walk reads no input). The
+//      output is written for x = 0..n-1 in lock step (coalesced); only the envelope
+//      advances read divergently, and those hit L1/L2.
+// Buffers: every pass reads and writes `out` in place (int32 squared distances viewed
+// through the float buffer, float distances after pass 3); the envelope stacks of passes 2
+// and 3, (q, f[q]) pairs, live in the scratch buffer (2N int32).
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -68,36 +70,47 @@ __global__ void edt_rows_kernel(const uint8_t* __restrict__ occ, int32_t* __rest
 
 // Lower envelope of f[q*stride] + (x - q)^2 along one line per thread. Line `i` starts at
 // (i / stride) * n * stride + i % stride, which covers both the Y pass (stride X) and the Z
-// pass (stride Y*X) of a contiguous (Z, Y, X) array.
+// pass (stride Y*X) of a contiguous (Z, Y, X) array. The stack holds (q, f[q]) pairs, so
+// the walk never re-reads the input and the output can overwrite it (in == out_d2, or the
+// same memory as out_dist: each line reads all its samples before it writes any). Latency
+// hiding: the build loads kBatch samples at once, and the walk keeps one envelope member
+// loaded ahead.
 template <bool kFinal>
-__global__ void edt_lines_kernel(const int32_t* __restrict__ in, int32_t* __restrict__ stack,
-                                 int32_t* __restrict__ out_d2, float* __restrict__ out_dist, int64_t lines,
-                                 int32_t n, int64_t stride, double spacing) {
+__global__ void edt_lines_kernel(const int32_t* in, int2* __restrict__ stack, int32_t* out_d2, float* out_dist,
+                                 int64_t lines, int32_t n, int64_t stride, double spacing) {
+  constexpr int kBatch = 8;
   const int64_t line = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (line >= lines) return;
   const int64_t base = (line / stride) * n * stride + line % stride;
   const int32_t* f = in + base;
-  int32_t* st = stack + base;
+  int2* st = stack + base;
 
   int32_t cnt = 0, vt = 0, ft = 0, vp = 0, fp = 0;  // stack size, top and second entries
-  for (int32_t q = 0; q < n; ++q) {
-    const int32_t fq = f[q * stride];
-    if (fq == kInf) continue;
-    while (cnt >= 2 && edt::middle_hidden(vp, fp, vt, ft, q, fq)) {
-      --cnt;
-      vt = vp;
-      ft = fp;
-      if (cnt >= 2) {
-        vp = st[int64_t(cnt - 2) * stride];
-        fp = f[int64_t(vp) * stride];
+  for (int32_t q0 = 0; q0 < n; q0 += kBatch) {
+    int32_t fb[kBatch];
+#pragma unroll
+    for (int j = 0; j < kBatch; ++j) fb[j] = q0 + j < n ? f[int64_t(q0 + j) * stride] : kInf;
+#pragma unroll
+    for (int j = 0; j < kBatch; ++j) {
+      const int32_t q = q0 + j, fq = fb[j];
+      if (fq == kInf) continue;
+      while (cnt >= 2 && edt::middle_hidden(vp, fp, vt, ft, q, fq)) {
+        --cnt;
+        vt = vp;
+        ft = fp;
+        if (cnt >= 2) {
+          const int2 e = st[int64_t(cnt - 2) * stride];
+          vp = e.x;
+          fp = e.y;
+        }
       }
+      st[int64_t(cnt) * stride] = make_int2(q, fq);
+      ++cnt;
+      vp = vt;
+      fp = ft;
+      vt = q;
+      ft = fq;
     }
-    st[int64_t(cnt) * stride] = q;
-    ++cnt;
-    vp = vt;
-    fp = ft;
-    vt = q;
-    ft = fq;
   }
 
   if (cnt == 0) {  // no occupied sample reaches this line
@@ -109,24 +122,19 @@ __global__ void edt_lines_kernel(const int32_t* __restrict__ in, int32_t* __rest
     }
     return;
   }
-  // Walk the envelope: (v0, f0) is the current member, (v1, f1) the next one.
-  int32_t k = 0, v0 = st[0], f0, v1 = 0, f1 = 0;
-  f0 = f[int64_t(v0) * stride];
-  if (cnt > 1) {
-    v1 = st[stride];
-    f1 = f[int64_t(v1) * stride];
-  }
+  // Walk the envelope: e0 the current member, e1 the next one, e2 the one after (loaded ahead).
+  int32_t k = 0;
+  int2 e0 = st[0], e1 = e0, e2 = e0;
+  if (cnt > 1) e1 = st[stride];
+  if (cnt > 2) e2 = st[2 * stride];
   for (int32_t x = 0; x < n; ++x) {
-    while (k + 1 < cnt && edt::parabola(v1, f1, x) <= edt::parabola(v0, f0, x)) {
+    while (k + 1 < cnt && edt::parabola(e1.x, e1.y, x) <= edt::parabola(e0.x, e0.y, x)) {
       ++k;
-      v0 = v1;
-      f0 = f1;
-      if (k + 1 < cnt) {
-        v1 = st[int64_t(k + 1) * stride];
-        f1 = f[int64_t(v1) * stride];
-      }
+      e0 = e1;
+      e1 = e2;
+      if (k + 2 < cnt) e2 = st[int64_t(k + 2) * stride];
     }
-    const int32_t d2 = edt::parabola(v0, f0, x);
+    const int32_t d2 = edt::parabola(e0.x, e0.y, x);
     if constexpr (kFinal)
       out_dist[base + int64_t(x) * stride] = edt::to_distance(d2, spacing);
     else
@@ -163,25 +171,26 @@ cudaError_t edt_launch(const uint8_t* occ, float* out, int32_t* scratch, int64_t
                        double spacing, cudaStream_t stream) {
   const int64_t N = Z * Y * X;
   if (N == 0) return cudaSuccess;
-  int32_t* d2_x = reinterpret_cast<int32_t*>(out);
-  int32_t* stack = scratch;
-  int32_t* d2_xy = scratch + N;
+  // Every pass works in place in `out` (int32 squared distances, then float distances);
+  // scratch holds the envelope stacks, (q, f) pairs with the line's layout.
+  int32_t* d2 = reinterpret_cast<int32_t*>(out);
+  int2* stack = reinterpret_cast<int2*>(scratch);
 
   const int64_t rows = Z * Y;
   const int64_t row_blocks = (rows + kRowWarps - 1) / kRowWarps;
-  edt_rows_kernel<<<unsigned(row_blocks), kRowWarps * 32, 0, stream>>>(occ, d2_x, rows, int32_t(X));
+  edt_rows_kernel<<<unsigned(row_blocks), kRowWarps * 32, 0, stream>>>(occ, d2, rows, int32_t(X));
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess) return err;
 
   const int64_t y_lines = Z * X;
   edt_lines_kernel<false><<<unsigned((y_lines + kLineThreads - 1) / kLineThreads), kLineThreads, 0, stream>>>(
-      d2_x, stack, d2_xy, nullptr, y_lines, int32_t(Y), X, spacing);
+      d2, stack, d2, nullptr, y_lines, int32_t(Y), X, spacing);
   err = cudaGetLastError();
   if (err != cudaSuccess) return err;
 
   const int64_t z_lines = Y * X;
   edt_lines_kernel<true><<<unsigned((z_lines + kLineThreads - 1) / kLineThreads), kLineThreads, 0, stream>>>(
-      d2_xy, stack, nullptr, out, z_lines, int32_t(Z), Y * X, spacing);
+      d2, stack, nullptr, out, z_lines, int32_t(Z), Y * X, spacing);
   return cudaGetLastError();
 }
 

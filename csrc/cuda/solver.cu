@@ -3,21 +3,23 @@
 // One iteration = two kernels:
 //   points   per point: flow f_i from its 8 vertices, multi-scan DT loss + gradient, flow
 //            norm, residual to the cluster mean and its unit vector u_i (stages 1-2); per
-//            block, the sums of w_k * g_i per segment and of u_i per cluster, and the loss
-//            (one atomic into the problem's total);
+//            warp, the sums of w_k * g_i per segment; per block, the sums of u_i per
+//            cluster and the loss (one atomic each into the totals);
 //   vertices stage 3 (loss, early stopping: every block takes the same decision from the
-//            problem's loss and a state snapshot, so no block waits for another), best copy, gradient = sum over the vertex's (segment, corner)
-//            entries minus the cluster-mean term, Adam (stage 4); then the vertex's share of
-//            the next iteration's cluster means.
+//            problem's loss and a state snapshot, so no block waits for another), best
+//            copy, gradient = sum over the vertex's (segment, corner) entries minus the
+//            cluster-mean term, Adam (stage 4); then the vertex's share of the next
+//            iteration's cluster means.
 // Cluster means need no pass over the points: m_c = (1/|c|) sum_{i in c} sum_k w_ik theta_{v_ik}
 // is a fixed linear combination of vertex parameters (sum over the vertices v of c's points
 // of A_cv theta_v, A_cv = weight of c's points at v / |c|). So the vertex kernel, right after
 // its Adam step, adds A_cv theta_v into the next iteration's means, and the point kernel
 // reads finished means instead of waiting for every point's flow: that is what makes one
 // point kernel per iteration possible.
-// Sums over points use sorted order: points are sorted by (cluster, voxel), so a block's
-// points form runs of equal segment and label, which block_runs sums in a fixed order and
-// stores with one plain write (or one atomic for runs that continue in another block). The
+// Sums over points use sorted order: points are sorted by (cluster, voxel), so a warp's
+// points form runs of equal segment and label, which warp_run_sums adds up with shuffles
+// (no block barrier); the segment tables are split at 32-point tiles, so a segment's row
+// gets one plain write per iteration (atomics only for tables that cross tiles). The
 // means and the u sums alternate between two buffers by iteration parity (a kernel
 // parameter): a point kernel reads one and clears the other, which the next kernel fills.
 // Nothing synchronises with the host, so any number of iterations can be captured into a
@@ -29,7 +31,6 @@
 #include <cstdint>
 #include <cstdlib>
 
-#include "cuda/block_reduce.cuh"
 #include "cuda/solver_launch.h"
 #include "cuda/warp_aggregate.cuh"
 #include "kernels/cluster.h"
@@ -40,7 +41,6 @@ namespace floxels::cuda {
 namespace {
 
 using namespace floxels::solver;
-using cuda_detail::block_sum;
 using cuda_detail::warp_add;
 using Scan = dt_loss::Scan<float, int>;
 namespace cg = cooperative_groups;
@@ -95,7 +95,7 @@ struct KParams {
   int32_t* seg_label;   // (S) cluster of the segment's points, -1 noise
   float* seg_wsum;      // (S, 8) sum over the segment's points of w_k
   int4* ent;            // (8S) per vertex entry: segment * 8 + corner, bits of seg_wsum / |cluster|,
-                        //      cluster, 1 if the segment spans two point blocks (its row is summed
+                        //      cluster, 1 if the segment spans two point tiles (its row is summed
                         //      by atomics and cleared by its readers)
   int2* pair;           // (8S) per vertex, its clusters and summed coefficients A_cv (bits)
   int32_t* num_pairs;   // (M)
@@ -108,8 +108,9 @@ struct KParams {
   double* snap;     // (B, kStateCols) state rows as the point kernel saw them
 };
 
-// Programmatic dependent launch (sm_90; off unless FLOXELS_SOLVER_PDL=1: measured slower
-// here): a kernel lets the next one in the stream start early, and the next one reads
+// Programmatic dependent launch (sm_90; on unless FLOXELS_SOLVER_PDL=0: with the fixed
+// per-point loads ahead of the wait, 24.1 vs 28.1 us per iteration at one frame on an H100,
+// 212 vs 217 at 16 frames): a kernel lets the next one in the stream start early, and the next one reads
 // nothing the previous kernel writes before wait. Without the launch attribute both are no-ops.
 __device__ __forceinline__ void pdl_allow_next() { asm volatile("griddepcontrol.launch_dependents;" ::: "memory"); }
 __device__ __forceinline__ void pdl_wait_previous() { asm volatile("griddepcontrol.wait;" ::: "memory"); }
@@ -135,63 +136,58 @@ __device__ __forceinline__ int block_first_point(const KParams& P, int p, int bl
   return P.point_begin[p] + (block - P.block_begin[p]) * kThreads;
 }
 
-// Sums K values per run of equal keys over the block's threads in thread order (a key's
-// threads must be consecutive, as sorted points make them; key < 0 adds nothing) and calls
-// emit(key, j, sum) once per run and column j < K. The summation order is fixed, so the
-// result is deterministic. Each warp sums its 32 rows per run; a run that continues into
-// later warps is completed by the warp where it starts, from the partials those warps left
-// in `carry`. Every thread of the block must call it. Shared memory: rows (kThreads x
-// row stride floats), keys (kThreads), carry (kWarps x K).
-template <int K>
-constexpr int row_stride() {
-  return K % 2 == 0 ? K + 1 : K;  // odd: row writes and column reads are free of bank conflicts
+// Runs of equal keys over the lanes of a warp (a key's lanes must be consecutive, as sorted
+// points make them), for warp_run_sums. Every lane of the warp must call it.
+struct WarpRuns {
+  int start;         // first lane of this lane's run
+  unsigned longest;  // longest run in the warp
+  bool tail;         // this lane ends its run
+};
+
+__device__ __forceinline__ WarpRuns warp_runs(int key) {
+  constexpr unsigned kFull = 0xffffffffu;
+  const int lane = threadIdx.x & 31;
+  const int prev = __shfl_up_sync(kFull, key, 1), next = __shfl_down_sync(kFull, key, 1);
+  WarpRuns r;
+  r.tail = lane == 31 || next != key;
+  const unsigned heads = __ballot_sync(kFull, lane == 0 || prev != key);
+  r.start = 31 - __clz(heads & (kFull >> (31 - lane)));
+  r.longest = __reduce_max_sync(kFull, r.tail ? unsigned(lane - r.start + 1) : 0u);
+  return r;
 }
 
-template <int K, typename Emit>
-__device__ __forceinline__ void block_runs(int key, const float* vals, float* rows, int* keys, float* carry,
-                                           Emit emit) {
-  constexpr int R = row_stride<K>();
-  const int t = threadIdx.x, lane = t & 31, w = t >> 5;
-  keys[t] = key;
-  if (key >= 0)
-    for (int j = 0; j < K; ++j) rows[t * R + j] = vals[j];
-  __syncthreads();
-  float pending = 0.0f;
-  int pending_key = -1;
-  if (lane < K) {
-    const int r0 = 32 * w;
-    const bool cont = w > 0 && keys[r0] >= 0 && keys[r0] == keys[r0 - 1];  // first run began in warp w - 1
-    float acc = 0.0f;
-    bool first = true;
-    for (int r = r0; r < r0 + 32; ++r) {
-      const int k = keys[r];
-      if (k >= 0) acc += rows[r * R + lane];
-      const bool last_row = r == r0 + 31;
-      if (last_row || keys[r + 1] != k) {
-        if (k >= 0) {
-          if (first && cont) {
-            carry[w * K + lane] = acc;  // completed by the warp where the run starts
-          } else if (last_row && w + 1 < kWarps && keys[r + 1] == k) {
-            pending = acc;  // continues in the next warps
-            pending_key = k;
-          } else {
-            emit(k, lane, acc);
-          }
-        }
-        acc = 0.0f;
-        first = false;
-      }
+// Sums K values per run: afterwards the run's last lane holds the run's sum in v. A
+// segmented Hillis-Steele scan: fixed order (deterministic), no shared memory and no block
+// barrier, and only as many steps as the warp's longest run needs (log2 of it). Every lane
+// of the warp must call it.
+template <int K>
+__device__ __forceinline__ void warp_run_sums(const WarpRuns& r, float (&v)[K]) {
+  const int lane = threadIdx.x & 31;
+  for (unsigned off = 1; off < r.longest; off <<= 1) {
+    const bool take = lane - int(off) >= r.start;
+    for (int j = 0; j < K; ++j) {
+      const float o = __shfl_up_sync(0xffffffffu, v[j], off);
+      if (take) v[j] += o;
     }
   }
-  __syncthreads();
-  if (pending_key >= 0) {
-    for (int w2 = w + 1; w2 < kWarps && keys[32 * w2] == pending_key; ++w2) {
-      pending += carry[w2 * K + lane];
-      if (keys[32 * w2 + 31] != pending_key) break;  // the run ends inside warp w2
-    }
-    emit(pending_key, lane, pending);
-  }
-  __syncthreads();  // rows, keys and carry are free again
+}
+
+// Points are summed per warp: a segment's sums are complete in one warp when its points lie
+// in one tile of 32 points (tiles start at the problem's first point), which the segment
+// tables built in Python guarantee (they split segments at tile boundaries). A segment that
+// crosses a tile anyway (tables built elsewhere) is summed by atomics and flagged in its
+// point records (kSpansBit of the segment id) and vertex entries (cleared by its readers).
+constexpr int kTile = 32;
+constexpr int kSpansBit = 1 << 30;
+constexpr int kSegMask = kSpansBit - 1;
+
+// Whether segment s spans two point tiles of its problem (then its row is summed by atomics).
+__device__ bool segment_spans_tiles(const KParams& P, int s) {
+  const int b = P.seg_ptr[s], e = P.seg_ptr[s + 1];
+  int p = 0;
+  while (p + 1 < P.num_problems && b >= P.point_end[p]) ++p;
+  const int first = P.point_begin[p] + (b - P.point_begin[p]) / kTile * kTile;
+  return b < P.point_begin[p] || e > first + kTile;
 }
 
 // Per call, a warp per segment: corner rows, label, weight sums (fixed lane order, so
@@ -201,9 +197,10 @@ __global__ void __launch_bounds__(kThreads) segment_setup_kernel(const __grid_co
   if (s >= P.num_segments) return;
   const int b = max(P.seg_ptr[s], 0), e = min(P.seg_ptr[s + 1], P.num_points);
   float w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  const int tag = s | (b < e && segment_spans_tiles(P, s) ? kSpansBit : 0);
   for (int i = b + lane; i < e; i += 32) {
     P.rec[i] = make_float4(P.points[3 * int64_t(i)], P.points[3 * int64_t(i) + 1], P.points[3 * int64_t(i) + 2],
-                           __int_as_float(s));
+                           __int_as_float(tag));
     for (int k = 0; k < 8; ++k) w[k] += P.corner_w[8 * int64_t(i) + k];
   }
   for (int k = 0; k < 8; ++k)
@@ -219,15 +216,6 @@ __global__ void __launch_bounds__(kThreads) segment_setup_kernel(const __grid_co
   }
 }
 
-// Whether segment s spans two point blocks of its problem (then its row is summed by atomics).
-__device__ bool segment_spans_blocks(const KParams& P, int s) {
-  const int b = P.seg_ptr[s], e = P.seg_ptr[s + 1];
-  int p = 0;
-  while (p + 1 < P.num_problems && b >= P.point_end[p]) ++p;
-  const int first = P.point_begin[p] + (b - P.point_begin[p]) / kThreads * kThreads;
-  return b < P.point_begin[p] || e > first + kThreads;
-}
-
 // Per call, a thread per vertex entry: one record instead of a chain of dependent loads in
 // every iteration.
 __global__ void __launch_bounds__(kThreads) entry_setup_kernel(const __grid_constant__ KParams P) {
@@ -239,7 +227,7 @@ __global__ void __launch_bounds__(kThreads) entry_setup_kernel(const __grid_cons
   if (ent >= 0 && s < P.num_segments) {
     const int l = P.seg_label[s];
     r = make_int4(ent, __float_as_int(l >= 0 ? P.seg_wsum[8 * int64_t(s) + k] / P.cluster_count[l] : 0.0f), l,
-                  segment_spans_blocks(P, s) ? 1 : 0);
+                  segment_spans_tiles(P, s) ? 1 : 0);
   }
   P.ent[e] = r;
 }
@@ -279,9 +267,9 @@ __global__ void bias_kernel(const __grid_constant__ KParams P) {
 
 // Shared memory of one block of the iteration kernels (the persistent loop uses both parts).
 struct PointSmem {
-  float rows[kThreads * row_stride<kSegVals>()];
-  int keys[kThreads];
-  float carry[kWarps * kSegVals];
+  int ukey[kThreads];       // cluster summed in u-sum slot (cluster % kThreads), -1 empty
+  float usum[kThreads][3];  // the block's u sums per slot
+  double wloss[kWarps];     // loss per warp
 };
 struct VertexSmem {
   float scratch[kThreads];
@@ -305,36 +293,80 @@ __device__ __forceinline__ void clear_other_parity(const KParams& P, int parity)
 // once per iteration instead).
 // kDebug (measurement only, the traced loop): P.debug_skip leaves parts out (see
 // FLOXELS_SOLVER_SKIP in solver_launch); the results are then wrong.
-template <bool kCluster, bool kDebug = false>
-__device__ __forceinline__ void points_body(const KParams& P, int parity, int vb, bool clear, PointSmem& sm) {
-  const int skip = kDebug ? P.debug_skip : 0;
-  float* rows = sm.rows;
-  int* keys = sm.keys;
-  float* carry = sm.carry;
-  // Fixed per-call data first (overlaps the previous kernel's tail under PDL).
-  const int p = problem_of(vb, P.block_begin, P.num_problems);
-  const int first = block_first_point(P, p, vb);
-  const int i = first + int(threadIdx.x);
-  int seg = -1;
-  float4 pt = make_float4(0.0f, 0.0f, 0.0f, 0.0f);
-  float w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-  if (i < P.point_end[p]) {
-    pt = P.rec[i];
-    const int s = __float_as_int(pt.w);
-    seg = unsigned(s) < unsigned(P.num_segments) ? s : -1;
-    const float4* wp = reinterpret_cast<const float4*>(P.corner_w + 8 * int64_t(i));
-    const float4 w0 = wp[0], w1 = wp[1];
-    w[0] = w0.x, w[1] = w0.y, w[2] = w0.z, w[3] = w0.w, w[4] = w1.x, w[5] = w1.y, w[6] = w1.z, w[7] = w1.w;
+// The fixed per-call data of one point (the same in every iteration): its record (x, y, z,
+// segment tag), corner weights, its segment's corner rows and cluster.
+struct PointFixed {
+  float4 pt;
+  float4 w0, w1;
+  int4 c0, c1;  // vertex rows of the 8 corners, -1 where none
+  int label;    // -1: noise, or no cluster term
+};
+
+// The persistent loop keeps each block's PointFixed in shared memory (structure of arrays:
+// conflict-free 16-byte accesses), so iterations start without the two dependent global
+// loads (record, then the segment's corners).
+struct PointCache {
+  float4 pt[kThreads], w0[kThreads], w1[kThreads];
+  int4 c0[kThreads], c1[kThreads];
+  int label[kThreads];
+  __device__ void put(const PointFixed& f) {
+    const int t = threadIdx.x;
+    pt[t] = f.pt, w0[t] = f.w0, w1[t] = f.w1, c0[t] = f.c0, c1[t] = f.c1, label[t] = f.label;
   }
-  const bool valid = seg >= 0;
-  int idx[8] = {-1, -1, -1, -1, -1, -1, -1, -1};
-  int label = -1;
-  if (valid) {
+  __device__ PointFixed get() const {
+    const int t = threadIdx.x;
+    return PointFixed{pt[t], w0[t], w1[t], c0[t], c1[t], label[t]};
+  }
+};
+
+// Segment of a point record's tag, or -1 (no segment: invalid tables or past the end).
+__device__ __forceinline__ int tag_segment(const KParams& P, float tagf) {
+  const int tag = __float_as_int(tagf);
+  return (tag >= 0 && (tag & kSegMask) < P.num_segments) ? (tag & kSegMask) : -1;
+}
+
+template <bool kCluster>
+__device__ __forceinline__ PointFixed load_fixed(const KParams& P, int vb) {
+  const int p = problem_of(vb, P.block_begin, P.num_problems);
+  const int i = block_first_point(P, p, vb) + int(threadIdx.x);
+  PointFixed f{make_float4(0.0f, 0.0f, 0.0f, __int_as_float(-1)), make_float4(0.0f, 0.0f, 0.0f, 0.0f),
+               make_float4(0.0f, 0.0f, 0.0f, 0.0f), make_int4(-1, -1, -1, -1), make_int4(-1, -1, -1, -1), -1};
+  if (i < P.point_end[p]) {
+    f.pt = P.rec[i];
+    const float4* wp = reinterpret_cast<const float4*>(P.corner_w + 8 * int64_t(i));
+    f.w0 = wp[0];
+    f.w1 = wp[1];
+  }
+  const int seg = tag_segment(P, f.pt.w);
+  if (seg >= 0) {
     const int4* cp = reinterpret_cast<const int4*>(P.seg_corner + 8 * int64_t(seg));
-    const int4 c0 = cp[0], c1 = cp[1];
-    idx[0] = c0.x, idx[1] = c0.y, idx[2] = c0.z, idx[3] = c0.w, idx[4] = c1.x, idx[5] = c1.y, idx[6] = c1.z,
-    idx[7] = c1.w;
-    if constexpr (kCluster) label = P.seg_label[seg];
+    f.c0 = cp[0];
+    f.c1 = cp[1];
+    if constexpr (kCluster) f.label = P.seg_label[seg];
+  }
+  return f;
+}
+
+// Stages 1-2 of point block `vb`, a thread per point, from its fixed data `fx` (load_fixed).
+// `clear`: also run clear_other_parity (the per-iteration kernel; the persistent loop clears
+// once per iteration instead).
+// kDebug (measurement only, the traced loop): P.debug_skip leaves parts out (see
+// FLOXELS_SOLVER_SKIP in solver_launch); the results are then wrong.
+template <bool kCluster, bool kDebug = false>
+__device__ __forceinline__ void points_body(const KParams& P, int parity, int vb, bool clear, PointSmem& sm,
+                                            const PointFixed& fx) {
+  const int skip = kDebug ? P.debug_skip : 0;
+  const int p = problem_of(vb, P.block_begin, P.num_problems);
+  const float4 pt = fx.pt;
+  const int seg = tag_segment(P, pt.w);
+  const bool spans = (__float_as_int(pt.w) & kSpansBit) != 0;
+  const float w[8] = {fx.w0.x, fx.w0.y, fx.w0.z, fx.w0.w, fx.w1.x, fx.w1.y, fx.w1.z, fx.w1.w};
+  const int idx[8] = {fx.c0.x, fx.c0.y, fx.c0.z, fx.c0.w, fx.c1.x, fx.c1.y, fx.c1.z, fx.c1.w};
+  const bool valid = seg >= 0;
+  const int label = kCluster ? fx.label : -1;
+  if constexpr (kCluster) {  // empty u-sum slots (the barrier below publishes them)
+    sm.ukey[threadIdx.x] = -1;
+    sm.usum[threadIdx.x][0] = sm.usum[threadIdx.x][1] = sm.usum[threadIdx.x][2] = 0.0f;
   }
   pdl_wait_previous();
   if (clear) clear_other_parity<kCluster>(P, parity);
@@ -342,8 +374,10 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   const double* st = P.state + p * kStateCols;
   if (vb == P.block_begin[p] && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
     P.snap[p * kStateCols + threadIdx.x] = st[threadIdx.x];
+  __syncthreads();
+  const bool active = st[kActive] != 0.0;  // uniform per block
   float loss = 0.0f;
-  if (st[kActive] != 0.0) {  // uniform per block
+  if (active) {
     float f[3] = {0.0f, 0.0f, 0.0f};
     float mean[3] = {0.0f, 0.0f, 0.0f};
     if (valid && !(skip & 16)) {
@@ -373,56 +407,106 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
         for (int c = 0; c < 3; ++c) g[c] += coef * u[c];
       }
     }
-    // Segment sums of w_k * g_i: one writer per segment, unless it spans two blocks.
-    float wg[kSegVals];
-    for (int k = 0; k < 8; ++k)
-      for (int c = 0; c < 3; ++c) wg[3 * k + c] = w[k] * g[c];
-    if (!(skip & 2)) block_runs<kSegVals>(seg, wg, rows, keys, carry, [&](int s, int j, float sum) {
-      float* dst = P.seg_grad + int64_t(kSegVals) * s + j;
-      if (P.seg_ptr[s] >= first && P.seg_ptr[s + 1] <= first + kThreads)
-        *dst = sum;
-      else
-        atomicAdd(dst, sum);  // cleared by its readers (entry flag)
-    });
+    // Segment sums of w_k * g_i, per warp: the run's last lane writes the row (plain stores:
+    // one writer per segment), or adds it where the segment crosses tiles.
+    if (!(skip & 2)) {
+      const WarpRuns runs = warp_runs(seg);
+      float* dst = P.seg_grad + int64_t(kSegVals) * seg;
+      // two halves of 4 corners: fewer values live at once (the loop kernel has 64 registers)
+      for (int h = 0; h < 2; ++h) {
+        float wg[kSegVals / 2];
+        for (int k = 0; k < 4; ++k)
+          for (int c = 0; c < 3; ++c) wg[3 * k + c] = w[4 * h + k] * g[c];
+        warp_run_sums(runs, wg);
+        if (runs.tail && valid) {
+          if (!spans) {
+            float4* d4 = reinterpret_cast<float4*>(dst + 12 * h);  // rows of 96 bytes: 16-byte aligned
+            for (int j = 0; j < 3; ++j) d4[j] = make_float4(wg[4 * j], wg[4 * j + 1], wg[4 * j + 2], wg[4 * j + 3]);
+          } else {
+            for (int j = 0; j < 12; ++j) atomicAdd(dst + 12 * h + j, wg[j]);  // cleared by its readers
+          }
+        }
+      }
+    }
+    // Cluster u sums: per warp run, into the block's slot of the cluster (one atomic per
+    // cluster and block below); a slot taken by another cluster (labels of one block more
+    // than kThreads apart: not with sorted tables) adds to global memory directly.
     if (kCluster && !(skip & 4)) {
-      float* ub = P.ubuf + (parity ? C3 : 0);
-      block_runs<3>(valid ? label : -1, u, rows, keys, carry,
-                    [&](int l, int j, float sum) { atomicAdd(ub + 3 * l + j, sum); });
+      const int key = valid ? label : -1;
+      const WarpRuns runs = warp_runs(key);
+      warp_run_sums(runs, u);
+      if (runs.tail && key >= 0) {
+        const int slot = key % kThreads;
+        const int had = atomicCAS(&sm.ukey[slot], -1, key);
+        if (had == -1 || had == key) {
+          for (int c = 0; c < 3; ++c) atomicAdd(&sm.usum[slot][c], u[c]);
+        } else {
+          float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
+          for (int c = 0; c < 3; ++c) atomicAdd(ub + c, u[c]);
+        }
+      }
     }
   }
-  // One double atomic per block: the sum order varies between runs (last bits of the loss),
-  // like the float atomics of the other sums; a per-block table re-read by every vertex
-  // block cost more than the whole vertex gradient with 16 problems.
-  if (skip & 8) return;
-  const double total = block_sum<kThreads>(double(loss));
-  if (threadIdx.x == 0 && total != 0.0) atomicAdd(P.loss + (parity ? kMaxProblems : 0) + p, total);
+  // Loss: per warp, then one double atomic per block. The sum order across blocks varies
+  // between runs (last bits of the loss), like the float atomics of the other sums; a
+  // per-block table re-read by every vertex block cost more than the whole vertex gradient
+  // with 16 problems.
+  if (!(skip & 8)) {
+    double dl = double(loss);
+    for (int off = 16; off > 0; off >>= 1) dl += __shfl_xor_sync(0xffffffffu, dl, off);
+    if ((threadIdx.x & 31) == 0) sm.wloss[threadIdx.x >> 5] = dl;
+  }
+  __syncthreads();
+  if (!active) return;  // uniform per block
+  if constexpr (kCluster) {
+    const int key = sm.ukey[threadIdx.x];
+    if (key >= 0) {
+      float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
+      for (int c = 0; c < 3; ++c) atomicAdd(ub + c, sm.usum[threadIdx.x][c]);
+    }
+  }
+  if (threadIdx.x == 0 && !(skip & 8)) {
+    double total = 0.0;
+    for (int k = 0; k < kWarps; ++k) total += sm.wloss[k];
+    if (total != 0.0) atomicAdd(P.loss + (parity ? kMaxProblems : 0) + p, total);
+  }
 }
 
 template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
   __shared__ PointSmem sm;
   pdl_allow_next();
-  points_body<kCluster>(P, P.parity, int(blockIdx.x), true, sm);
+  // fixed per-call data first (overlaps the previous kernel's tail under PDL)
+  const PointFixed fx = load_fixed<kCluster>(P, int(blockIdx.x));
+  points_body<kCluster>(P, P.parity, int(blockIdx.x), true, sm, fx);
+}
+
+// Vertex of this thread's lane group in vertex block vb of problem p (>= vertex_end[p]: none).
+__device__ __forceinline__ int vertex_of(const KParams& P, int p, int vb) {
+  return P.vertex_begin[p] + (vb - P.vblock_begin[p]) * kVerticesPerBlock + int(threadIdx.x / kLanesPerVertex);
+}
+
+// Fixed per-call data of vertex_body: the range of this lane group's vertex entries.
+__device__ __forceinline__ int2 vertex_entries(const KParams& P, int vb) {
+  const int p = problem_of(vb, P.vblock_begin, P.num_problems);
+  const int v = vertex_of(P, p, vb);
+  if (v >= P.vertex_end[p]) return make_int2(0, 0);
+  return make_int2(max(P.vtx_ptr[v], 0), min(P.vtx_ptr[v + 1], 8 * P.num_segments));
 }
 
 // Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
 // iteration's cluster means. kInitMeans: only the means, of the current parameters (once
 // per call, before the first iteration).
 template <bool kCluster, bool kInitMeans, bool kDebug = false>
-__device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm) {
+__device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm, int2 entries) {
   const int skip = kDebug ? P.debug_skip : 0;
   float* scratch = sm.scratch;
   double* st = sm.st;
   const int p = problem_of(vb, P.vblock_begin, P.num_problems);
   const int sub = threadIdx.x & (kLanesPerVertex - 1), lane = threadIdx.x & 31;
-  const int v = P.vertex_begin[p] + (vb - P.vblock_begin[p]) * kVerticesPerBlock +
-                int(threadIdx.x / kLanesPerVertex);
+  const int v = vertex_of(P, p, vb);
   const bool has_v = v < P.vertex_end[p];
-  int e_begin = 0, e_end = 0;
-  if (has_v) {
-    e_begin = max(P.vtx_ptr[v], 0);
-    e_end = min(P.vtx_ptr[v + 1], 8 * P.num_segments);
-  }
+  const int e_begin = entries.x, e_end = entries.y;
   pdl_wait_previous();
   const int C3 = 3 * P.num_clusters;
   if constexpr (!kInitMeans) {
@@ -441,21 +525,37 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     const float* ub = P.ubuf + (parity ? C3 : 0);
     const float ccoef = P.cluster_coef[p];
     float G[3] = {0.0f, 0.0f, 0.0f};
-    for (int e = e_begin + sub; e < ((skip & 32) ? e_begin : e_end); e += kLanesPerVertex) {
-      const int4 r = P.ent[e];
-      if (r.x < 0) continue;  // invalid tables (validated in Python): never read outside
-      float* sg = P.seg_grad + 3 * int64_t(r.x);
-      float gx = sg[0], gy = sg[1], gz = sg[2];
-      if (r.w) sg[0] = sg[1] = sg[2] = 0.0f;  // summed by atomics: clear for the next iteration
-      if (kCluster && r.z >= 0) {
-        const float c = ccoef * __int_as_float(r.y);
-        gx -= c * ub[3 * r.z];
-        gy -= c * ub[3 * r.z + 1];
-        gz -= c * ub[3 * r.z + 2];
+    // kUnroll entries per lane at once: their loads are in flight together (a vertex near
+    // the sensor has hundreds of entries; one at a time, each waits for two dependent loads)
+    constexpr int kUnroll = 4;
+    const int e_stop = (skip & 32) ? e_begin : e_end;
+    for (int e0 = e_begin + sub; e0 < e_stop; e0 += kUnroll * kLanesPerVertex) {
+      int4 r[kUnroll];
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        const int e = e0 + u * kLanesPerVertex;
+        r[u] = e < e_stop ? P.ent[e] : make_int4(-1, 0, -1, 0);
       }
-      G[0] += gx;
-      G[1] += gy;
-      G[2] += gz;
+      float gv[kUnroll][3];
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        // r.x < 0: invalid tables (validated in Python) or past the end: never read outside
+        const float* sg = P.seg_grad + 3 * int64_t(max(r[u].x, 0));
+        for (int c = 0; c < 3; ++c) gv[u][c] = r[u].x >= 0 ? sg[c] : 0.0f;
+      }
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        if (r[u].x < 0) continue;
+        if (r[u].w) {  // summed by atomics: clear for the next iteration
+          float* sg = P.seg_grad + 3 * int64_t(r[u].x);
+          sg[0] = sg[1] = sg[2] = 0.0f;
+        }
+        if (kCluster && r[u].z >= 0) {
+          const float c = ccoef * __int_as_float(r[u].y);
+          for (int k = 0; k < 3; ++k) gv[u][k] -= c * ub[3 * r[u].z + k];
+        }
+        for (int k = 0; k < 3; ++k) G[k] += gv[u][k];
+      }
     }
     for (int c = 0; c < 3; ++c)
       for (int off = kLanesPerVertex / 2; off > 0; off >>= 1) G[c] += __shfl_xor_sync(0xffffffffu, G[c], off);
@@ -499,7 +599,7 @@ template <bool kCluster, bool kInitMeans>
 __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
   __shared__ VertexSmem sm;
   pdl_allow_next();
-  vertex_body<kCluster, kInitMeans>(P, P.parity, int(blockIdx.x), sm);
+  vertex_body<kCluster, kInitMeans>(P, P.parity, int(blockIdx.x), sm, vertex_entries(P, int(blockIdx.x)));
 }
 
 // All iterations in one cooperative launch: every block of a grid that fits on the GPU at
@@ -526,8 +626,16 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
                                                         int point_blocks, int vertex_blocks) {
   __shared__ PointSmem psm;
   __shared__ VertexSmem vsm;
+  __shared__ PointCache pcache;
   __shared__ int any_active;
   cg::grid_group grid = cg::this_grid();
+  // a block that owns one point block keeps its points' fixed data in shared memory (each
+  // thread reads only its own slot: no barrier needed)
+  const bool cached = point_blocks <= int(gridDim.x) && int(blockIdx.x) < point_blocks;
+  if (cached) pcache.put(load_fixed<kCluster>(P, int(blockIdx.x)));
+  __shared__ int2 ventries[kThreads];  // the same for the vertex block it owns, if one
+  const bool vcached = vertex_blocks <= int(gridDim.x) && int(blockIdx.x) < vertex_blocks;
+  if (vcached) ventries[threadIdx.x] = vertex_entries(P, int(blockIdx.x));
   unsigned long long acc[4] = {0, 0, 0, 0}, t_begin = 0;
   int done = 0;
   if constexpr (trace) {
@@ -550,14 +658,16 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
     // barrier after each body keeps the next one from overwriting what a slower thread of
     // this one still reads (stage 3's state row in the vertex body).
     for (int b = int(blockIdx.x); b < point_blocks; b += int(gridDim.x)) {
-      points_body<kCluster, trace>(P, parity, b, false, psm);
+      const PointFixed fx = cached ? pcache.get() : load_fixed<kCluster>(P, b);
+      points_body<kCluster, trace>(P, parity, b, false, psm, fx);
       __syncthreads();
     }
     const unsigned long long t1 = trace ? now_ns() : 0;
     grid.sync();
     const unsigned long long t2 = trace ? now_ns() : 0;
     for (int b = int(blockIdx.x); b < vertex_blocks; b += int(gridDim.x)) {
-      vertex_body<kCluster, false, trace>(P, parity, b, vsm);
+      const int2 entries = vcached ? ventries[threadIdx.x] : vertex_entries(P, b);
+      vertex_body<kCluster, false, trace>(P, parity, b, vsm, entries);
       __syncthreads();
     }
     const unsigned long long t3 = trace ? now_ns() : 0;
@@ -818,7 +928,7 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
     err = launch_ex(kernel, grid, stream, &coop, P, num_iters, int(pb), int(vb));
     return err == cudaSuccess ? cudaGetLastError() : err;
   }
-  const bool pdl = env_flag("FLOXELS_SOLVER_PDL", false);
+  const bool pdl = env_flag("FLOXELS_SOLVER_PDL", true);
   for (int it = 0; it < num_iters && err == cudaSuccess; ++it) {
     P.parity = it & 1;
     if (cl) {

@@ -258,9 +258,14 @@ class Floxels:
             # Sort points by (cluster, voxel): neighbouring points touch neighbouring memory
             # (flow vertices, DT samples), a block of points meets few clusters, and the
             # solver's segments (one cluster inside one cell) are long runs.
-            order = torch.argsort(_voxel_key(P, g_origin, cfg.voxel_size, g_shape))
-            if lab is not None:
-                order = order[torch.sort(lab[order], stable=True).indices]
+            key = _voxel_key(P, g_origin, cfg.voxel_size, g_shape)
+            cells = g_shape[0] * g_shape[1] * g_shape[2]
+            if lab is not None and (ncl + 1) * cells < 2**62:  # one sort of (cluster, voxel)
+                order = torch.argsort((lab.to(torch.int64) + 1) * cells + key)
+            else:
+                order = torch.argsort(key)
+                if lab is not None:
+                    order = order[torch.sort(lab[order], stable=True).indices]
             Ps = P[order].contiguous()
             corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
             lab_s = lab[order].contiguous() if lab is not None else None

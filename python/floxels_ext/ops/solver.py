@@ -185,10 +185,11 @@ class PackedProblems:
         return int(self.state[b, COL_BEST_ITER].item())
 
 
-def problem_segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, num_vertices: int):
+def problem_segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, num_vertices: int,
+                     tile: int | None = None):
     """(seg_ptr, vtx_ptr, vtx_entry) of one problem (see :func:`_segments`), for
     :attr:`SolverProblem.segments`."""
-    return _segments(corner_idx, labels, [0, corner_idx.shape[0]], num_vertices)
+    return _segments(corner_idx, labels, [0, corner_idx.shape[0]], num_vertices, tile or SEGMENT_TILE)
 
 
 def _concat_segments(own: list, point_ranges: list[int]):
@@ -210,8 +211,13 @@ def _concat_segments(own: list, point_ranges: list[int]):
     return (torch.cat(seg_ptr).contiguous(), torch.cat(vtx_ptr).contiguous(), torch.cat(vtx_entry).contiguous())
 
 
-def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_ranges: list[int], num_vertices: int):
-    """Segments (runs of points with equal corner rows and labels inside one problem) and,
+SEGMENT_TILE = 32  # points per warp of the CUDA solver's point phase (kTile in solver.cu)
+
+
+def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_ranges: list[int], num_vertices: int,
+              tile: int = SEGMENT_TILE):
+    """Segments (runs of points with equal corner rows and labels inside one problem and one
+    tile of ``tile`` points) and,
     per vertex, its (segment * 8 + corner) entries: the vertex gradient is then a gather of
     per-segment sums with a small fan-in. Points sorted by (label, voxel) make each segment
     the part of one cluster inside one flow-grid cell."""
@@ -223,9 +229,11 @@ def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_range
     new[1:] = (corner_idx[1:] != corner_idx[:-1]).any(1)
     if labels is not None:
         new[1:] |= labels[1:] != labels[:-1]
-    if len(point_ranges) > 2:  # problem boundaries (one problem: new[0] is set already)
-        starts = torch.tensor([b for b, e in zip(point_ranges[:-1], point_ranges[1:]) if e > b], dtype=torch.int64)
-        new[starts.to(dev, non_blocking=True)] = True  # non_blocking: no wait for the stream's queued work
+    # problem boundaries, and every SEGMENT_TILE-th point of a problem: the CUDA solver sums
+    # a segment's points in one warp; a segment that crosses those tiles is summed there by
+    # atomics (correct, slower: larger tiles are for tests) (slicing: no host synchronisation)
+    for b, e in zip(point_ranges[:-1], point_ranges[1:]):
+        new[b:e:tile] = True
     first = torch.nonzero(new).reshape(-1)
     seg_ptr = torch.cat([first, first.new_full((1,), N)]).to(torch.int32).contiguous()
     flat = corner_idx[first].reshape(-1).to(torch.int64)  # (8S) vertex of each (segment, corner)

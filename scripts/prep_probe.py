@@ -1,0 +1,59 @@
+"""Serial cost (host + GPU, synchronised around each step) of the per-target preparation
+before the optimiser, on one ~100k-point frame: upload and checks, DBSCAN, sorting,
+compact corners, segment tables, packing, and a whole frame for reference.
+
+    python scripts/prep_probe.py [--reps 10]
+"""
+import argparse
+import time
+
+import torch
+
+from _solver_problems import simulated_scans
+from floxels_ext import Floxels, FloxelsConfig
+from floxels_ext.estimator import _voxel_key
+from floxels_ext.ops import compact_corners
+from floxels_ext.ops.grid import grid_from_bounds
+from floxels_ext.ops.solver import PackedProblems, problem_segments
+from floxels_ext.scans import prepare_scans
+
+F = torch.ops.floxels
+ap = argparse.ArgumentParser()
+ap.add_argument("--reps", type=int, default=10)
+args = ap.parse_args()
+cfg = FloxelsConfig(patience=10**9)
+scans = simulated_scans(5)
+
+
+def timed(label, fn):
+    fn()
+    torch.cuda.synchronize()
+    ts = []
+    for _ in range(args.reps):
+        t0 = time.perf_counter()
+        out = fn()
+        torch.cuda.synchronize()
+        ts.append(time.perf_counter() - t0)
+    print(f"{label:34s} {1e3 * sorted(ts)[len(ts) // 2]:7.3f} ms")
+    return out
+
+
+prep = timed("prepare_scans (upload, checks)", lambda: prepare_scans(scans, 2, "cuda"))
+P = prep.points[2]
+lab = timed("dbscan", lambda: F.dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples))
+ncl = int(lab.max()) + 1
+lo, hi = P.min(0).values.tolist(), P.max(0).values.tolist()
+g_origin, g_shape = grid_from_bounds(lo, hi, cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40)
+cells = g_shape[0] * g_shape[1] * g_shape[2]
+order = timed("sort (cluster, voxel)", lambda: torch.argsort(
+    (lab.to(torch.int64) + 1) * cells + _voxel_key(P, g_origin, cfg.voxel_size, g_shape)))
+Ps = P[order].contiguous()
+lab_s = lab[order].contiguous()
+corners = timed("compact_corners", lambda: compact_corners(Ps, g_origin, cfg.voxel_size, g_shape))
+timed("problem_segments", lambda: problem_segments(corners.corner_idx, lab_s, corners.num_params))
+fl = Floxels(cfg, "cuda")
+for _ in range(2):
+    fl.fit(scans, 2)
+timed("whole frame (fit)", lambda: fl.fit(scans, 2))
+res = fl.fit(scans, 2)
+print("frame timings (ms):", {k: round(1e3 * v, 3) for k, v in res.timings.items()})
