@@ -112,8 +112,18 @@ struct KParams {
 // per-point loads ahead of the wait, 24.1 vs 28.1 us per iteration at one frame on an H100,
 // 212 vs 217 at 16 frames): a kernel lets the next one in the stream start early, and the next one reads
 // nothing the previous kernel writes before wait. Without the launch attribute both are no-ops.
-__device__ __forceinline__ void pdl_allow_next() { asm volatile("griddepcontrol.launch_dependents;" ::: "memory"); }
-__device__ __forceinline__ void pdl_wait_previous() { asm volatile("griddepcontrol.wait;" ::: "memory"); }
+// (sm_90 instructions: no-ops when built for older architectures, which launch without PDL
+// effect anyway.)
+__device__ __forceinline__ void pdl_allow_next() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  asm volatile("griddepcontrol.launch_dependents;" ::: "memory");
+#endif
+}
+__device__ __forceinline__ void pdl_wait_previous() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  asm volatile("griddepcontrol.wait;" ::: "memory");
+#endif
+}
 
 __device__ __forceinline__ int problem_of(int block, const int* begins, int num_problems) {
   int p = 0;
@@ -152,7 +162,13 @@ __device__ __forceinline__ WarpRuns warp_runs(int key) {
   r.tail = lane == 31 || next != key;
   const unsigned heads = __ballot_sync(kFull, lane == 0 || prev != key);
   r.start = 31 - __clz(heads & (kFull >> (31 - lane)));
-  r.longest = __reduce_max_sync(kFull, r.tail ? unsigned(lane - r.start + 1) : 0u);
+  unsigned len = r.tail ? unsigned(lane - r.start + 1) : 0u;
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  r.longest = __reduce_max_sync(kFull, len);
+#else
+  for (int off = 16; off > 0; off >>= 1) len = max(len, __shfl_xor_sync(kFull, len, off));
+  r.longest = len;
+#endif
   return r;
 }
 
