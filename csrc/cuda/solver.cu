@@ -846,6 +846,7 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
     return cudaErrorInvalidValue;
   if (num_iters == 0) return cudaSuccess;
   if (reinterpret_cast<uintptr_t>(a.corner_w) % 16 != 0) return cudaErrorMisalignedAddress;  // read as float4
+  if (a.num_segments >= kSpansBit) return cudaErrorInvalidValue;  // segment ids share their int with a flag
   KParams P{};
   ScanTable T{};
   int pb = 0, vb = 0;
