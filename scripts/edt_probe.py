@@ -7,7 +7,8 @@ import argparse
 
 import torch
 
-from _solver_problems import simulated_scans
+from _solver_problems import simulated_scans  # also puts bench/ on sys.path
+from _timing import timeit
 from floxels_ext import FloxelsConfig
 from floxels_ext.ops.grid import grid_from_bounds
 
@@ -51,19 +52,8 @@ def streamed_pass():
 
 
 def timed(fn, label):
-    for _ in range(2):
-        fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(args.reps):
-        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        a.record()
-        fn()
-        b.record()
-        b.synchronize()
-        times.append(a.elapsed_time(b))
-    print(f"{args.scans} DTs (occupancy + edt), {label}: median {sorted(times)[len(times) // 2]:.3f} ms, "
-          f"all {[round(t, 3) for t in times]}")
+    ms = timeit(fn, "cuda", args.reps)
+    print(f"{args.scans} DTs (occupancy + edt), {label}: median {ms:.3f} ms")
 
 
 timed(one_pass, "one stream")

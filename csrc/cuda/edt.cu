@@ -71,18 +71,20 @@ __global__ void edt_rows_kernel(const uint8_t* __restrict__ occ, int32_t* __rest
 // Lower envelope of f[q*stride] + (x - q)^2 along one line per thread. Line `i` starts at
 // (i / stride) * n * stride + i % stride, which covers both the Y pass (stride X) and the Z
 // pass (stride Y*X) of a contiguous (Z, Y, X) array. The stack holds (q, f[q]) pairs, so
-// the walk never re-reads the input and the output can overwrite it (in == out_d2, or the
-// same memory as out_dist: each line reads all its samples before it writes any). Latency
-// hiding: the build loads kBatch samples at once, and the walk keeps one envelope member
-// loaded ahead.
+// the walk never re-reads the input and the output overwrites it in `buf` (int32 squared
+// distances, or with kFinal float distances in the same memory): each line reads all its
+// samples before it writes any. Latency hiding: the build loads kBatch samples at once, and
+// the walk keeps one envelope member loaded ahead.
 template <bool kFinal>
-__global__ void edt_lines_kernel(const int32_t* in, int2* __restrict__ stack, int32_t* out_d2, float* out_dist,
-                                 int64_t lines, int32_t n, int64_t stride, double spacing) {
+__global__ void edt_lines_kernel(int32_t* buf, int2* __restrict__ stack, int64_t lines, int32_t n, int64_t stride,
+                                 double spacing) {
   constexpr int kBatch = 8;
   const int64_t line = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (line >= lines) return;
   const int64_t base = (line / stride) * n * stride + line % stride;
-  const int32_t* f = in + base;
+  const int32_t* f = buf + base;
+  int32_t* out_d2 = buf;
+  float* out_dist = reinterpret_cast<float*>(buf);
   int2* st = stack + base;
 
   int32_t cnt = 0, vt = 0, ft = 0, vp = 0, fp = 0;  // stack size, top and second entries
@@ -184,13 +186,13 @@ cudaError_t edt_launch(const uint8_t* occ, float* out, int32_t* scratch, int64_t
 
   const int64_t y_lines = Z * X;
   edt_lines_kernel<false><<<unsigned((y_lines + kLineThreads - 1) / kLineThreads), kLineThreads, 0, stream>>>(
-      d2, stack, d2, nullptr, y_lines, int32_t(Y), X, spacing);
+      d2, stack, y_lines, int32_t(Y), X, spacing);
   err = cudaGetLastError();
   if (err != cudaSuccess) return err;
 
   const int64_t z_lines = Y * X;
   edt_lines_kernel<true><<<unsigned((z_lines + kLineThreads - 1) / kLineThreads), kLineThreads, 0, stream>>>(
-      d2, stack, nullptr, out, z_lines, int32_t(Z), Y * X, spacing);
+      d2, stack, z_lines, int32_t(Z), Y * X, spacing);
   return cudaGetLastError();
 }
 

@@ -185,11 +185,14 @@ class PackedProblems:
         return int(self.state[b, COL_BEST_ITER].item())
 
 
+SEGMENT_TILE = 32  # points per warp of the CUDA solver's point phase (kTile in solver.cu)
+
+
 def problem_segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, num_vertices: int,
-                     tile: int | None = None):
+                     tile: int = SEGMENT_TILE):
     """(seg_ptr, vtx_ptr, vtx_entry) of one problem (see :func:`_segments`), for
     :attr:`SolverProblem.segments`."""
-    return _segments(corner_idx, labels, [0, corner_idx.shape[0]], num_vertices, tile or SEGMENT_TILE)
+    return _segments(corner_idx, labels, [0, corner_idx.shape[0]], num_vertices, tile)
 
 
 def _concat_segments(own: list, point_ranges: list[int]):
@@ -209,9 +212,6 @@ def _concat_segments(own: list, point_ranges: list[int]):
     seg_ptr.append(torch.tensor([point_ranges[-1]], dtype=torch.int32).to(dev, non_blocking=True))
     vtx_ptr.append(torch.tensor([ents], dtype=torch.int32).to(dev, non_blocking=True))
     return (torch.cat(seg_ptr).contiguous(), torch.cat(vtx_ptr).contiguous(), torch.cat(vtx_entry).contiguous())
-
-
-SEGMENT_TILE = 32  # points per warp of the CUDA solver's point phase (kTile in solver.cu)
 
 
 def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_ranges: list[int], num_vertices: int,
