@@ -94,5 +94,18 @@ TORCH_LIBRARY(floxels, m) {
   // Blocks of the persistent loop kernel that solver_run would launch for problems with
   // these point / vertex ranges on `points`' device (0: two kernels per iteration, which
   // the caller enqueues in chunks; CPU: 0). FLOXELS_SOLVER_PERSISTENT=0/1 forces the choice.
+  // Per-target preparation of solver_run in one call (one host synchronisation): points
+  // sorted by (label, flow-grid cell) -> (order, sorted points, sorted labels (empty if
+  // none), corner_idx (N, 8) int32, corner_w (N, 8), vertices (M,) int64 lattice index of
+  // each compact row, seg_ptr (S + 1), vtx_ptr (M + 1), vtx_entry (8S) int32, number of
+  // clusters). Segments are cut every `tile` points. csrc/cpu/problem_setup.cpp.
+  m.def("problem_setup(Tensor points, Tensor? labels, float[] origin, float spacing, int[] grid_shape, "
+        "int tile) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int)");
+
+  // --- host staging of scans (csrc/cpu/stage_cpu.cpp) ---
+  // Copies each (N_k, 3) host scan into out[k] (N_k*3 float32, e.g. page-locked), a thread
+  // per scan, and returns (K, 7) float64: per scan min xyz, max xyz of the float32 values,
+  // and 1.0 if all are finite.
+  m.def("stage_points(Tensor[] points, Tensor(a!)[] out) -> Tensor");
   m.def("solver_loop_blocks(Tensor points, int[] point_ranges, int[] vertex_ranges, bool cluster) -> int");
 }

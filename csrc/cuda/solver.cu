@@ -290,6 +290,8 @@ struct PointSmem {
 struct VertexSmem {
   float scratch[kThreads];
   double st[kStateCols];
+  int mkey[kThreads];        // cluster summed in mean slot (cluster % kThreads), -1 empty
+  float msum[kThreads * 3];  // the block's shares of the next means per slot
 };
 
 // Per iteration, by the whole grid: clear the other parity's means, u sums and losses (the
@@ -595,19 +597,34 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
     const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
     const int rounds = (skip & 64) ? 0 : warp_max(mine_n);
+    // Summed per block first: a vertex block (32 neighbouring vertices) meets few clusters,
+    // while a big cluster's mean receives shares from hundreds of blocks, so one global
+    // atomic per (block, cluster) instead of one per (warp, round, cluster) (those cost
+    // 2.8 of 24.7 us per iteration at one frame on an H100). A slot taken by another
+    // cluster adds to global memory directly.
+    sm.mkey[threadIdx.x] = -1;
+    for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0.0f;
+    __syncthreads();
+    float* wscratch = scratch + (threadIdx.x & ~31u);
     for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
-      int key = -1;
+      int slot = -1, spill = -1;
       float val[3] = {0.0f, 0.0f, 0.0f};
       if (r < mine_n) {
         const int2 pr = P.pair[e_begin + sub + r * kLanesPerVertex];
         if (unsigned(pr.x) < unsigned(P.num_clusters)) {
-          key = pr.x;
           const float a = __int_as_float(pr.y);
           for (int c = 0; c < 3; ++c) val[c] = a * t[c];
+          const int s = pr.x % kThreads;
+          const int had = atomicCAS(&sm.mkey[s], -1, pr.x);
+          if (had == -1 || had == pr.x) slot = s; else spill = pr.x;
         }
       }
-      warp_add<float>(mdst, key, 3, 1, val, 1.0f, 3, scratch + (threadIdx.x & ~31u));
+      warp_add<float>(sm.msum, slot, 3, 1, val, 1.0f, 3, wscratch);
+      warp_add<float>(mdst, spill, 3, 1, val, 1.0f, 3, wscratch);
     }
+    __syncthreads();
+    if (const int key = sm.mkey[threadIdx.x]; key >= 0)
+      for (int c = 0; c < 3; ++c) atomicAdd(mdst + 3 * key + c, sm.msum[3 * threadIdx.x + c]);
   }
 }
 

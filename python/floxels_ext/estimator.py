@@ -23,10 +23,11 @@ from dataclasses import dataclass, field
 import torch
 
 from .config import FloxelsConfig
-from .ops import compact_corners, distance_transform
+from .ops import distance_transform
 from .ops.grid import grid_from_bounds, point_bounds
 from .ops.corners import CompactCorners
-from .ops.solver import MAX_DTS, MAX_PROBLEMS, PackedProblems, SolverProblem, problem_segments
+from .ops.setup import problem_setup
+from .ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
 from .scans import PreparedScans, prepare_scans, resolve_device, restore_outputs
 from .solver import SolverRun
 
@@ -99,8 +100,10 @@ class Floxels:
         ``dt_cache`` maps scan index -> distance transform and is filled in place, so that
         callers optimising several targets over the same scans build each DT once.
         """
-        prep = prepare_scans(scans, target, self.device)
-        return self._fit_prepared(prep, dt_cache if dt_cache is not None else {})
+        cache = dt_cache if dt_cache is not None else {}
+        early = _EarlyDts(self.config, cache)
+        prep = prepare_scans(scans, target, self.device, on_ready=early)
+        return self._fit_group([(prep, cache)], early)[0]
 
     def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
         """Estimate several target frames in one optimisation: ``windows`` is a list of
@@ -112,19 +115,18 @@ class Floxels:
         return self._fit_group([(p, {}) for p in preps])
 
     # -- internals ----------------------------------------------------------------------
-    def _fit_prepared(self, prep: PreparedScans, dt_cache: dict) -> FloxelsResult:
-        return self._fit_group([(prep, dt_cache)])[0]
-
-    def _fit_group(self, items: list) -> list[FloxelsResult]:
+    def _fit_group(self, items: list, early: "_EarlyDts | None" = None) -> list[FloxelsResult]:
         """Optimise the targets of ``items`` ([(PreparedScans, dt cache)]) together."""
-        return self._solve_group(self._prepare_group(items)).finish()
+        return self._solve_group(self._prepare_group(items, early=early)).finish()
 
-    def _prepare_group(self, items: list, pipelined: bool = False, poll: Callable[[], object] | None = None):
+    def _prepare_group(self, items: list, pipelined: bool = False, poll: Callable[[], object] | None = None,
+                       early: "_EarlyDts | None" = None):
         """Everything before the optimisation: the distance transforms still missing from the
         caches, DBSCAN of every target, points sorted by (cluster, voxel) and their compact
         corners. ``pipelined``: all of it is enqueued on the current stream (the caller's
         side stream, while the GPU still optimises other frames) with no device
-        synchronisation, and ``poll`` is called between targets to keep that work queued."""
+        synchronisation, and ``poll`` is called between targets to keep that work queued.
+        ``early``: the EDTs already started while the scans were uploaded (single frames)."""
         cfg = self.config
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
@@ -134,21 +136,26 @@ class Floxels:
         # re-checks), and every cloud's bounds come back in one host synchronisation.
         t0 = time.perf_counter()
         # DTs still to build, by scan tensor (windows of one sequence share scan tensors,
-        # so each scan is built once): id -> (points, [(cache, index in window)])
-        todo: dict[int, tuple] = {}
+        # so each scan is built once)
+        todo: dict[int, list] = {}  # id -> [points, [(cache, index in window)], bounds or None]
         for prep, cache in items:
             if prep.points[prep.target].shape[0] > 0:
                 for i in prep.supports:
                     if i not in cache and prep.points[i].shape[0] > 0:
-                        todo.setdefault(id(prep.points[i]), (prep.points[i], []))[1].append((cache, i))
-        targets = [prep.points[prep.target] for prep, _ in items if prep.points[prep.target].shape[0] > 0]
-        bounds = point_bounds([v[0] for v in todo.values()] + targets)
+                        todo.setdefault(id(prep.points[i]), [prep.points[i], [], _known_bounds(prep, i)])[1].append(
+                            (cache, i))
+        targets = [(prep.points[prep.target], _known_bounds(prep, prep.target)) for prep, _ in items
+                   if prep.points[prep.target].shape[0] > 0]
+        # bounds not known from the upload (device scans): all in one host synchronisation
+        found = iter(point_bounds([v[0] for v in todo.values() if v[2] is None] + [p for p, b in targets if b is None]))
+        dt_bounds = [v[2] if v[2] is not None else next(found) for v in todo.values()]
+        target_bounds = iter([b if b is not None else next(found) for _, b in targets])
         # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
-        # bound) run on another: the host synchronisations of DBSCAN and the sorting then
-        # wait for their own kernels only. Single frames: EDTs on the caller's stream, the
-        # rest on the side stream. Pipelined (the caller's stream is the side stream): EDTs
-        # on a third stream. FLOXELS_SERIAL_STAGES=1 runs the stages one after the other
-        # (stage timings).
+        # bound) run on others: the host synchronisations of DBSCAN and the sorting then
+        # wait for their own kernels only. Single frames: one stream per EDT (they overlap
+        # each other's tails), the rest on the side stream. Pipelined (the caller's stream is
+        # the side stream): EDTs on a third stream. FLOXELS_SERIAL_STAGES=1 runs the stages
+        # one after the other (stage timings).
         serial = _serial_stages(device)
         main = torch.cuda.current_stream(device) if device.type == "cuda" else None
         side = dt_stream = None
@@ -157,17 +164,26 @@ class Floxels:
             dt_stream = _dt_stream(device) if pipelined else main
             (side or dt_stream).wait_stream(main)  # the scans are ready
         dt_events = None
-        if dt_stream is not None and todo:
+        if early is not None and early.start is not None and not pipelined and dt_stream is not None:
+            dt_events = (early.start, torch.cuda.Event(enable_timing=True))
+            for st in early.streams:
+                main.wait_stream(st)
+        elif dt_stream is not None and todo:
             dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
             dt_events[0].record(dt_stream)
-        with torch.cuda.stream(dt_stream) if dt_stream is not None else contextlib.nullcontext():
-            for (pts, users), b in zip(todo.values(), bounds):
+        per_scan = [] if serial or pipelined else [_side_stream(device, f"dt{k}") for k in range(min(len(todo), 4))]
+        for st in per_scan:
+            st.wait_stream(main)
+        for k, ((pts, users, _), b) in enumerate(zip(todo.values(), dt_bounds)):
+            st = per_scan[k % len(per_scan)] if per_scan else dt_stream
+            with torch.cuda.stream(st) if st is not None else contextlib.nullcontext():
                 d = _build_dt(pts, cfg, b)
-                for cache, i in users:
-                    cache[i] = d
+            for cache, i in users:
+                cache[i] = d
+        for st in per_scan:
+            main.wait_stream(st)
         if dt_events is not None:
             dt_events[1].record(dt_stream)
-        target_bounds = iter(bounds[len(todo):])
         supports = []  # per item: (dts, origins, offsets, weights)
         for prep, cache in items:
             dts, origins, offsets, weights = [], [], [], []
@@ -236,15 +252,11 @@ class Floxels:
                 poll()
             labels.append(F.dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
                           if cfg.cluster_loss and prep.points[prep.target].shape[0] else None)
-        present = [lab for lab in labels if lab is not None and lab.shape[0] > 0]
-        # clusters per target (one host synchronisation for all)
-        maxes = iter(torch.stack([lab.max() for lab in present]).tolist() if present else [])
-        num_clusters = [int(next(maxes)) + 1 if lab is not None and lab.shape[0] > 0 else 0 for lab in labels]
         timings["dbscan"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         problems, orders, grids = [], [], []
-        for (prep, _), lab, ncl, (dts, origins, offsets, weights) in zip(items, labels, num_clusters, supports):
+        for (prep, _), lab, (dts, origins, offsets, weights) in zip(items, labels, supports):
             if poll is not None:
                 poll()
             P = prep.points[prep.target]
@@ -255,25 +267,15 @@ class Floxels:
                 continue
             g_origin, g_shape = grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size,
                                                  max_cells=1 << 40)
-            # Sort points by (cluster, voxel): neighbouring points touch neighbouring memory
-            # (flow vertices, DT samples), a block of points meets few clusters, and the
-            # solver's segments (one cluster inside one cell) are long runs.
-            key = _voxel_key(P, g_origin, cfg.voxel_size, g_shape)
-            cells = g_shape[0] * g_shape[1] * g_shape[2]
-            if lab is not None and (ncl + 1) * cells < 2**62:  # one sort of (cluster, voxel)
-                order = torch.argsort((lab.to(torch.int64) + 1) * cells + key)
-            else:
-                order = torch.argsort(key)
-                if lab is not None:
-                    order = order[torch.sort(lab[order], stable=True).indices]
-            Ps = P[order].contiguous()
-            corners = compact_corners(Ps, g_origin, cfg.voxel_size, g_shape)
-            lab_s = lab[order].contiguous() if lab is not None else None
-            # the solver's segment tables, here (while the EDTs run) rather than when packing
-            segs = problem_segments(corners.corner_idx, lab_s, corners.num_params)
-            problems.append(SolverProblem(Ps, corners, lab_s, dts, origins, offsets, weights,
-                                          cfg.regulariser_scale(len(prep.supports)), ncl, segs))
-            orders.append(order)
+            # One op, one host synchronisation: points sorted by (cluster, voxel) (neighbouring
+            # points touch neighbouring memory, a block of points meets few clusters, and the
+            # solver's segments, one cluster inside one cell, are long runs), their compact
+            # corners and the solver's segment tables (built here, while the EDTs run, rather
+            # than when packing), and the number of clusters.
+            st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
+            problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
+                                          cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments))
+            orders.append(st.order)
             grids.append(g_origin)
         timings["setup"] = time.perf_counter() - t0
         return labels, problems, orders, grids
@@ -308,10 +310,33 @@ class _Solving:
     def finish(self) -> list[FloxelsResult]:
         pr, cfg = self.prepared, self.est.config
         solved: dict[int, tuple] = {}
+        hosts = []
         for group, packed, run in self.runs:
-            run.finish()
-            for b, (k, (losses, best_iter)) in enumerate(zip(group, packed.summaries())):
-                solved[k] = (packed.best_params(b).clone(), losses, best_iter)
+            run.finish(wait=False)  # the read-backs below queue behind the last iterations
+            hosts.append(packed.summaries_start())
+        for group, packed, run in self.runs:
+            for b, k in enumerate(group):
+                solved[k] = packed.best_params(b).clone()
+        flows, parts = [], []  # flow of the kept rows, (labels, fields of the result) per frame
+        for k, (prep, _) in enumerate(pr.items):
+            if pr.problems[k] is None:
+                flows.append(prep.points[prep.target].new_zeros(0, 3))
+                continue
+            corners = pr.problems[k].corners
+            flow_s = F.corner_gather(solved[k], corners.corner_idx, corners.corner_w)
+            flow = torch.empty_like(flow_s)
+            flow[pr.orders[k]] = flow_s
+            flows.append(flow)
+        # every frame's output in one transfer (numpy outputs of CUDA flows), then the one
+        # synchronisation of the read-backs
+        outs = restore_outputs(flows, [prep for prep, _ in pr.items])
+        for _, packed, run in self.runs:
+            if run.cuda:
+                run.stream.synchronize()
+        summaries: dict[int, tuple] = {}
+        for (group, packed, _), host in zip(self.runs, hosts):
+            for k, summary in zip(group, packed.summaries(host)):
+                summaries[k] = summary
         timings = dict(pr.timings)
         if pr.dt_events is not None:  # the EDTs overlapped other work: their GPU time
             timings["dt"] = 1e-3 * pr.dt_events[0].elapsed_time(pr.dt_events[1])
@@ -319,26 +344,14 @@ class _Solving:
         timings["total"] = time.perf_counter() - pr.t_start
         if len(pr.items) > 1:
             timings["group_size"] = float(len(pr.items))
-
-        flows, parts = [], []  # flow of the kept rows, (labels, fields of the result) per frame
-        for k, ((prep, _), lab) in enumerate(zip(pr.items, pr.labels)):
+        for k, lab in enumerate(pr.labels):
             if pr.problems[k] is None:
-                empty = prep.points[prep.target].new_zeros(0, 3)
-                flows.append(empty)
                 parts.append((None, [], -1, 0, dict(timings), None, cfg.voxel_size, None, None))
                 continue
-            params, losses, best_iter = solved[k]
-            corners = pr.problems[k].corners
-            flow_s = F.corner_gather(params, corners.corner_idx, corners.corner_w)
-            flow = torch.empty_like(flow_s)
-            flow[pr.orders[k]] = flow_s
-            flows.append(flow)
-            parts.append((lab, losses, best_iter, len(losses), dict(timings), pr.grids[k], cfg.voxel_size, corners,
-                          params))
-        # every frame's output in one transfer (numpy outputs of CUDA flows)
-        outs = restore_outputs(flows, [prep for prep, _ in pr.items])
-        results = [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
-        return results
+            losses, best_iter = summaries[k]
+            parts.append((lab, losses, best_iter, len(losses), dict(timings), pr.grids[k], cfg.voxel_size,
+                          pr.problems[k].corners, solved[k]))
+        return [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
 
 
 def _used_on(stream, items, problems, orders, labels) -> None:
@@ -388,11 +401,35 @@ class _WindowCache:
         self.cache[self.start + i] = value
 
 
-def _voxel_key(P, origin, spacing, shape) -> torch.Tensor:
-    Z, Y, X = shape
-    o = torch.tensor(origin, dtype=P.dtype).to(P.device, non_blocking=True)  # no wait for queued work
-    i = ((P - o) / spacing).floor().long()
-    return (i[:, 2].clamp(0, Z - 1) * Y + i[:, 1].clamp(0, Y - 1)) * X + i[:, 0].clamp(0, X - 1)
+class _EarlyDts:
+    """``prepare_scans``' on_ready hook for single frames on a GPU: each support scan's EDT
+    is queued, on a stream of its own, as soon as its upload is, so the EDTs (the longest
+    work before the optimiser) start while later scans are still being copied."""
+
+    def __init__(self, cfg: FloxelsConfig, cache: dict) -> None:
+        self.cfg, self.cache = cfg, cache
+        self.start: torch.cuda.Event | None = None  # on the main stream, before the first EDT
+        self.streams: list = []
+
+    def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool) -> None:
+        dev = points.device
+        if dev.type != "cuda" or _serial_stages(dev) or is_target or i in self.cache or points.shape[0] == 0:
+            return
+        if os.environ.get("FLOXELS_EARLY_DT", "1") == "0":  # measurements: EDTs after all uploads
+            return
+        main = torch.cuda.current_stream(dev)
+        if self.start is None:
+            self.start = torch.cuda.Event(enable_timing=True)
+            self.start.record(main)
+        st = _side_stream(dev, f"dt{len(self.streams) % 4}")
+        st.wait_stream(main)  # the upload
+        with torch.cuda.stream(st):
+            self.cache[i] = _build_dt(points, self.cfg, bounds)
+        self.streams.append(st)
+
+
+def _known_bounds(prep: PreparedScans, i: int):
+    return prep.bounds[i] if prep.bounds is not None else None
 
 
 _SIDE_STREAMS: dict = {}

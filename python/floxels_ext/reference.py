@@ -29,6 +29,7 @@ __all__ = [
     "corner_gather",
     "corner_scatter",
     "dbscan",
+    "problem_setup",
 ]
 
 
@@ -237,3 +238,56 @@ def dbscan(points: torch.Tensor, eps: float, min_samples: int) -> torch.Tensor:
     best = torch.where(adj & core[None, :], core_label[None, :], n).amin(1)
     labels = torch.where(core, core_label, torch.where(best < n, best, -1))
     return labels.to(points.device)
+
+
+def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Sequence[float], spacing: float,
+                  grid_shape: Sequence[int], tile: int):
+    """The optimiser's per-target tables (``floxels::problem_setup``), step by step:
+
+    * ``order``: points sorted stably by (label, flow-grid cell), the cell being the
+      clamped floor of ``(p - origin) / spacing``, numbered (z * Y + y) * X + x;
+    * each sorted point's 8 trilinear corners (x fastest, then y, then z) and weights,
+      clamped like :func:`trilinear_gather`, renumbered densely over the touched
+      vertices in lattice order (``vertices`` holds each row's lattice index);
+    * segments: runs of sorted points with equal corner rows and labels, also cut every
+      ``tile`` points (``seg_ptr``: first point of each, then N); per vertex, its
+      ``segment * 8 + corner`` entries in segment order (``vtx_ptr``, ``vtx_entry``).
+
+    Returns (order, sorted points, sorted labels (empty if None), corner_idx, corner_w,
+    vertices, seg_ptr, vtx_ptr, vtx_entry, number of clusters).
+    """
+    Z, Y, X = (int(s) for s in grid_shape)
+    n, dev, dt = points.shape[0], points.device, points.dtype
+    o = torch.tensor([float(v) for v in origin], dtype=dt, device=dev)
+    ic = ((points - o) / spacing).floor().long()
+    key = (ic[:, 2].clamp(0, Z - 1) * Y + ic[:, 1].clamp(0, Y - 1)) * X + ic[:, 0].clamp(0, X - 1)
+    if labels is not None:
+        key = (labels.long() + 1) * (Z * Y * X) + key
+    order = torch.sort(key, stable=True).indices
+    ps = points[order]
+    lab = labels.long()[order] if labels is not None else None
+    size = torch.tensor([X, Y, Z], device=dev)
+    u = torch.minimum(((ps - o) / spacing).clamp_min(0), (size - 1).to(dt))
+    i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
+    t = u - i0.to(dt)
+    offs = torch.tensor([[cx, cy, cz] for cz in (0, 1) for cy in (0, 1) for cx in (0, 1)], device=dev)
+    idx = torch.minimum(i0[:, None, :] + offs, size - 1)
+    lin = (idx[..., 2] * Y + idx[..., 1]) * X + idx[..., 0]
+    wf = torch.where(offs.bool(), t[:, None, :], 1 - t[:, None, :])
+    w = wf[..., 0] * wf[..., 1] * wf[..., 2]
+    vertices, inverse = torch.unique(lin, sorted=True, return_inverse=True)
+    corner_idx = inverse.to(torch.int32)
+    new = torch.ones(n, dtype=torch.bool, device=dev)
+    new[1:] = (corner_idx[1:] != corner_idx[:-1]).any(1)
+    if lab is not None:
+        new[1:] |= lab[1:] != lab[:-1]
+    new[::tile] = True
+    first = torch.nonzero(new).reshape(-1)
+    seg_ptr = torch.cat([first, first.new_full((1,), n)]).to(torch.int32)
+    flat = corner_idx[first].reshape(-1).long()
+    vtx_entry = torch.sort(flat, stable=True).indices.to(torch.int32)
+    counts = torch.bincount(flat, minlength=vertices.shape[0])
+    vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32)
+    ncl = int(lab.max()) + 1 if lab is not None and n else 0
+    return (order, ps, lab if lab is not None else order.new_empty(0), corner_idx, w, vertices, seg_ptr, vtx_ptr,
+            vtx_entry, max(ncl, 0))

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .ops.setup import stage_points
+
 
 @dataclass
 class PreparedScans:
@@ -29,6 +31,9 @@ class PreparedScans:
     in_dtype: torch.dtype | np.dtype
     in_device: torch.device
     num_target_points: int
+    # (min xyz, max xyz) of each scan's kept points where known without a device
+    # synchronisation (host scans uploaded to CUDA), else None
+    bounds: list[tuple[list[float], list[float]] | None] | None = None
 
 
 def _as_tensor(scan, i: int) -> torch.Tensor:
@@ -60,12 +65,15 @@ def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
 
 
 def prepare_scans(scans: Sequence, target: int | None, device, converted: dict | None = None,
-                  first_index: int = 0) -> PreparedScans:
+                  first_index: int = 0, on_ready=None) -> PreparedScans:
     """Validate a window of scans and move them to the compute device.
 
-    ``converted`` (sequence index -> (points, finite mask)) lets sliding windows over one
+    ``converted`` (sequence index -> (points, finite mask, bounds)) lets sliding windows over one
     sequence convert, copy and NaN-check each scan once; ``first_index`` is the sequence
-    index of ``scans[0]`` (also used in warnings)."""
+    index of ``scans[0]`` (also used in warnings). ``on_ready(i, points, bounds, is_target)``
+    is called as soon as a host scan staged for the GPU has its upload queued (support scans
+    first, the target last), so the caller can queue work on it while later scans are
+    still being copied."""
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -96,42 +104,98 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     dev = resolve_device(device, scans[0])
 
     todo = [i for i in range(n) if converted is None or first_index + i not in converted]
+    todo.sort(key=lambda i: i == target)  # support scans first (their EDTs are the longest work)
+    ready = None if on_ready is None else (lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target))
     fresh = dict(zip(todo, _finite_rows([tensors[i] for i in todo], dev, [first_index + i for i in todo],
-                                        [i == target for i in todo])))
-    points, masks = [], []
+                                        [i == target for i in todo], ready)))
+    points, masks, bounds = [], [], []
     for i in range(n):
         if i in fresh:
-            t, finite = fresh[i]
+            t, finite, b = fresh[i]
             if converted is not None:
-                converted[first_index + i] = (t, finite)
+                converted[first_index + i] = (t, finite, b)
         else:
-            t, finite = converted[first_index + i]
+            t, finite, b = converted[first_index + i]
         points.append(t)
         masks.append(finite)
+        bounds.append(b)
     supports = [i for i in range(n) if i != target]
     return PreparedScans(points=points, finite_masks=masks, target=target,
                          offsets=[i - target for i in supports], supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
-                         in_device=tensors[0].device, num_target_points=tensors[target].shape[0])
+                         in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds)
 
 
-def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool]):
-    """Per scan: a float32 contiguous copy on ``dev`` without the NaN/inf rows (warned
-    about), and the mask. The uploads do not block (pageable memory is staged at once) and
-    the numbers of bad rows of all scans come back in one host synchronisation."""
-    if not scans:
-        return []
-    moved = [t.to(device=dev, dtype=torch.float32, non_blocking=True) for t in scans]
+def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool],
+                 on_ready=None):
+    """Per scan: (a float32 contiguous copy on ``dev`` without the NaN/inf rows (warned
+    about), the mask of kept rows, (min xyz, max xyz) or None).
+
+    Host scans bound for a GPU go through page-locked staging (:class:`_Stager`): one pass
+    on the host copies them and finds their bounds and whether all is finite, and the
+    upload runs asynchronously, so the estimator can size and start the distance transforms
+    without waiting for the GPU. Other scans (and staged scans with bad rows) are checked
+    on their device; the numbers of bad rows of all of them come back in one host
+    synchronisation. ``on_ready(k, points, bounds)``: called for each staged scan as soon as
+    its upload is queued."""
+    out: list = [None] * len(scans)
+    staged = [k for k, t in enumerate(scans) if dev.type == "cuda" and t.device.type == "cpu" and t.shape[0] > 0]
+    bufs = [_STAGER.take(dev, scans[k].shape[0] * 3) for k in staged]
+    for k, buf, (lo, hi, finite) in zip(staged, bufs, stage_points([scans[k] for k in staged], bufs)):
+        moved = buf.view(-1, 3).to(dev, non_blocking=True)
+        _STAGER.used(buf, dev)
+        if finite:
+            out[k] = (moved, torch.ones(moved.shape[0], dtype=torch.bool, device=dev), (lo, hi))
+            if on_ready is not None:
+                on_ready(k, moved, (lo, hi))
+        else:
+            scans[k] = moved
+    checked = [k for k in range(len(scans)) if out[k] is None]  # checked on the device
+    if not checked:
+        return out
+    moved = [scans[k].to(device=dev, dtype=torch.float32, non_blocking=True) for k in checked]
     finite = [torch.isfinite(t).all(dim=1) for t in moved]
     bad = torch.stack([(~f).sum() for f in finite]).tolist()
-    out = []
-    for t, f, b, index, tgt in zip(moved, finite, bad, indices, is_target):
+    for k, t, f, b in zip(checked, moved, finite, bad):
         if b:
-            warnings.warn(f"scan {index}: dropping {b} point(s) with NaN/inf coordinates"
-                          + (" (their flow is NaN)" if tgt else ""), UserWarning, stacklevel=4)
+            warnings.warn(f"scan {indices[k]}: dropping {b} point(s) with NaN/inf coordinates"
+                          + (" (their flow is NaN)" if is_target[k] else ""), UserWarning, stacklevel=4)
             t = t[f]
-        out.append((t.contiguous(), f))
+        out[k] = (t.contiguous(), f, None)
     return out
+
+
+class _Stager:
+    """Page-locked host buffers for uploads, reused once their copy has run (an event per
+    buffer): allocating page-locked memory per frame would cost more than the copy."""
+
+    def __init__(self) -> None:
+        self.free: dict = {}  # device index -> [(buffer, event or None)]
+
+    def take(self, dev: torch.device, numel: int) -> torch.Tensor:
+        pool = self.free.setdefault(_index(dev), [])
+        for k, (buf, ev) in enumerate(pool):
+            if buf.numel() >= numel and (ev is None or ev.query()):
+                del pool[k]
+                return buf[:numel]
+        return torch.empty(max(numel, 1 << 18), dtype=torch.float32, pin_memory=True)[:numel]
+
+    def used(self, view: torch.Tensor, dev: torch.device) -> None:
+        """``view`` (from take) has its upload to ``dev`` queued on dev's current stream."""
+        ev = torch.cuda.Event()
+        ev.record(torch.cuda.current_stream(dev))
+        base = view._base if view._base is not None else view
+        pool = self.free.setdefault(_index(dev), [])
+        pool.append((base, ev))
+        if len(pool) > 64:  # a burst of scans in flight: forget the oldest buffer
+            pool.pop(0)
+
+
+def _index(dev: torch.device) -> int:
+    return dev.index if dev.index is not None else torch.cuda.current_device()
+
+
+_STAGER = _Stager()
 
 
 def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):

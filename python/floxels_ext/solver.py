@@ -100,8 +100,10 @@ class SolverRun:
             self._enqueue()
         return not self.stopped and self.done < self.max_iters
 
-    def finish(self) -> None:
-        """Run until every problem has stopped (at most ``cfg.max_iters`` iterations)."""
+    def finish(self, wait: bool = True) -> None:
+        """Run until every problem has stopped (at most ``cfg.max_iters`` iterations).
+        ``wait=False``: return once the last iterations are enqueued (the caller queues the
+        read-back behind them and synchronises once)."""
         if not self.cuda:
             if self.done == 0:
                 self.packed.run(self.max_iters)
@@ -111,7 +113,8 @@ class SolverRun:
             self._enqueue()
             if len(self.pending) > 1:  # look one chunk behind: the chunk just queued keeps the GPU busy
                 self._retire(block=True)
-        self.stream.synchronize()
+        if wait:
+            self.stream.synchronize()
 
 
 def run_solver(packed: PackedProblems, chunk: int | None = None, use_graph: bool | None = None) -> None:

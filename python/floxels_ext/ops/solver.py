@@ -83,12 +83,13 @@ class PackedProblems:
                 raise ValueError("solver: all problems must be on one device")
             n, m = p.points.shape[0], p.corners.num_params
             pts.append(p.points.to(torch.float32))
-            idx.append(p.corners.corner_idx.to(torch.int64) + self.vertex_ranges[-1])
+            off = self.vertex_ranges[-1]  # vertex rows are numbered per problem: offset them
+            idx.append(p.corners.corner_idx if off == 0 else p.corners.corner_idx.to(torch.int64) + off)
             w.append(p.corners.corner_w.to(torch.float32))
             if use_cluster:
                 lab = p.labels if p.labels is not None else torch.full((n,), -1, dtype=torch.int64, device=dev)
                 k = p.num_clusters if p.num_clusters is not None else (int(lab.max()) + 1 if n else 0)
-                labels.append(torch.where(lab >= 0, lab + ncl, lab))
+                labels.append(lab if ncl == 0 else torch.where(lab >= 0, lab + ncl, lab))
                 ncl += max(k, 0)
             self.point_ranges.append(self.point_ranges[-1] + n)
             self.vertex_ranges.append(self.vertex_ranges[-1] + m)
@@ -107,14 +108,14 @@ class PackedProblems:
         if len(self.dts) > MAX_DTS:
             raise ValueError(f"solver: at most {MAX_DTS} distinct distance transforms per call, got {len(self.dts)}")
         self.reg_scale = [float(p.reg_scale) for p in problems]
-        self.points = torch.cat(pts).contiguous()
+        one = len(problems) == 1  # (no concatenation: fewer kernels and host calls per frame)
+        self.points = (pts[0] if one else torch.cat(pts)).contiguous()
         N = self.points.shape[0]
         M = self.vertex_ranges[-1]
-        flat = torch.cat(idx).reshape(-1)
-        self.corner_idx = flat.to(torch.int32).reshape(N, 8).contiguous()
-        self.corner_w = torch.cat(w).contiguous()
+        self.corner_idx = (idx[0] if one else torch.cat(idx)).to(torch.int32).reshape(N, 8).contiguous()
+        self.corner_w = (w[0] if one else torch.cat(w)).contiguous()
         if use_cluster and ncl > 0:
-            lab_all = torch.cat(labels)
+            lab_all = labels[0] if one else torch.cat(labels)
         else:
             lab_all = None
         own = [p.segments for p in problems]
@@ -172,9 +173,20 @@ class PackedProblems:
         n = int(self.state[b, COL_ITER].item())
         return self.history[b, :n].tolist()
 
-    def summaries(self) -> list[tuple[list[float], int]]:
-        """(losses, best iteration) of every problem, read back in one host synchronisation."""
-        both = torch.cat([self.state, self.history], dim=1).cpu()
+    def summaries_start(self) -> torch.Tensor:
+        """Queue the read-back of the state and loss history (into page-locked memory on
+        CUDA); pass the result to :meth:`summaries` once the stream has been synchronised."""
+        both = torch.cat([self.state, self.history], dim=1)
+        if not both.is_cuda:
+            return both
+        host = torch.empty(both.shape, dtype=both.dtype, pin_memory=True)
+        host.copy_(both, non_blocking=True)
+        return host
+
+    def summaries(self, host: torch.Tensor | None = None) -> list[tuple[list[float], int]]:
+        """(losses, best iteration) of every problem, read back in one host synchronisation
+        (or from ``host``, see :meth:`summaries_start`)."""
+        both = host if host is not None else torch.cat([self.state, self.history], dim=1).cpu()
         out = []
         for row in both:
             n = int(row[COL_ITER])
