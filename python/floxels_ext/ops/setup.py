@@ -18,8 +18,7 @@ def _setup_fake(points, labels, origin, spacing, grid_shape, tile):
     n = points.shape[0]
     m, s = ctx.new_dynamic_size(), ctx.new_dynamic_size()
     i32 = dict(dtype=torch.int32)
-    lab = labels.new_empty((n if labels is not None else 0,), dtype=torch.int64) if labels is not None \
-        else points.new_empty((0,), dtype=torch.int64)
+    lab = points.new_empty((n if labels is not None else 0,), dtype=torch.int64)  # empty without labels
     return (points.new_empty((n,), dtype=torch.int64), points.new_empty((n, 3)), lab,
             points.new_empty((n, 8), **i32), points.new_empty((n, 8)), points.new_empty((m,), dtype=torch.int64),
             points.new_empty((s + 1,), **i32), points.new_empty((m + 1,), **i32), points.new_empty((8 * s,), **i32),
