@@ -15,6 +15,7 @@ from floxels_ext import Floxels, FloxelsConfig
 from floxels_ext.ops import compact_corners, problem_setup, stage_points
 from floxels_ext.ops.grid import grid_from_bounds
 from floxels_ext.ops.solver import PackedProblems, problem_segments
+from floxels_ext.reference import cell_key
 from floxels_ext.scans import prepare_scans
 
 F = torch.ops.floxels
@@ -41,7 +42,7 @@ def timed(label, fn):
 prep = timed("prepare_scans (upload, checks)", lambda: prepare_scans(scans, 2, "cuda"))
 buf = torch.empty(scans[2].size, dtype=torch.float32, pin_memory=True)
 src = torch.from_numpy(scans[2])
-timed(f"  stage_points, one scan ({src.dtype}, {torch.get_num_threads()} threads)", lambda: stage_points(src, buf))
+timed(f"  stage_points, one scan ({src.dtype})", lambda: stage_points([src], [buf]))
 timed("  numpy copy into page-locked, one scan", lambda: buf.numpy().reshape(-1, 3).__setitem__(slice(None), scans[2]))
 P = prep.points[2]
 lab = timed("dbscan", lambda: F.dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples))
@@ -50,17 +51,8 @@ lo, hi = P.min(0).values.tolist(), P.max(0).values.tolist()
 g_origin, g_shape = grid_from_bounds(lo, hi, cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40)
 cells = g_shape[0] * g_shape[1] * g_shape[2]
 timed("problem_setup (all of the below)", lambda: problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, 32))
-
-
-def _voxel_key(P, origin, spacing, shape):
-    Z, Y, X = shape
-    o = torch.tensor(origin, dtype=P.dtype).to(P.device, non_blocking=True)
-    i = ((P - o) / spacing).floor().long()
-    return (i[:, 2].clamp(0, Z - 1) * Y + i[:, 1].clamp(0, Y - 1)) * X + i[:, 0].clamp(0, X - 1)
-
-
 order = timed("  sort (cluster, voxel)", lambda: torch.argsort(
-    (lab.to(torch.int64) + 1) * cells + _voxel_key(P, g_origin, cfg.voxel_size, g_shape)))
+    (lab.to(torch.int64) + 1) * cells + cell_key(P, g_origin, cfg.voxel_size, g_shape)))
 Ps = P[order].contiguous()
 lab_s = lab[order].contiguous()
 corners = timed("  compact_corners", lambda: compact_corners(Ps, g_origin, cfg.voxel_size, g_shape))

@@ -87,7 +87,7 @@ void stage_one(const at::Tensor& points, const at::Tensor& out, double* r) {
   const at::Tensor src = points.contiguous();
   Bounds b{};
   AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "stage_points_cpu", [&] {
-    b = stage<scalar_t>(src.const_data_ptr<scalar_t>(), const_cast<float*>(out.const_data_ptr<float>()), n);
+    b = stage<scalar_t>(src.const_data_ptr<scalar_t>(), out.data_ptr<float>(), n);
   });
   for (int a = 0; a < 3; ++a) r[a] = b.lo[a], r[3 + a] = b.hi[a];
   r[6] = b.finite ? 1.0 : 0.0;

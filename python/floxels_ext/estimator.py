@@ -101,7 +101,7 @@ class Floxels:
         callers optimising several targets over the same scans build each DT once.
         """
         cache = dt_cache if dt_cache is not None else {}
-        early = _EarlyDts(self.config, cache)
+        early = _DtStreams(self.config, cache)
         prep = prepare_scans(scans, target, self.device, on_ready=early)
         return self._fit_group([(prep, cache)], early)[0]
 
@@ -115,12 +115,12 @@ class Floxels:
         return self._fit_group([(p, {}) for p in preps])
 
     # -- internals ----------------------------------------------------------------------
-    def _fit_group(self, items: list, early: "_EarlyDts | None" = None) -> list[FloxelsResult]:
+    def _fit_group(self, items: list, early: "_DtStreams | None" = None) -> list[FloxelsResult]:
         """Optimise the targets of ``items`` ([(PreparedScans, dt cache)]) together."""
         return self._solve_group(self._prepare_group(items, early=early)).finish()
 
     def _prepare_group(self, items: list, pipelined: bool = False, poll: Callable[[], object] | None = None,
-                       early: "_EarlyDts | None" = None):
+                       early: "_DtStreams | None" = None):
         """Everything before the optimisation: the distance transforms still missing from the
         caches, DBSCAN of every target, points sorted by (cluster, voxel) and their compact
         corners. ``pipelined``: all of it is enqueued on the current stream (the caller's
@@ -163,25 +163,25 @@ class Floxels:
             side = None if pipelined else _side_stream(device)
             dt_stream = _dt_stream(device) if pipelined else main
             (side or dt_stream).wait_stream(main)  # the scans are ready
+        # single frames on a GPU: a stream per EDT (those already started while the scans were
+        # uploaded, and any others here)
+        streams = None if serial or pipelined else (early if early is not None else _DtStreams(cfg))
         dt_events = None
-        if early is not None and early.start is not None and not pipelined and dt_stream is not None:
-            dt_events = (early.start, torch.cuda.Event(enable_timing=True))
-            for st in early.streams:
-                main.wait_stream(st)
-        elif dt_stream is not None and todo:
+        if streams is None and dt_stream is not None and todo:
             dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
             dt_events[0].record(dt_stream)
-        per_scan = [] if serial or pipelined else [_side_stream(device, f"dt{k}") for k in range(min(len(todo), 4))]
-        for st in per_scan:
-            st.wait_stream(main)
-        for k, ((pts, users, _), b) in enumerate(zip(todo.values(), dt_bounds)):
-            st = per_scan[k % len(per_scan)] if per_scan else dt_stream
-            with torch.cuda.stream(st) if st is not None else contextlib.nullcontext():
-                d = _build_dt(pts, cfg, b)
+        for (pts, users, _), b in zip(todo.values(), dt_bounds):
+            if streams is not None:
+                d = streams.launch(pts, b)
+            else:
+                with torch.cuda.stream(dt_stream) if dt_stream is not None else contextlib.nullcontext():
+                    d = _build_dt(pts, cfg, b)
             for cache, i in users:
                 cache[i] = d
-        for st in per_scan:
-            main.wait_stream(st)
+        if streams is not None and streams.start is not None:
+            for st in streams.streams:
+                main.wait_stream(st)
+            dt_events = (streams.start, torch.cuda.Event(enable_timing=True))
         if dt_events is not None:
             dt_events[1].record(dt_stream)
         supports = []  # per item: (dts, origins, offsets, weights)
@@ -401,31 +401,38 @@ class _WindowCache:
         self.cache[self.start + i] = value
 
 
-class _EarlyDts:
-    """``prepare_scans``' on_ready hook for single frames on a GPU: each support scan's EDT
-    is queued, on a stream of its own, as soon as its upload is, so the EDTs (the longest
-    work before the optimiser) start while later scans are still being copied."""
+class _DtStreams:
+    """EDTs of a single frame on a GPU, each on a stream of its own (they overlap each
+    other's tails). As ``prepare_scans``' on_ready hook (:meth:`__call__`), it queues each
+    support scan's EDT as soon as its upload is queued, so the EDTs (the longest work before
+    the optimiser) start while later scans are still being copied; ``FLOXELS_EARLY_DT=0``
+    leaves them to :meth:`Floxels._prepare_group` (measurements)."""
 
-    def __init__(self, cfg: FloxelsConfig, cache: dict) -> None:
-        self.cfg, self.cache = cfg, cache
+    def __init__(self, cfg: FloxelsConfig, cache: dict | None = None) -> None:
+        self.cfg, self.cache = cfg, cache  # cache: where __call__ puts the DTs
         self.start: torch.cuda.Event | None = None  # on the main stream, before the first EDT
-        self.streams: list = []
+        self.streams: list = []  # the streams used, for the main stream to wait for
+
+    def launch(self, points: torch.Tensor, bounds) -> DistanceTransform | None:
+        """Queue the EDT of ``points`` (on a CUDA device) after the current stream's work."""
+        main = torch.cuda.current_stream(points.device)
+        if self.start is None:
+            self.start = torch.cuda.Event(enable_timing=True)
+            self.start.record(main)
+        st = _side_stream(points.device, f"dt{len(self.streams) % 4}")
+        st.wait_stream(main)  # the upload
+        with torch.cuda.stream(st):
+            d = _build_dt(points, self.cfg, bounds)
+        self.streams.append(st)
+        return d
 
     def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool) -> None:
         dev = points.device
         if dev.type != "cuda" or _serial_stages(dev) or is_target or i in self.cache or points.shape[0] == 0:
             return
-        if os.environ.get("FLOXELS_EARLY_DT", "1") == "0":  # measurements: EDTs after all uploads
+        if os.environ.get("FLOXELS_EARLY_DT", "1") == "0":
             return
-        main = torch.cuda.current_stream(dev)
-        if self.start is None:
-            self.start = torch.cuda.Event(enable_timing=True)
-            self.start.record(main)
-        st = _side_stream(dev, f"dt{len(self.streams) % 4}")
-        st.wait_stream(main)  # the upload
-        with torch.cuda.stream(st):
-            self.cache[i] = _build_dt(points, self.cfg, bounds)
-        self.streams.append(st)
+        self.cache[i] = self.launch(points, bounds)
 
 
 def _known_bounds(prep: PreparedScans, i: int):

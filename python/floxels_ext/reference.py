@@ -14,6 +14,7 @@ nearest border point and the gradient with respect to the clamped coordinate is 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -240,6 +241,15 @@ def dbscan(points: torch.Tensor, eps: float, min_samples: int) -> torch.Tensor:
     return labels.to(points.device)
 
 
+def cell_key(points: torch.Tensor, origin: Sequence[float], spacing: float, grid_shape: Sequence[int]) -> torch.Tensor:
+    """(N,) int64 lattice index (z * Y + y) * X + x of each point's cell: the clamped floor of
+    ``(p - origin) / spacing`` (the sort key of :func:`problem_setup`)."""
+    Z, Y, X = (int(s) for s in grid_shape)
+    o = torch.tensor([float(v) for v in origin], dtype=points.dtype, device=points.device)
+    ic = ((points - o) / spacing).floor().long()
+    return (ic[:, 2].clamp(0, Z - 1) * Y + ic[:, 1].clamp(0, Y - 1)) * X + ic[:, 0].clamp(0, X - 1)
+
+
 def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Sequence[float], spacing: float,
                   grid_shape: Sequence[int], tile: int):
     """The optimiser's per-target tables (``floxels::problem_setup``), step by step:
@@ -256,38 +266,19 @@ def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Seq
     Returns (order, sorted points, sorted labels (empty if None), corner_idx, corner_w,
     vertices, seg_ptr, vtx_ptr, vtx_entry, number of clusters).
     """
-    Z, Y, X = (int(s) for s in grid_shape)
-    n, dev, dt = points.shape[0], points.device, points.dtype
-    o = torch.tensor([float(v) for v in origin], dtype=dt, device=dev)
-    ic = ((points - o) / spacing).floor().long()
-    key = (ic[:, 2].clamp(0, Z - 1) * Y + ic[:, 1].clamp(0, Y - 1)) * X + ic[:, 0].clamp(0, X - 1)
+    # the corners and the segment tables as the Python path that the op replaced built them
+    from .ops.corners import compact_corners
+    from .ops.solver import _segments
+
+    n = points.shape[0]
+    key = cell_key(points, origin, spacing, grid_shape)
     if labels is not None:
-        key = (labels.long() + 1) * (Z * Y * X) + key
+        key = (labels.long() + 1) * math.prod(int(s) for s in grid_shape) + key
     order = torch.sort(key, stable=True).indices
     ps = points[order]
     lab = labels.long()[order] if labels is not None else None
-    size = torch.tensor([X, Y, Z], device=dev)
-    u = torch.minimum(((ps - o) / spacing).clamp_min(0), (size - 1).to(dt))
-    i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
-    t = u - i0.to(dt)
-    offs = torch.tensor([[cx, cy, cz] for cz in (0, 1) for cy in (0, 1) for cx in (0, 1)], device=dev)
-    idx = torch.minimum(i0[:, None, :] + offs, size - 1)
-    lin = (idx[..., 2] * Y + idx[..., 1]) * X + idx[..., 0]
-    wf = torch.where(offs.bool(), t[:, None, :], 1 - t[:, None, :])
-    w = wf[..., 0] * wf[..., 1] * wf[..., 2]
-    vertices, inverse = torch.unique(lin, sorted=True, return_inverse=True)
-    corner_idx = inverse.to(torch.int32)
-    new = torch.ones(n, dtype=torch.bool, device=dev)
-    new[1:] = (corner_idx[1:] != corner_idx[:-1]).any(1)
-    if lab is not None:
-        new[1:] |= lab[1:] != lab[:-1]
-    new[::tile] = True
-    first = torch.nonzero(new).reshape(-1)
-    seg_ptr = torch.cat([first, first.new_full((1,), n)]).to(torch.int32)
-    flat = corner_idx[first].reshape(-1).long()
-    vtx_entry = torch.sort(flat, stable=True).indices.to(torch.int32)
-    counts = torch.bincount(flat, minlength=vertices.shape[0])
-    vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32)
+    cc = compact_corners(ps, origin, spacing, grid_shape)
+    seg_ptr, vtx_ptr, vtx_entry = _segments(cc.corner_idx, lab, [0, n], cc.num_params, tile)
     ncl = int(lab.max()) + 1 if lab is not None and n else 0
-    return (order, ps, lab if lab is not None else order.new_empty(0), corner_idx, w, vertices, seg_ptr, vtx_ptr,
-            vtx_entry, max(ncl, 0))
+    return (order, ps, lab if lab is not None else order.new_empty(0), cc.corner_idx, cc.corner_w, cc.vertices,
+            seg_ptr, vtx_ptr, vtx_entry, max(ncl, 0))

@@ -170,12 +170,12 @@ class _Stager:
     buffer): allocating page-locked memory per frame would cost more than the copy."""
 
     def __init__(self) -> None:
-        self.free: dict = {}  # device index -> [(buffer, event or None)]
+        self.free: dict = {}  # device index -> [(buffer, event after its last upload)]
 
     def take(self, dev: torch.device, numel: int) -> torch.Tensor:
         pool = self.free.setdefault(_index(dev), [])
         for k, (buf, ev) in enumerate(pool):
-            if buf.numel() >= numel and (ev is None or ev.query()):
+            if buf.numel() >= numel and ev.query():
                 del pool[k]
                 return buf[:numel]
         return torch.empty(max(numel, 1 << 18), dtype=torch.float32, pin_memory=True)[:numel]
