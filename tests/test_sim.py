@@ -72,7 +72,7 @@ def test_flow_is_rigid_and_consistent_with_next_frame():
     scene = Scene("t", Track(0, 0, 0, 0))
     # car 15 m ahead driving a left arc; it stays inside the field of view
     scene.add((4.5, 1.9, 1.6), CAR, 15.0, 3.0, 0.3, 8.0, 0.5)
-    seq = simulate_sequence(scene, 2, seed=0, small=True, range_noise=0, dropout=0)
+    seq = simulate_sequence(scene, 2, seed=0, small=True, range_noise=0, dropout=0, vehicle_detail=False)
     dt = 0.1
     tr = scene.actors[0].track
     f = seq.frames[0]
@@ -177,3 +177,120 @@ def test_scene_layouts_are_collision_free(scene):
         np.fill_diagonal(hit, False)
         assert not hit.any()
         assert len({a.instance for a in fg}) == len(fg)
+
+
+# ----------------------------------------------------------------------------- vehicle detail
+def _union_surface_distance(q: np.ndarray, parts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: distance to the nearest part (0 on or in one) and depth inside the deepest part."""
+    rel = np.abs(q[:, None, :] - parts[None, :, :3]) - parts[None, :, 3:]  # (N, P, 3)
+    outside = np.linalg.norm(np.maximum(rel, 0), axis=-1).min(axis=1)
+    inside = np.maximum((-rel).min(axis=-1), 0).max(axis=1)
+    return outside, inside
+
+
+@pytest.mark.parametrize("size,cls,instance_pad", [((4.6, 1.9, 1.5), CAR, 0), ((4.6, 1.9, 1.5), CAR, 3),
+                                                   ((12.0, 2.55, 3.2), 2, 0), ((14.0, 2.5, 3.8), 2, 0)])
+def test_detailed_vehicle_flow_is_exact_rigid_motion_onto_its_surface(size, cls, instance_pad):
+    """Points of a moving vehicle shifted by their GT flow lie on the vehicle's surface at t + dt."""
+    from floxels_ext.sim import actor_parts
+
+    scene = Scene("t", Track(0, 0, 0, 0))
+    for i in range(instance_pad):  # parked far behind the sensor: picks the car shape (sedan/pickup)
+        scene.add((4.5, 1.9, 1.5), CAR, -60.0 - 6 * i, 30.0)
+    scene.add(size, cls, 4.0, 7.0, 0.2, 9.0, 0.3)  # passing on the left, turning
+    car = scene.actors[-1]
+    parts = actor_parts([car])[0]
+    assert parts is not None and len(parts) >= 12
+    dt = 0.1
+    for noise, tol in ((0.0, 1e-4), (0.02, 0.12)):
+        f = simulate_sequence(scene, 1, seed=0, range_noise=noise, dropout=0,
+                              beams=64, azimuth_steps=1024).frames[0]
+        sel = f.instance == car.instance
+        assert sel.sum() > 200
+        m0 = car.track.matrix(0.0, car.z + size[2] / 2)
+        m1 = car.track.matrix(dt, car.z + size[2] / 2)
+        p = f.points[sel].astype(np.float64)
+        local0 = (p - m0[:3, 3]) @ m0[:3, :3]
+        local1 = (p + f.flow[sel] - m1[:3, 3]) @ m1[:3, :3]
+        np.testing.assert_allclose(local0, local1, atol=1e-4)  # rigid: local coordinates kept
+        out, inside = _union_surface_distance(local1, parts)
+        assert out.max() < tol and inside.max() < tol  # on the surface of the parts' union
+
+
+def _side_depth_profile(vehicle_detail: bool):
+    """Depth (m behind the body side) of a parked sedan's near side, median per (x, z) cell."""
+    scene = Scene("t", Track(0, 0, 0, 0))
+    scene.add((4.6, 1.9, 1.5), CAR, 0.0, 7.0, 0.0)
+    f = simulate_sequence(scene, 1, seed=0, range_noise=0, dropout=0, vehicle_detail=vehicle_detail).frames[0]
+    p = f.points[f.classes == CAR]
+    depth = p[:, 1] - (7.0 - 0.95)
+    xs, zs = np.arange(-2.0, 2.01, 0.4), np.array([0.25, 0.55, 0.85, 1.15, 1.35])
+    prof = np.full((len(zs) - 1, len(xs) - 1), np.nan)
+    for i in range(len(zs) - 1):
+        for j in range(len(xs) - 1):
+            m = (p[:, 2] >= zs[i]) & (p[:, 2] < zs[i + 1]) & (p[:, 0] >= xs[j]) & (p[:, 0] < xs[j + 1])
+            if m.sum() >= 3:
+                prof[i, j] = np.median(depth[m])
+    return prof
+
+
+def test_vehicle_side_has_shape_features_along_and_across():
+    detailed, boxes = _side_depth_profile(True), _side_depth_profile(False)
+    assert np.nanmax(np.abs(boxes)) < 1e-3  # the old box: one flat plane
+    # along the car (the direction it would move in) the side is not flat: arches, pillars, hood
+    along = np.nanmax(detailed, axis=1) - np.nanmin(detailed, axis=1)
+    assert along.max() > 0.1
+    # and the vertical profile is not flat either: glass set back above the belt line
+    across = np.nanmax(detailed, axis=0) - np.nanmin(detailed, axis=0)
+    assert np.nanmedian(across) > 0.1
+
+
+def test_every_vehicle_gets_a_shape_within_its_margin():
+    from floxels_ext.sim.vehicles import parts_extent, vehicle_kind, vehicle_parts
+
+    kinds = set()
+    for name in SCENES:
+        s = sim.build_scene(name, np.random.default_rng(1), horizon=1.4)
+        for a in s.actors:
+            parts = vehicle_parts(a)
+            assert (parts is None) == (a.cls not in (1, 2))
+            if parts is None:
+                continue
+            kinds.add(vehicle_kind(a))
+            ext = parts_extent(parts)
+            half = np.array(a.size) / 2
+            assert np.all(ext[:2] <= half[:2] + 0.2) and ext[2] <= half[2] + 1e-9  # mirrors: < 0.3 m margin
+            assert np.all(parts[:, 3:] > 0)
+    assert kinds == {"sedan", "hatchback", "pickup", "van", "bus", "truck"}
+
+
+# sha-free summary of the box-only simulator's output before vehicle detail existed
+# (points/frame, sum |points|, sum |flow|, sum of instance ids), scenes at seed 1, small lidar
+_BOX_SIMULATOR = {
+    "urban": [(15308, 194657.77882508535, 539.5260246004909, 75226), (15463, 199387.71719753568, 683.7040632918943, 66988)],
+    "highway": [(13261, 192871.0989184392, 7425.030424118042, 15753), (13416, 198355.56794985404, 7941.003373861313, 18834)],
+    "parking": [(15025, 413773.28212736105, 18.396854209480807, 257453), (14951, 408364.75732494413, 17.708967722632224, 258082)],
+}
+
+
+@pytest.mark.parametrize("scene", sorted(_BOX_SIMULATOR))
+def test_vehicle_detail_false_reproduces_the_box_simulator(scene):
+    seq = simulate_sequence(scene, 2, seed=1, small=True, vehicle_detail=False)
+    assert seq.meta["vehicle_detail"] is False and seq.meta["lidar"]["range_noise"] == sim.LEGACY_RANGE_NOISE
+    for f, (n, ps, fs, inst) in zip(seq.frames, _BOX_SIMULATOR[scene]):
+        assert len(f) == n and int(f.instance.sum()) == inst
+        assert float(np.abs(f.points.astype(np.float64)).sum()) == pytest.approx(ps, rel=1e-9)
+        assert float(np.abs(f.flow.astype(np.float64)).sum()) == pytest.approx(fs, rel=1e-7)
+    detailed = simulate_sequence(scene, 1, seed=1, small=True)
+    assert detailed.meta["vehicle_detail"] is True and detailed.meta["lidar"]["range_noise"] == 0.02
+    assert len(detailed.frames[0]) != _BOX_SIMULATOR[scene][0][0]
+
+
+def test_cli_simulate_boxes_flag(tmp_path, capsys):
+    from floxels_ext import cli
+
+    assert cli.main(["simulate", str(tmp_path / "b"), "--scene", "highway", "--seed", "1", "--frames", "1",
+                     "--small", "--boxes"]) == 0
+    f = read_frame(tmp_path / "b" / "000000.npz")
+    assert len(f) == _BOX_SIMULATOR["highway"][0][0]
+    assert load_sequence(tmp_path / "b").meta["vehicle_detail"] is False

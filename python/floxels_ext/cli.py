@@ -57,8 +57,11 @@ def _add_simulate(sub) -> None:
     p.add_argument("--beams", type=int, help="number of lidar beams (default 64)")
     p.add_argument("--azimuth-steps", type=int, help="firings per revolution (default 2048)")
     p.add_argument("--max-range", type=float, help="metres (default 70)")
-    p.add_argument("--range-noise", type=float, help="range noise std-dev in metres (default 0.015)")
+    p.add_argument("--range-noise", type=float, help="range noise std-dev in metres (default 0.02; 0.015 with --boxes)")
     p.add_argument("--dropout", type=float, help="probability of losing a return (default 0.05)")
+    p.add_argument("--boxes", "--no-vehicle-detail", dest="vehicle_detail", action="store_false",
+                   help="vehicles as plain boxes, as the simulator made them before vehicle detail "
+                        "(reproduces earlier output)")
     p.add_argument("--force", action="store_true", help="replace frames already in OUT_DIR")
     p.set_defaults(func=_run_simulate)
 
@@ -80,7 +83,8 @@ def _run_simulate(args) -> int:
                               ("dropout", args.dropout)) if v is not None}
     t0 = time.perf_counter()
     try:
-        seq = simulate_sequence(args.scene, args.frames, args.seed, small=args.small, **opts)
+        seq = simulate_sequence(args.scene, args.frames, args.seed, small=args.small,
+                                vehicle_detail=args.vehicle_detail, **opts)
     except ValueError as e:  # invalid lidar settings
         raise CLIError(str(e)) from None
     for p in old:

@@ -23,7 +23,7 @@ class LidarConfig:
     fov_down: float = -25.0  # degrees (bottom beam)
     max_range: float = 70.0  # metres; rays hitting nothing closer return no point
     min_range: float = 2.0  # metres; closer returns are discarded, like a real sensor's blind zone
-    range_noise: float = 0.015  # std-dev of gaussian range noise, metres
+    range_noise: float = 0.02  # std-dev of gaussian range noise along the ray, metres
     dropout: float = 0.05  # probability that a return is randomly lost
     sensor_height: float = 1.8  # metres above the ground plane
     rate_hz: float = 10.0  # scans per second (frame spacing dt = 1 / rate_hz)
@@ -54,11 +54,17 @@ SMALL_LIDAR = {"beams": 32, "azimuth_steps": 512}
 
 @dataclass
 class BoxSet:
-    """Oriented boxes (yaw only) at one instant: centre (B,3), half extents (B,3), yaw (B,)."""
+    """Oriented boxes (yaw only) at one instant: centre (B,3), half extents (B,3), yaw (B,).
+
+    ``parts`` (optional, one entry per box): None for a plain box, or a ``(P, 6)`` array of
+    axis-aligned parts in the box's frame (centre offset, half extents; see ``vehicles.py``);
+    a ray then hits the box where it first hits one of its parts, and ``half`` must hold them all.
+    """
 
     center: np.ndarray
     half: np.ndarray
     yaw: np.ndarray
+    parts: list | None = None
 
     def __len__(self) -> int:
         return int(self.center.shape[0])
@@ -99,6 +105,21 @@ def _box_ray_window(cfg, el, az_world, origin, c, h, yaw):
     if r1 <= r0:
         return None
     return slice(r0, r1), cols
+
+
+def _first_part_hit(lo: np.ndarray, inv: np.ndarray, parts: np.ndarray) -> np.ndarray:
+    """Nearest entry distance of rays (origin ``lo``, inverse directions ``inv`` (..., 3), both in
+    the box frame) into any of ``parts`` (P, 6); inf where a ray misses them all."""
+    lo_p = lo[None, :] - parts[:, :3]  # ray origin relative to each part centre, (P, 3)
+    shape = (parts.shape[0],) + (1,) * (inv.ndim - 1) + (3,)
+    h = parts[:, 3:].reshape(shape)
+    o = lo_p.reshape(shape)
+    t1 = (-h - o) * inv[None]
+    t2 = (h - o) * inv[None]
+    tnear = np.minimum(t1, t2).max(axis=-1)
+    tfar = np.maximum(t1, t2).min(axis=-1)
+    tnear = np.where((tnear <= tfar) & (tnear > 0), tnear, np.inf)
+    return tnear.min(axis=0)
 
 
 def cast_scan(cfg: LidarConfig, origin: np.ndarray, sensor_yaw: float, boxes: BoxSet):
@@ -146,8 +167,13 @@ def cast_scan(cfg: LidarConfig, origin: np.ndarray, sensor_yaw: float, boxes: Bo
         t2 = (h - lo) * inv
         tnear = np.minimum(t1, t2).max(axis=-1)
         tfar = np.maximum(t1, t2).min(axis=-1)
+        hit_any = (tnear <= tfar) & (tnear > 0)
+        parts = boxes.parts[k] if boxes.parts is not None else None
+        if parts is not None and hit_any.any():  # only rays through the bounding box can hit a part
+            tnear[hit_any] = _first_part_hit(lo, inv[hit_any], parts)
+            hit_any &= np.isfinite(tnear)
         cur = t[rows, cols]
-        better = (tnear <= tfar) & (tnear > 0) & (tnear < cur)
+        better = hit_any & (tnear < cur)
         if not better.any():
             continue
         t[rows, cols] = np.where(better, tnear, cur)
