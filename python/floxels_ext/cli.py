@@ -14,9 +14,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
-import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -25,7 +22,7 @@ from typing import Callable
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 
 # Modules with an ``add_parser(subparsers)`` function, added after the built-in commands.
-SUBCOMMAND_MODULES: list[str] = ["floxels_ext.demo", "floxels_ext.run", "floxels_ext.accumulate", "floxels_ext.show"]
+SUBCOMMAND_MODULES: list[str] = ["floxels_ext.eval_cli", "floxels_ext.demo", "floxels_ext.run", "floxels_ext.accumulate", "floxels_ext.show"]
 _EXTRA: list[Callable] = []
 
 
@@ -97,100 +94,8 @@ def _run_simulate(args) -> int:
     return 0
 
 
-# ----------------------------------------------------------------------------- eval
-def _add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="score predicted flows against ground truth",
-                       description="Compare PRED_DIR/NNNNNN.npz ('flow', same point order) with GT_DIR/NNNNNN.npz "
-                                   "('flow', optional 'classes', 'dynamic', 'ground') and print all metrics.")
-    p.add_argument("pred_dir", metavar="PRED_DIR")
-    p.add_argument("gt_dir", metavar="GT_DIR")
-    p.add_argument("--json", metavar="FILE", help="also write the metrics as JSON")
-    p.add_argument("--include-ground", action="store_true", help="also score ground points (excluded by default)")
-    p.set_defaults(func=_run_eval)
-
-
-def load_eval_pair(pred_dir, gt_dir):
-    """Ground-truth frames and matching predicted flows; errors name the offending file."""
-    import numpy as np
-
-    from . import seqio
-
-    for d, what in ((pred_dir, "prediction"), (gt_dir, "ground-truth")):
-        if not Path(d).is_dir():
-            exists = Path(d).exists()
-            raise CLIError(f"{d} is not a directory" if exists else f"{what} directory {d} does not exist")
-    gt_paths = seqio.list_frames(gt_dir)
-    pred_paths = seqio.list_frames(pred_dir)
-    if len(pred_paths) > len(gt_paths):
-        raise CLIError(f"{pred_dir} has {len(pred_paths)} frames but {gt_dir} only {len(gt_paths)}; "
-                       f"no ground truth for {pred_paths[len(gt_paths)]}")
-    frames, preds = [], []
-    for i, gp in enumerate(gt_paths):
-        gt = seqio.read_frame(gp, require=("points", "flow"))
-        pp = seqio.frame_path(pred_dir, i)
-        if not pp.is_file():
-            raise CLIError(f"missing predicted frame {pp} (ground truth {gp} exists)")
-        pred = seqio.read_frame(pp, require=("flow",))
-        flow = pred.flow if isinstance(pred, seqio.Frame) else pred["flow"]
-        if flow.shape[0] != len(gt):
-            raise CLIError(f"{pp}: 'flow' has {flow.shape[0]} points but {gp} has {len(gt)}")
-        frames.append(gt)
-        preds.append(np.asarray(flow, dtype=np.float64))
-    return preds, frames
-
-
-def _fmt(v, pct=False) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "-"
-    return f"{100 * v:.2f}%" if pct else f"{v:.4f}"
-
-
-def format_metrics(m: dict) -> str:
-    """Human-readable tables of ``metrics.evaluate_sequence`` output."""
-    lines = [f"{m['num_frames']} frames, {m['num_points']} points "
-             f"({m['dynamic_count']} dynamic, {m['static_count']} static)", ""]
-    lines.append(f"{'subset':<10}{'EPE (m)':>10}{'Acc5':>10}{'Acc10':>10}{'Outliers':>10}{'Angle(rad)':>12}")
-    for s in ("dynamic", "static"):
-        lines.append(f"{s:<10}{_fmt(m[s + '_epe']):>10}{_fmt(m[s + '_acc5'], True):>10}"
-                     f"{_fmt(m[s + '_acc10'], True):>10}{_fmt(m[s + '_outliers'], True):>10}"
-                     f"{_fmt(m[s + '_angle']):>12}")
-    tw = m["threeway_epe"]
-    groups = ("foreground_dynamic", "foreground_static", "background", "mean")
-    lines += ["", "three-way EPE (m): " + ", ".join(f"{k.replace('_', ' ')} {_fmt(tw[k])}" for k in groups)]
-    lines += ["", f"{'class (AV2 2024)':<18}{'static EPE':>12}{'dyn. norm. EPE':>16}"]
-    for c, dn in m["dynamic_normalized_epe"].items():
-        lines.append(f"{c:<18}{_fmt(m['static_epe_per_class'][c]):>12}{_fmt(dn):>16}")
-    lines.append(f"{'mean':<18}{_fmt(m['mean_static_epe']):>12}{_fmt(m['mean_dynamic_normalized_epe']):>16}")
-    return "\n".join(lines)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, float) and math.isnan(x):
-        return None  # JSON has no NaN
-    return x
-
-
-def _run_eval(args) -> int:
-    from .metrics import evaluate_sequence
-
-    preds, frames = load_eval_pair(args.pred_dir, args.gt_dir)
-    m = evaluate_sequence(preds, frames, include_ground=args.include_ground)
-    print(format_metrics(m))
-    if args.json:
-        path = Path(args.json)
-        if path.parent and not path.parent.is_dir():
-            raise CLIError(f"cannot write {path}: directory {path.parent} does not exist")
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(_jsonable(m), indent=2) + "\n")
-        os.replace(tmp, path)
-        print(f"\nwrote {path}")
-    return 0
-
-
 # ----------------------------------------------------------------------------- main
-_BUILTIN = [_add_simulate, _add_eval]
+_BUILTIN = [_add_simulate]
 
 
 def build_parser() -> argparse.ArgumentParser:
