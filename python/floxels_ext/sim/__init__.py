@@ -57,6 +57,7 @@ __all__ = [
     "write_frame",
     "DYNAMIC_THRESHOLD",
     "LEGACY_RANGE_NOISE",
+    "actor_parts",
 ]
 
 DYNAMIC_THRESHOLD = 0.05  # metres per frame
