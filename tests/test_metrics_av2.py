@@ -157,4 +157,4 @@ def test_cli_eval_av2_categories_and_box(av2, tmp_path, capsys):
     (gt / "sequence.json").unlink()
     assert cli.main(["eval", str(pred), str(gt)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("floxels: error: ") and "classes" in err
+    assert err.startswith("floxels: error: ") and "classes" in err and "--categories av2" in err

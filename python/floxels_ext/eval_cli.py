@@ -80,7 +80,13 @@ def _read_gt(path: Path, raw_classes: bool):
     from . import seqio
 
     if not raw_classes:
-        return seqio.read_frame(path, require=("points", "flow"))
+        try:
+            return seqio.read_frame(path, require=("points", "flow"))
+        except seqio.SequenceFormatError as e:
+            if "'classes'" in str(e):
+                raise CLIError(f"{e}; if these are dataset categories, pass --categories av2 "
+                               f"or --categories MAP.json") from None
+            raise
     if not path.is_file():
         raise CLIError(f"missing frame file {path}")
     try:
