@@ -6,6 +6,7 @@
 #include <c10/util/Exception.h>
 
 #include <charconv>
+#include <cmath>
 #include <concepts>
 #include <string>
 #include <string_view>
@@ -86,11 +87,14 @@ inline void check_same_dtype(const at::Tensor& a, const at::Tensor& b, std::stri
 inline void check_origin(c10::ArrayRef<double> origin, std::string_view name = "origin") {
   FLX_CHECK(origin.size() == 3, "floxels: ", name, " must have 3 values [x0, y0, z0], got ",
               origin.size());
+  for (double v : origin) FLX_CHECK(std::isfinite(v), "floxels: ", name, " must be finite, got ", origin);
 }
 
+// Bounded away from 0 and inf so that 1 / spacing and (p - o) / spacing stay meaningful in
+// float32 (a spacing that rounds to 0 in float32 would turn finite points into NaN).
 inline void check_spacing(double spacing) {
-  FLX_CHECK(spacing > 0.0 && spacing < 1e30, "floxels: spacing must be positive and finite, got ",
-              spacing);
+  FLX_CHECK(spacing >= 1e-30 && spacing <= 1e30,
+            "floxels: spacing must be positive and finite (1e-30 <= spacing <= 1e30), got ", spacing);
 }
 
 inline void check_grid_shape(c10::ArrayRef<int64_t> shape) {

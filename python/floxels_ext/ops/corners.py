@@ -82,7 +82,12 @@ class CompactCorners:
 def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: float,
                     grid_shape: Sequence[int]) -> CompactCorners:
     """Trilinear corners of ``points`` on the lattice (same clamping as trilinear_gather),
-    renumbered densely over the vertices actually touched."""
+    renumbered densely over the vertices actually touched.
+
+    ``points`` must be finite (the estimator drops NaN/inf rows first; ``problem_setup``
+    refuses them). A non-finite row still gets in-range corners (NaN clamps to the lower
+    corner, +-inf to the border), never an invalid index, but its weights are meaningless.
+    """
     Z, Y, X = (int(s) for s in grid_shape)
     dev, dt = points.device, points.dtype
     # All 8 corners at once (a dozen kernels instead of ~120 small ones: this runs once per
@@ -91,7 +96,9 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
     size = torch.tensor([X, Y, Z]).to(dev, non_blocking=True)
     o = torch.tensor([float(v) for v in origin], dtype=dt).to(dev, non_blocking=True)
     hi = (size - 1).to(dt)
-    u = torch.minimum(((points - o) / spacing).clamp_min(0), hi)
+    # clamped in floating point before any conversion to an index; fmax/fmin (unlike
+    # clamp/minimum) send NaN to the bound instead of propagating it
+    u = torch.fmin(torch.fmax((points - o) / spacing, hi.new_zeros(())), hi)
     i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
     t = u - i0.to(dt)
     offs = _CORNER_OFFSETS.to(dev, non_blocking=True)                 # (8, 3): x fastest, then y, then z
