@@ -220,8 +220,7 @@ char* aligned_data(void* base) {
 }
 
 at::Tensor fresh_zeros(at::IntArrayRef sizes, const at::TensorOptions& opts) {
-  int64_t numel = 1;
-  for (auto s : sizes) numel *= s;
+  const int64_t numel = checked_numel(sizes, "output grid");  // <= 2^60: nbytes cannot wrap
   const size_t nbytes = static_cast<size_t>(numel) * c10::elementSize(c10::typeMetaToScalarType(opts.dtype()));
   if (nbytes >= 2 * kHugePage) {
     const size_t len = (nbytes + kHugePage - 1) / kHugePage * kHugePage + kHugePage;  // + slack to align

@@ -1,8 +1,10 @@
 """Argument checks for the public Python wrappers (the C++ side re-checks dtype/shape/device).
 
-Finite-ness is checked here, not in the kernels: it costs a reduction (and a host sync on
-CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly on
-already-validated tensors, must not pay every iteration.
+The wrappers refuse NaN/inf points with a ValueError. That check costs a reduction (and a
+host sync on CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly
+on already-validated tensors, must not pay every iteration; the raw ops instead follow the
+non-finite contract of README "Op reference" (NaN gather rows, scatters ignore the point,
+losses become NaN), tested in tests/test_ops_nonfinite.py.
 """
 
 from __future__ import annotations
@@ -36,8 +38,8 @@ def as_origin(origin: Sequence[float], name: str = "origin") -> list[float]:
 
 def as_spacing(spacing: float, name: str = "spacing") -> float:
     s = float(spacing)
-    if not (s > 0 and s < float("inf")):
-        raise ValueError(f"{name} must be positive and finite, got {spacing}")
+    if not (1e-30 <= s <= 1e30):  # the ops' bounds (csrc/common/check.h check_spacing)
+        raise ValueError(f"{name} must be positive and finite (1e-30 <= {name} <= 1e30), got {spacing}")
     return s
 
 
