@@ -14,6 +14,13 @@ from collections.abc import Sequence
 import torch
 
 
+def require_tensors(**named) -> None:
+    """TypeError naming the first argument that is not a torch.Tensor."""
+    for name, t in named.items():
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+
+
 def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
     if not isinstance(points, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(points).__name__}")
@@ -28,7 +35,10 @@ def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
 
 
 def as_origin(origin: Sequence[float], name: str = "origin") -> list[float]:
-    vals = [float(v) for v in (origin.tolist() if isinstance(origin, torch.Tensor) else origin)]
+    try:
+        vals = [float(v) for v in (origin.tolist() if isinstance(origin, torch.Tensor) else origin)]
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be 3 numbers [x0, y0, z0], got {origin!r}") from exc
     if len(vals) != 3:
         raise ValueError(f"{name} must have 3 values [x0, y0, z0], got {len(vals)}")
     if not all(abs(v) < float("inf") for v in vals):
@@ -37,7 +47,10 @@ def as_origin(origin: Sequence[float], name: str = "origin") -> list[float]:
 
 
 def as_spacing(spacing: float, name: str = "spacing") -> float:
-    s = float(spacing)
+    try:
+        s = float(spacing)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a number, got {spacing!r}") from exc
     if not (1e-30 <= s <= 1e30):  # the ops' bounds (csrc/common/check.h check_spacing)
         raise ValueError(f"{name} must be positive and finite (1e-30 <= {name} <= 1e30), got {spacing}")
     return s

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import same_device
+from ._checks import require_tensors, same_device
 from ._lib import ops_ns
 
 
@@ -59,6 +59,7 @@ torch.library.register_autograd("floxels::cluster_consistency_loss", _loss_backw
 
 
 def _check(values, labels, num_clusters, name="values"):
+    require_tensors(**{name: values, "labels": labels})
     if values.dim() != 2:
         raise ValueError(f"{name} must be (N, C), got {tuple(values.shape)}")
     if values.dtype not in (torch.float32, torch.float64):

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ._checks import require_tensors
 from ._lib import ops_ns
 
 
@@ -114,12 +115,16 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
 
 
 def corner_gather(params: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor) -> torch.Tensor:
-    """(N, C) = sum_j corner_w[:, j] * params[corner_idx[:, j]]; differentiable in params."""
+    """(N, C) = sum_j corner_w[:, j] * params[corner_idx[:, j]]; differentiable in params.
+    Non-finite params or weights propagate (NaN/inf in the rows they touch)."""
+    require_tensors(params=params, corner_idx=corner_idx, corner_w=corner_w)
     return ops_ns.corner_gather(params.contiguous(), corner_idx.contiguous(), corner_w.contiguous())
 
 
 def corner_scatter(values: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor,
                    num_params: int) -> torch.Tensor:
-    """Adjoint of :func:`corner_gather`: (num_params, C) sums of weighted values."""
+    """Adjoint of :func:`corner_gather`: (num_params, C) sums of weighted values. Non-finite
+    values or weights propagate into the rows they touch."""
+    require_tensors(values=values, corner_idx=corner_idx, corner_w=corner_w)
     return ops_ns.corner_scatter(values.contiguous(), corner_idx.contiguous(), corner_w.contiguous(),
                                  int(num_params))

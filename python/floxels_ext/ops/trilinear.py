@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ._checks import as_origin, as_points, as_spacing, same_device
+from ._checks import as_origin, as_points, as_spacing, require_tensors, same_device
 from ._lib import ops_ns
 
 
@@ -88,6 +88,7 @@ def trilinear_scatter(values: torch.Tensor, points: torch.Tensor, origin: Sequen
                       grid_shape: Sequence[int]) -> torch.Tensor:
     """Adjoint of :func:`trilinear_gather`: accumulate ``values`` (N, C) into a zero (C, Z, Y, X) grid."""
     points = as_points(points)
+    require_tensors(values=values)
     if values.dim() != 2 or values.shape[0] != points.shape[0]:
         raise ValueError(f"values must be (N, C) with N={points.shape[0]}, got {tuple(values.shape)}")
     if values.dtype != points.dtype:
