@@ -85,7 +85,9 @@ def cluster_mean(values: torch.Tensor, labels: torch.Tensor, num_clusters: int) 
 
 
 def cluster_consistency_loss(flow: torch.Tensor, labels: torch.Tensor, num_clusters: int) -> torch.Tensor:
-    """``(1/N) sum_i ||f_i - mean flow of cluster(i)||`` (noise adds 0; gradient 0 where the norm is 0)."""
+    """``(1/N) sum_i ||f_i - mean flow of cluster(i)||`` (noise adds 0; gradient 0 where the norm is 0).
+
+    A non-finite flow in a cluster makes the loss NaN (its cluster's gradient rows: 0 or NaN)."""
     return ops_ns.cluster_consistency_loss(*_check(flow, labels, num_clusters, "flow"))
 
 
