@@ -179,9 +179,10 @@ def test_bad_inputs():
         OPS.trilinear_gather_backward(torch.zeros(3, 2), grid, pts, [0.0, 0.0, 0.0], 1.0, True, True)
     with pytest.raises(RuntimeError, match="spacing"):
         OPS.trilinear_scatter(torch.zeros(4, 2), pts, [0.0, 0.0, 0.0], -1.0, [3, 4, 5])
-    # NaN through the raw op (no wrapper check) must stay in bounds
+    # NaN through the raw op (no wrapper check) stays in bounds and gives NaN rows
+    # (the full contract: tests/test_ops_nonfinite.py)
     out = OPS.trilinear_gather(grid, torch.full((2, 3), float("nan")), [0.0, 0.0, 0.0], 1.0)
-    assert out.shape == (2, 2)
+    assert out.shape == (2, 2) and torch.isnan(out).all()
 
 
 @pytest.mark.cuda

@@ -6,6 +6,7 @@
 #include <c10/util/Exception.h>
 
 #include <charconv>
+#include <cmath>
 #include <concepts>
 #include <string>
 #include <string_view>
@@ -86,17 +87,33 @@ inline void check_same_dtype(const at::Tensor& a, const at::Tensor& b, std::stri
 inline void check_origin(c10::ArrayRef<double> origin, std::string_view name = "origin") {
   FLX_CHECK(origin.size() == 3, "floxels: ", name, " must have 3 values [x0, y0, z0], got ",
               origin.size());
+  for (double v : origin) FLX_CHECK(std::isfinite(v), "floxels: ", name, " must be finite, got ", origin);
 }
 
+// Bounded away from 0 and inf so that 1 / spacing and (p - o) / spacing stay meaningful in
+// float32 (a spacing that rounds to 0 in float32 would turn finite points into NaN).
 inline void check_spacing(double spacing) {
-  FLX_CHECK(spacing > 0.0 && spacing < 1e30, "floxels: spacing must be positive and finite, got ",
-              spacing);
+  FLX_CHECK(spacing >= 1e-30 && spacing <= 1e30,
+            "floxels: spacing must be positive and finite (1e-30 <= spacing <= 1e30), got ", spacing);
+}
+
+// Number of elements of `sizes` (entries >= 0), refusing a product above 2^60 (or one that
+// overflows): a wrapped size would under-allocate and the kernels would write out of bounds.
+inline int64_t checked_numel(c10::ArrayRef<int64_t> sizes, std::string_view name) {
+  int64_t n = 1;
+  for (auto s : sizes) {
+    FLX_CHECK(s >= 0, "floxels: ", name, " has a negative size: ", sizes);
+    FLX_CHECK(!__builtin_mul_overflow(n, s, &n) && n <= (int64_t(1) << 60), "floxels: ", name, " ", sizes,
+              " has too many elements");
+  }
+  return n;
 }
 
 inline void check_grid_shape(c10::ArrayRef<int64_t> shape) {
   FLX_CHECK(shape.size() == 3, "floxels: grid_shape must be (Z, Y, X), got ", shape.size(),
               " values");
   for (auto s : shape) FLX_CHECK(s >= 1, "floxels: grid_shape entries must be >= 1, got ", shape);
+  checked_numel(shape, "grid_shape");
 }
 
 }  // namespace floxels

@@ -5,6 +5,9 @@
 // atomics); the loss is reduced deterministically (fixed chunking that depends on N
 // only, per-chunk partial sums in double, chunks summed in order), so the result does
 // not depend on the number of threads. Nothing is allocated besides the outputs.
+// A row whose point or flow has a NaN/inf coordinate makes the loss NaN and gets a zero
+// gradient row (README "Op reference"); the solver, which calls dt_loss::point_loss on
+// rows that are finite by construction, does not pay for that test.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -19,6 +22,7 @@
 
 #include "cpu/dt_loss_args.h"
 #include "kernels/dt_loss.h"
+#include "kernels/finite.h"
 
 namespace floxels {
 namespace {
@@ -65,9 +69,14 @@ void run(const at::Tensor& points, const at::Tensor& flow, const std::vector<at:
       for (int64_t i = c * chunk; i < i_end; ++i) {
         const T* pi = p + 3 * i;
         const T* fi = f + 3 * i;
-        const T l = dt_loss::point_loss<kGrad, T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], fi[0],
-                                                           fi[1], fi[2], inv_spacing, trunc,
-                                                           kGrad ? grad_out + 3 * i : nullptr);
+        T* gi = kGrad ? grad_out + 3 * i : nullptr;
+        T l = dt_loss::point_loss<kGrad, T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], fi[0], fi[1], fi[2],
+                                                     inv_spacing, trunc, gi);
+        // Non-finite point or flow row: the loss shows it (NaN), its gradient row is 0.
+        if (!finite3(pi[0], pi[1], pi[2]) || !finite3(fi[0], fi[1], fi[2])) [[unlikely]] {
+          l = quiet_nan<T>();
+          if constexpr (kGrad) gi[0] = gi[1] = gi[2] = T(0);
+        }
         if (kLoss) acc += static_cast<double>(l);
       }
       partial[c] = acc;

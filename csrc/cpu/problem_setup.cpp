@@ -12,10 +12,14 @@
 // its (segment * 8 + corner) entries in segment order.
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/_unique2.h>
+#include <ATen/ops/all.h>
 #include <ATen/ops/arange.h>
 #include <ATen/ops/cat.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/fmax.h>
+#include <ATen/ops/fmin.h>
 #include <ATen/ops/full_like.h>
+#include <ATen/ops/isfinite.h>
 #include <ATen/ops/minimum.h>
 #include <ATen/ops/ones.h>
 #include <ATen/ops/ones_like.h>
@@ -60,10 +64,9 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
             points_in.sizes());
   FLX_CHECK(points_in.is_floating_point(), "floxels: problem_setup: points must be float32/float64, got ",
             points_in.scalar_type());
-  FLX_CHECK(origin.size() == 3, "floxels: problem_setup: origin must have 3 values, got ", int64_t(origin.size()));
-  FLX_CHECK(grid_shape.size() == 3 && grid_shape[0] >= 1 && grid_shape[1] >= 1 && grid_shape[2] >= 1,
-            "floxels: problem_setup: grid_shape must be 3 positive sizes [Z, Y, X]");
-  FLX_CHECK(spacing > 0.0, "floxels: problem_setup: spacing must be > 0, got ", spacing);
+  check_origin(origin);
+  check_grid_shape(grid_shape);
+  check_spacing(spacing);
   FLX_CHECK(tile >= 1, "floxels: problem_setup: tile must be >= 1, got ", tile);
   const int64_t Z = grid_shape[0], Y = grid_shape[1], X = grid_shape[2];
   const int64_t cells = Z * Y * X;
@@ -85,11 +88,25 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
             at::empty({0}, i32), 0};
   }
 
-  // 1. order: by (cluster, cell). The cell of a point, as estimator._voxel_key.
+  // Lattice coordinates (p - o) / spacing clamped to [0, hi] in floating point before any
+  // conversion to an index: fmax/fmin send NaN to 0 and +-inf to the border, so a bad point
+  // can never make an out-of-range index (on CUDA, a device-side assert); a float -> int
+  // conversion of a huge value would be undefined. Non-finite points are then refused after
+  // the one host synchronisation below (`finite`), at no extra synchronisation.
   const Tensor o = host_values({origin[0], origin[1], origin[2]}, P.scalar_type(), dev);
-  const Tensor ic = P.sub(o).div(spacing).floor().to(at::kLong);
-  Tensor key = ic.select(1, 2).clamp(0, Z - 1).mul(Y).add(ic.select(1, 1).clamp(0, Y - 1)).mul(X).add(
-      ic.select(1, 0).clamp(0, X - 1));
+  const Tensor size = host_values({double(X), double(Y), double(Z)}, at::kLong, dev);
+  const Tensor hi = size.sub(1).to(P.scalar_type());
+  const Tensor zero = host_values({0.0}, P.scalar_type(), dev);
+  auto clamped = [&](const Tensor& pts, bool floored) {
+    Tensor u = pts.sub(o).div(spacing);
+    if (floored) u = u.floor();
+    return at::fmin(at::fmax(u, zero), hi);
+  };
+  const Tensor finite = at::isfinite(P).all();
+
+  // 1. order: by (cluster, cell). The cell of a point, as reference.cell_key.
+  const Tensor ic = clamped(P, true).to(at::kLong);
+  Tensor key = ic.select(1, 2).mul(Y).add(ic.select(1, 1)).mul(X).add(ic.select(1, 0));
   Tensor order;
   if (lab.defined() && (n + 1) < (int64_t(1) << 62) / cells) {  // labels < n: (label + 1) * cells fits
     order = std::get<1>(stable_sort(lab.add(1).mul(cells).add(key)));
@@ -101,9 +118,7 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
   const Tensor lab_s = lab.defined() ? lab.index_select(0, order) : Tensor();
 
   // 2. corners and weights, as ops/corners.py compact_corners (same arithmetic, same dtype)
-  const Tensor size = host_values({double(X), double(Y), double(Z)}, at::kLong, dev);
-  const Tensor hi = size.sub(1).to(P.scalar_type());
-  const Tensor u = at::minimum(Ps.sub(o).div(spacing).clamp_min(0), hi);
+  const Tensor u = clamped(Ps, false);
   const Tensor i0 = at::minimum(u.floor().to(at::kLong), size.sub(2).clamp_min(0));
   const Tensor t = u.sub(i0.to(P.scalar_type()));
   std::vector<double> off;
@@ -146,9 +161,13 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
   const Tensor num_clusters = lab_s.defined() ? lab_s.max().add(1).clamp_min(0) : at::zeros({}, i64);
 
   // the one host synchronisation: sizes of what follows
-  const Tensor sizes = at::stack({num_vertices.reshape({}), seg_incl.select(0, n - 1), num_clusters.reshape({})}).cpu();
+  const Tensor sizes = at::stack({num_vertices.reshape({}), seg_incl.select(0, n - 1), num_clusters.reshape({}),
+                                  finite.to(at::kLong)})
+                            .cpu();
   const int64_t M = sizes.data_ptr<int64_t>()[0], S = sizes.data_ptr<int64_t>()[1];
   const int64_t ncl = sizes.data_ptr<int64_t>()[2];
+  FLX_CHECK(sizes.data_ptr<int64_t>()[3] == 1,
+            "floxels: problem_setup: points must be finite (found NaN/inf coordinates); drop those rows first");
   FLX_CHECK(M < (int64_t(1) << 31), "floxels: problem_setup: too many touched voxel corners for int32 indexing");
   if (dense) {
     vertices = at::empty({M}, i64);  // each row's lattice index (duplicates write the same value)

@@ -9,6 +9,8 @@
 //     range [a, b) writes only rows [a, b) + (dz * Y + dy), so threads never collide.
 // Each voxel therefore always receives its contributions in the same order whatever the
 // thread count, and the sorted writes sweep the grid nearly sequentially (cache friendly).
+// Points with a NaN/inf coordinate are ignored by the scatter and give NaN gather rows
+// (kernels/trilinear.h).
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -69,6 +71,7 @@ void scatter_into(T* out, const T* values, int64_t C, const T* pts, int64_t N, c
   if (N < kSerialScatter || nthreads == 1) {
     for (int64_t i = 0; i < N; ++i) {
       const auto c = cell_of(pts + 3 * i, g);
+      if (!c.ok) continue;  // non-finite point: ignored
       const T* v = values + i * C;
       for (int dz = 0; dz < 2; ++dz)
         for (int dy = 0; dy < 2; ++dy) {
@@ -123,7 +126,8 @@ void scatter_into(T* out, const T* values, int64_t C, const T* pts, int64_t N, c
         st[3 * pos] = c.tx;
         st[3 * pos + 1] = c.ty;
         st[3 * pos + 2] = c.tz;
-        for (int64_t ch = 0; ch < C; ++ch) sval[pos * C + ch] = values[i * C + ch];
+        // a non-finite point is ignored: it adds exact zeros (its clamped weights are finite)
+        for (int64_t ch = 0; ch < C; ++ch) sval[pos * C + ch] = c.ok ? values[i * C + ch] : T(0);
       }
     }
   });
@@ -216,8 +220,7 @@ char* aligned_data(void* base) {
 }
 
 at::Tensor fresh_zeros(at::IntArrayRef sizes, const at::TensorOptions& opts) {
-  int64_t numel = 1;
-  for (auto s : sizes) numel *= s;
+  const int64_t numel = checked_numel(sizes, "output grid");  // <= 2^60: nbytes cannot wrap
   const size_t nbytes = static_cast<size_t>(numel) * c10::elementSize(c10::typeMetaToScalarType(opts.dtype()));
   if (nbytes >= 2 * kHugePage) {
     const size_t len = (nbytes + kHugePage - 1) / kHugePage * kHugePage + kHugePage;  // + slack to align

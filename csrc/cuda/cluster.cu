@@ -64,7 +64,7 @@ __global__ void residual_kernel(const T* __restrict__ f, const int64_t* __restri
         const T d = f[i * C + c] - sums[key * C + c] * inv;
         sq += d * d;
       }
-      norm = sq > T(0) ? sqrt(sq) : T(0);
+      norm = sq > T(0) ? sqrt(sq) : sq;  // 0, or NaN for a non-finite flow (as cluster.h)
       if (grad)
         for (int c = 0; c < C; ++c)
           grad[i * C + c] = norm > T(0) ? (f[i * C + c] - sums[key * C + c] * inv) / norm : T(0);

@@ -5,7 +5,8 @@
 //
 // The loss is reduced deterministically without a host sync: each block writes one
 // double partial, then a one-block kernel sums the partials in a fixed order and writes
-// the loss in the points' dtype. Gradients are written per point (no atomics).
+// the loss in the points' dtype. Gradients are written per point (no atomics). A row whose
+// point or flow has a NaN/inf coordinate makes the loss NaN and gets a zero gradient row.
 //
 // The 8 corner loads per scan are gathers: sorting the points spatially (done by the
 // caller, once per frame) makes neighbouring threads hit the same cache lines.
@@ -16,6 +17,7 @@
 #include "cuda/block_reduce.cuh"
 #include "cuda/dt_loss_launch.h"
 #include "kernels/dt_loss.h"
+#include "kernels/finite.h"
 
 namespace floxels::cuda {
 namespace {
@@ -48,8 +50,12 @@ __global__ void __launch_bounds__(kThreads) dt_loss_kernel(const __grid_constant
     T g[3];
     l = dt_loss::point_loss<kGrad, T, int>(p.scans, p.num_scans, pi[0], pi[1], pi[2], fi[0], fi[1], fi[2],
                                            p.inv_spacing, p.truncation, g);
+    // Non-finite point or flow row: the loss shows it (NaN), its gradient row is 0.
+    const bool bad = !finite3(pi[0], pi[1], pi[2]) || !finite3(fi[0], fi[1], fi[2]);
+    if (bad) l = quiet_nan<T>();
     if constexpr (kGrad) {
-      const T s = p.grad_scale ? *p.grad_scale : T(1);
+      const T s = bad ? T(0) : (p.grad_scale ? *p.grad_scale : T(1));
+      if (bad) g[0] = g[1] = g[2] = T(0);
       T* go = p.grad_out + 3 * static_cast<int64_t>(i);
       go[0] = s * g[0];
       go[1] = s * g[1];

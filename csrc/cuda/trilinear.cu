@@ -1,6 +1,7 @@
 // CUDA trilinear gather / points gradient / scatter: one thread per point. The scatter uses
 // warp-aggregated atomics (warp_aggregate.cuh) because LiDAR points pile up in the voxels
-// near the sensor.
+// near the sensor. Non-finite points: NaN gather rows, zero points-gradient rows, ignored by
+// the scatter (kernels/trilinear.h).
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -45,9 +46,12 @@ __global__ void scatter_kernel(const T* __restrict__ values, int C, const T* __r
                                TriGeom g, T* __restrict__ out) {
   __shared__ T scratch[kBlock];
   const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
-  const bool valid = i < N;
+  bool valid = i < N;
   tri::Cell<T> c{};
-  if (valid) c = cell_at(points, i, g);
+  if (valid) {
+    c = cell_at(points, i, g);
+    valid = c.ok;  // a non-finite point is ignored (key -1 like an out-of-range lane)
+  }
   const T* v = values + (valid ? i : 0) * C;
   T* ws = scratch + (threadIdx.x & ~31);
   const int64_t vol = g.Z * g.Y * g.X;

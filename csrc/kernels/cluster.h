@@ -16,7 +16,9 @@ namespace floxels::cluster {
 // kernel can never index out of bounds.
 FLX_HD bool valid_label(int64_t label, int64_t K) { return label >= 0 && label < K; }
 
-// d = f - mean (C values); writes u = d / ||d|| (or 0) and returns ||d||.
+// d = f - mean (C values); writes u = d / ||d|| (or 0) and returns ||d||. A non-finite flow
+// (or mean) gives a NaN (or inf) norm, so the loss shows it, and u = 0: returning `sq`
+// instead of 0 costs nothing (README "Op reference", non-finite input).
 template <typename T>
 FLX_HD T residual_unit(const T* f, const T* mean, int64_t C, T* u) {
   T sq = T(0);
@@ -25,9 +27,9 @@ FLX_HD T residual_unit(const T* f, const T* mean, int64_t C, T* u) {
     u[c] = d;
     sq += d * d;
   }
-  if (!(sq > T(0))) {
+  if (!(sq > T(0))) {  // 0, or NaN
     for (int64_t c = 0; c < C; ++c) u[c] = T(0);
-    return T(0);
+    return sq;
   }
   using std::sqrt;
   const T n = sqrt(sq);
@@ -43,7 +45,7 @@ FLX_HD T residual_norm(const T* f, const T* mean, int64_t C) {
     sq += d * d;
   }
   using std::sqrt;
-  return sq > T(0) ? T(sqrt(sq)) : T(0);
+  return sq > T(0) ? T(sqrt(sq)) : sq;  // 0, or NaN for a non-finite flow
 }
 
 }  // namespace floxels::cluster

@@ -4,10 +4,17 @@
 // is clamped to the lattice exactly like grid_sample(padding_mode="border",
 // align_corners=True): the value is that of the nearest border point, and a coordinate gets
 // a gradient only when it lies strictly inside (0, size - 1).
+//
+// Non-finite points (a NaN or +-inf coordinate; README "Op reference"): the gather gives a
+// NaN row and a zero points-gradient row, the scatter (and the gather's grid gradient)
+// skips the point. Huge finite coordinates clamp like any outside point: the clamp is done
+// in floating point before the conversion to an index, so no float -> int cast ever sees a
+// value out of range (that would be undefined behaviour).
 #pragma once
 #include <cstdint>
 
 #include "common/cuda_compat.h"
+#include "kernels/finite.h"
 
 namespace floxels::tri {
 
@@ -21,10 +28,12 @@ struct Cell {
   int64_t sx, sy, sz;  // linear steps to the upper corner per axis (0 on size-1 axes)
   T tx, ty, tz;        // fractional offsets in [0, 1]
   bool gx, gy, gz;     // coordinate strictly inside the lattice: has a gradient
+  bool ok;             // all three coordinates finite (otherwise the clamped indices are in
+                       // bounds but meaningless)
 };
 
-// One axis: clamp u = (p - o) / spacing to [0, size-1]; NaN clamps to 0 so that bad input
-// can never index out of bounds (the Python wrappers reject NaN before this point).
+// One axis: clamp u = (p - o) / spacing to [0, size-1] in floating point (+-inf and huge
+// values clamp to the border, NaN to 0) so that bad input can never index out of bounds.
 template <typename T>
 FLX_HD void axis_setup(T p, T o, T spacing, int64_t size, int64_t& i0, T& t, bool& grad) {
   const T u = (p - o) / spacing;
@@ -49,12 +58,18 @@ FLX_HD Cell<T> cell_setup(const T* p, T ox, T oy, T oz, T spacing, int64_t Z, in
   c.sx = X >= 2 ? 1 : 0;
   c.sy = Y >= 2 ? X : 0;
   c.sz = Z >= 2 ? X * Y : 0;
+  c.ok = finite3(p[0], p[1], p[2]);
   return c;
 }
 
-// out[ch] = interpolated value of channel ch (channels are `vol` apart in `grid`).
+// out[ch] = interpolated value of channel ch (channels are `vol` apart in `grid`); NaN for a
+// non-finite point.
 template <typename T>
 FLX_HD void gather_point(const T* grid, int64_t C, int64_t vol, const Cell<T>& c, T* out, int64_t out_stride) {
+  if (!c.ok) {
+    for (int64_t ch = 0; ch < C; ++ch) out[ch * out_stride] = quiet_nan<T>();
+    return;
+  }
   const T wx0 = T(1) - c.tx, wx1 = c.tx;
   const T wy0 = T(1) - c.ty, wy1 = c.ty;
   const T wz0 = T(1) - c.tz, wz1 = c.tz;
@@ -69,10 +84,15 @@ FLX_HD void gather_point(const T* grid, int64_t C, int64_t vol, const Cell<T>& c
   }
 }
 
-// d/dp of sum_ch gout[ch] * gather(grid, p)[ch]; zero for a clamped coordinate.
+// d/dp of sum_ch gout[ch] * gather(grid, p)[ch]; zero for a clamped coordinate and for a
+// non-finite point (its NaN output row is a constant).
 template <typename T>
 FLX_HD void gather_point_grad(const T* grid, int64_t C, int64_t vol, const Cell<T>& c, const T* gout,
                               T spacing, T* gp) {
+  if (!c.ok) {
+    gp[0] = gp[1] = gp[2] = T(0);
+    return;
+  }
   const T wx0 = T(1) - c.tx, wx1 = c.tx;
   const T wy0 = T(1) - c.ty, wy1 = c.ty;
   const T wz0 = T(1) - c.tz, wz1 = c.tz;

@@ -10,6 +10,12 @@ Grid convention (shared by all ops): a grid is a lattice of *samples*; sample
 outside the lattice is clamped to its border, exactly like
 ``grid_sample(padding_mode="border", align_corners=True)``: the value is that of the
 nearest border point and the gradient with respect to the clamped coordinate is zero.
+
+Non-finite input (README "Op reference"): a point with a NaN or +-inf coordinate gives a NaN
+gather row (a constant: zero gradient), is ignored by scatters and occupancy, makes
+``dt_loss`` NaN (zero gradient row); a non-finite flow makes ``cluster_consistency_loss``
+non-finite; ``dbscan`` and ``problem_setup`` refuse such points. Huge finite coordinates
+clamp like any outside point (clamped in floating point before any conversion to an index).
 """
 
 from __future__ import annotations
@@ -39,8 +45,16 @@ def _continuous_index(points: torch.Tensor, origin: Sequence[float], spacing: fl
     return (points - o) / spacing  # (N, 3) in (x, y, z) sample units
 
 
+def _finite_rows(points: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: rows whose three coordinates are finite."""
+    return torch.isfinite(points).all(dim=1)
+
+
 def _corners(points, origin, spacing, shape_zyx):
-    """Lower corner index (N, 3 xyz, long), fractional offset (N, 3, differentiable), upper index."""
+    """Lower corner index (N, 3 xyz, long), fractional offset (N, 3, differentiable), upper index.
+
+    Non-finite rows are placed at the origin (in-range indices; callers mask them)."""
+    points = torch.where(_finite_rows(points)[:, None], points, torch.zeros_like(points))
     u = _continuous_index(points, origin, spacing)
     size = torch.tensor([shape_zyx[2], shape_zyx[1], shape_zyx[0]], device=points.device)
     hi = (size - 1).to(points.dtype)
@@ -54,7 +68,8 @@ def _corners(points, origin, spacing, shape_zyx):
 
 
 def trilinear_gather(grid: torch.Tensor, points: torch.Tensor, origin: Sequence[float], spacing: float) -> torch.Tensor:
-    """Sample ``grid`` (C, Z, Y, X) at ``points`` (N, 3); returns (N, C)."""
+    """Sample ``grid`` (C, Z, Y, X) at ``points`` (N, 3); returns (N, C). A non-finite point
+    gives a NaN row (zero gradient)."""
     C, Z, Y, X = grid.shape
     i0, t, i1 = _corners(points, origin, spacing, (Z, Y, X))
     out = points.new_zeros(points.shape[0], C) if points.shape[0] else grid.new_zeros(0, C)
@@ -68,17 +83,19 @@ def trilinear_gather(grid: torch.Tensor, points: torch.Tensor, origin: Sequence[
                 ix = i1[:, 0] if cx else i0[:, 0]
                 wx = t[:, 0] if cx else 1 - t[:, 0]
                 out = out + (wz * wy * wx)[:, None] * grid[:, iz, iy, ix].T
-    return out
+    return torch.where(_finite_rows(points)[:, None], out, torch.full_like(out, math.nan))
 
 
 def trilinear_scatter(values: torch.Tensor, points: torch.Tensor, origin: Sequence[float], spacing: float,
                       grid_shape: Sequence[int]) -> torch.Tensor:
     """Adjoint of :func:`trilinear_gather`: splat ``values`` (N, C) onto a zero (C, Z, Y, X) grid.
 
-    ``<trilinear_scatter(v, p), G> == <v, trilinear_gather(G, p)>`` for every grid G.
+    ``<trilinear_scatter(v, p), G> == <v, trilinear_gather(G, p)>`` for every grid G (with
+    finite points); a non-finite point is ignored.
     """
     Z, Y, X = grid_shape
     C = values.shape[1]
+    values = torch.where(_finite_rows(points)[:, None], values, torch.zeros_like(values))
     i0, t, i1 = _corners(points, origin, spacing, (Z, Y, X))
     flat = values.new_zeros(C, Z * Y * X)
     for cz in (0, 1):
@@ -100,14 +117,14 @@ def points_to_occupancy(points: torch.Tensor, origin: Sequence[float], spacing: 
     """Bool (Z, Y, X) grid marking the sample nearest to each point.
 
     Snapping: index = floor((p - origin) / spacing + 0.5) per axis (round half up);
-    points whose index falls outside the grid are ignored.
+    points whose index falls outside the grid, or with a NaN/inf coordinate, are ignored.
     """
     Z, Y, X = grid_shape
     # always in float64: float32 would snap points near half-sample boundaries differently
-    idx = torch.floor(_continuous_index(points.double(), origin, spacing) + 0.5).long()
-    lim = torch.tensor([X, Y, Z], device=points.device)
-    ok = ((idx >= 0) & (idx < lim)).all(dim=1)
-    idx = idx[ok]
+    u = torch.floor(_continuous_index(points.double(), origin, spacing) + 0.5)
+    lim = torch.tensor([X, Y, Z], device=points.device, dtype=torch.float64)
+    ok = ((u >= 0) & (u < lim)).all(dim=1)  # in float: NaN fails, huge values never reach .long()
+    idx = u[ok].long()
     occ = torch.zeros(Z * Y * X, dtype=torch.bool, device=points.device)
     occ[(idx[:, 2] * Y + idx[:, 1]) * X + idx[:, 0]] = True
     return occ.view(Z, Y, X)
@@ -150,17 +167,24 @@ def edt(occupancy: torch.Tensor, spacing: float = 1.0) -> torch.Tensor:
 
 def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
             spacing: float, time_offsets: Sequence[float], weights: Sequence[float], truncation: float) -> torch.Tensor:
-    """sum_k w_k * mean_i DT_k(p_i + t_k f_i), DT values >= truncation counting as 0 (no gradient)."""
+    """sum_k w_k * mean_i DT_k(p_i + t_k f_i), DT values >= truncation (or NaN) counting as 0
+    (no gradient). A row whose point or flow has a NaN/inf coordinate makes the loss NaN and
+    gets a zero gradient row; a finite query that overflows to +-inf clamps to the border."""
     K = len(dts)
     assert len(origins) == 3 * K and len(time_offsets) == K and len(weights) == K
     total = flow.new_zeros(())
     n = points.shape[0]
     if n == 0:
         return total
+    ok = (_finite_rows(points) & _finite_rows(flow))[:, None]
+    p = torch.where(ok, points, torch.zeros_like(points))
+    f = torch.where(ok, flow, torch.zeros_like(flow))
+    big = torch.finfo(flow.dtype).max
     for k in range(K):
-        q = points + time_offsets[k] * flow
+        q = (p + time_offsets[k] * f).clamp(-big, big)  # overflow clamps like the kernels
         v = trilinear_gather(dts[k][None].to(flow.dtype), q, origins[3 * k : 3 * k + 3], spacing)[:, 0]
         v = torch.where(v < truncation, v, torch.zeros_like(v))
+        v = torch.where(ok[:, 0], v, torch.full_like(v, math.nan))
         total = total + weights[k] * v.sum() / n
     return total
 
@@ -178,7 +202,8 @@ def cluster_consistency_loss(flow: torch.Tensor, labels: torch.Tensor, num_clust
     """(1/N) sum_i ||f_i - mean flow of cluster(i)||; noise points (label -1) contribute 0.
 
     The norm's gradient at 0 is taken as 0 (every point of a cluster having the same flow,
-    e.g. at the zero initialisation, gives zero gradient rather than NaN).
+    e.g. at the zero initialisation, gives zero gradient rather than NaN). A non-finite flow
+    in a cluster makes the loss NaN (or inf); that cluster's gradient rows are then 0 or NaN.
     """
     n = flow.shape[0]
     if n == 0:
@@ -188,7 +213,8 @@ def cluster_consistency_loss(flow: torch.Tensor, labels: torch.Tensor, num_clust
     d = flow[keep] - means[labels[keep]]
     sq = (d * d).sum(dim=1)
     nz = sq > 0
-    norms = torch.where(nz, torch.sqrt(torch.where(nz, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    # sq is 0 or NaN where not positive: NaN (a non-finite flow) propagates, like the kernels
+    norms = torch.where(nz, torch.sqrt(torch.where(nz, sq, torch.ones_like(sq))), sq.detach())
     return norms.sum() / n
 
 
@@ -213,8 +239,11 @@ def dbscan(points: torch.Tensor, eps: float, min_samples: int) -> torch.Tensor:
     Clusters are the connected components of core points, numbered by their smallest core
     index (sklearn's dbscan_inner visits points in index order); a border point takes the
     smallest cluster id among its core neighbours (the cluster that reaches it first).
+    Non-finite points raise ``ValueError`` (the op raises ``RuntimeError``).
     """
     p = points.detach().to("cpu", torch.float64)
+    if not bool(torch.isfinite(p).all()):
+        raise ValueError("dbscan points must be finite (found NaN/inf)")
     n = p.shape[0]
     labels = torch.full((n,), -1, dtype=torch.int64)
     if n == 0:
@@ -243,11 +272,13 @@ def dbscan(points: torch.Tensor, eps: float, min_samples: int) -> torch.Tensor:
 
 def cell_key(points: torch.Tensor, origin: Sequence[float], spacing: float, grid_shape: Sequence[int]) -> torch.Tensor:
     """(N,) int64 lattice index (z * Y + y) * X + x of each point's cell: the clamped floor of
-    ``(p - origin) / spacing`` (the sort key of :func:`problem_setup`)."""
+    ``(p - origin) / spacing`` (the sort key of :func:`problem_setup`), clamped in floating point
+    (NaN to 0) before the conversion to an integer."""
     Z, Y, X = (int(s) for s in grid_shape)
     o = torch.tensor([float(v) for v in origin], dtype=points.dtype, device=points.device)
-    ic = ((points - o) / spacing).floor().long()
-    return (ic[:, 2].clamp(0, Z - 1) * Y + ic[:, 1].clamp(0, Y - 1)) * X + ic[:, 0].clamp(0, X - 1)
+    hi = torch.tensor([X - 1, Y - 1, Z - 1], dtype=points.dtype, device=points.device)
+    ic = torch.fmin(torch.fmax(((points - o) / spacing).floor(), hi.new_zeros(())), hi).long()
+    return (ic[:, 2] * Y + ic[:, 1]) * X + ic[:, 0]
 
 
 def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Sequence[float], spacing: float,
@@ -264,8 +295,11 @@ def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Seq
       ``segment * 8 + corner`` entries in segment order (``vtx_ptr``, ``vtx_entry``).
 
     Returns (order, sorted points, sorted labels (empty if None), corner_idx, corner_w,
-    vertices, seg_ptr, vtx_ptr, vtx_entry, number of clusters).
+    vertices, seg_ptr, vtx_ptr, vtx_entry, number of clusters). Non-finite points raise
+    ``ValueError`` (the op raises ``RuntimeError``).
     """
+    if not bool(torch.isfinite(points).all()):
+        raise ValueError("problem_setup: points must be finite (found NaN/inf coordinates)")
     # the corners and the segment tables as the Python path that the op replaced built them
     from .ops.corners import compact_corners
     from .ops.solver import _segments

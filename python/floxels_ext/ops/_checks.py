@@ -1,8 +1,10 @@
 """Argument checks for the public Python wrappers (the C++ side re-checks dtype/shape/device).
 
-Finite-ness is checked here, not in the kernels: it costs a reduction (and a host sync on
-CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly on
-already-validated tensors, must not pay every iteration.
+The wrappers refuse NaN/inf points with a ValueError. That check costs a reduction (and a
+host sync on CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly
+on already-validated tensors, must not pay every iteration; the raw ops instead follow the
+non-finite contract of README "Op reference" (NaN gather rows, scatters ignore the point,
+losses become NaN), tested in tests/test_ops_nonfinite.py.
 """
 
 from __future__ import annotations
@@ -10,6 +12,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+
+
+def require_tensors(**named) -> None:
+    """TypeError naming the first argument that is not a torch.Tensor."""
+    for name, t in named.items():
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
 
 
 def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
@@ -26,7 +35,10 @@ def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
 
 
 def as_origin(origin: Sequence[float], name: str = "origin") -> list[float]:
-    vals = [float(v) for v in (origin.tolist() if isinstance(origin, torch.Tensor) else origin)]
+    try:
+        vals = [float(v) for v in (origin.tolist() if isinstance(origin, torch.Tensor) else origin)]
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be 3 numbers [x0, y0, z0], got {origin!r}") from exc
     if len(vals) != 3:
         raise ValueError(f"{name} must have 3 values [x0, y0, z0], got {len(vals)}")
     if not all(abs(v) < float("inf") for v in vals):
@@ -35,9 +47,12 @@ def as_origin(origin: Sequence[float], name: str = "origin") -> list[float]:
 
 
 def as_spacing(spacing: float, name: str = "spacing") -> float:
-    s = float(spacing)
-    if not (s > 0 and s < float("inf")):
-        raise ValueError(f"{name} must be positive and finite, got {spacing}")
+    try:
+        s = float(spacing)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a number, got {spacing!r}") from exc
+    if not (1e-30 <= s <= 1e30):  # the ops' bounds (csrc/common/check.h check_spacing)
+        raise ValueError(f"{name} must be positive and finite (1e-30 <= {name} <= 1e30), got {spacing}")
     return s
 
 

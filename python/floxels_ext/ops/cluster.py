@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import same_device
+from ._checks import require_tensors, same_device
 from ._lib import ops_ns
 
 
@@ -59,6 +59,7 @@ torch.library.register_autograd("floxels::cluster_consistency_loss", _loss_backw
 
 
 def _check(values, labels, num_clusters, name="values"):
+    require_tensors(**{name: values, "labels": labels})
     if values.dim() != 2:
         raise ValueError(f"{name} must be (N, C), got {tuple(values.shape)}")
     if values.dtype not in (torch.float32, torch.float64):
@@ -84,7 +85,9 @@ def cluster_mean(values: torch.Tensor, labels: torch.Tensor, num_clusters: int) 
 
 
 def cluster_consistency_loss(flow: torch.Tensor, labels: torch.Tensor, num_clusters: int) -> torch.Tensor:
-    """``(1/N) sum_i ||f_i - mean flow of cluster(i)||`` (noise adds 0; gradient 0 where the norm is 0)."""
+    """``(1/N) sum_i ||f_i - mean flow of cluster(i)||`` (noise adds 0; gradient 0 where the norm is 0).
+
+    A non-finite flow in a cluster makes the loss NaN (its cluster's gradient rows: 0 or NaN)."""
     return ops_ns.cluster_consistency_loss(*_check(flow, labels, num_clusters, "flow"))
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ._checks import require_tensors
 from ._lib import ops_ns
 
 
@@ -82,7 +83,12 @@ class CompactCorners:
 def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: float,
                     grid_shape: Sequence[int]) -> CompactCorners:
     """Trilinear corners of ``points`` on the lattice (same clamping as trilinear_gather),
-    renumbered densely over the vertices actually touched."""
+    renumbered densely over the vertices actually touched.
+
+    ``points`` must be finite (the estimator drops NaN/inf rows first; ``problem_setup``
+    refuses them). A non-finite row still gets in-range corners (NaN clamps to the lower
+    corner, +-inf to the border), never an invalid index, but its weights are meaningless.
+    """
     Z, Y, X = (int(s) for s in grid_shape)
     dev, dt = points.device, points.dtype
     # All 8 corners at once (a dozen kernels instead of ~120 small ones: this runs once per
@@ -91,7 +97,9 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
     size = torch.tensor([X, Y, Z]).to(dev, non_blocking=True)
     o = torch.tensor([float(v) for v in origin], dtype=dt).to(dev, non_blocking=True)
     hi = (size - 1).to(dt)
-    u = torch.minimum(((points - o) / spacing).clamp_min(0), hi)
+    # clamped in floating point before any conversion to an index; fmax/fmin (unlike
+    # clamp/minimum) send NaN to the bound instead of propagating it
+    u = torch.fmin(torch.fmax((points - o) / spacing, hi.new_zeros(())), hi)
     i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
     t = u - i0.to(dt)
     offs = _CORNER_OFFSETS.to(dev, non_blocking=True)                 # (8, 3): x fastest, then y, then z
@@ -107,12 +115,16 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
 
 
 def corner_gather(params: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor) -> torch.Tensor:
-    """(N, C) = sum_j corner_w[:, j] * params[corner_idx[:, j]]; differentiable in params."""
+    """(N, C) = sum_j corner_w[:, j] * params[corner_idx[:, j]]; differentiable in params.
+    Non-finite params or weights propagate (NaN/inf in the rows they touch)."""
+    require_tensors(params=params, corner_idx=corner_idx, corner_w=corner_w)
     return ops_ns.corner_gather(params.contiguous(), corner_idx.contiguous(), corner_w.contiguous())
 
 
 def corner_scatter(values: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor,
                    num_params: int) -> torch.Tensor:
-    """Adjoint of :func:`corner_gather`: (num_params, C) sums of weighted values."""
+    """Adjoint of :func:`corner_gather`: (num_params, C) sums of weighted values. Non-finite
+    values or weights propagate into the rows they touch."""
+    require_tensors(values=values, corner_idx=corner_idx, corner_w=corner_w)
     return ops_ns.corner_scatter(values.contiguous(), corner_idx.contiguous(), corner_w.contiguous(),
                                  int(num_params))

@@ -26,7 +26,8 @@ def dbscan(points: torch.Tensor, eps: float = 0.5, min_samples: int = 4) -> torc
     Not differentiable. The labels are returned on the device of ``points``; CUDA input is
     clustered by the GPU kernel (same labels as the CPU kernel, bit for bit; it synchronises
     the current stream once). Setting ``FLOXELS_CPU_DBSCAN=1`` before the first call routes
-    CUDA input to the CPU kernel instead (escape hatch).
+    CUDA input to the CPU kernel instead (escape hatch). NaN/inf points raise (``ValueError``
+    here, ``RuntimeError`` from the raw op).
     """
     points = as_points(points)
     eps = float(eps)

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ._checks import as_points, as_spacing, same_device
+from ._checks import as_points, as_spacing, require_tensors, same_device
 from ._lib import ops_ns
 
 MAX_SCANS = 32  # csrc/kernels/dt_loss.h kMaxScans: per-scan metadata travels in the kernel parameters
@@ -48,6 +48,7 @@ torch.library.register_autograd("floxels::dt_loss", _backward, setup_context=_se
 
 def _check(points, flow, dts, origins, time_offsets, weights, truncation):
     points = as_points(points)
+    require_tensors(flow=flow)
     if flow.shape != points.shape:
         raise ValueError(f"flow must have the shape of points {tuple(points.shape)}, got {tuple(flow.shape)}")
     if flow.dtype != points.dtype:
@@ -58,12 +59,12 @@ def _check(points, flow, dts, origins, time_offsets, weights, truncation):
         raise ValueError("dt_loss needs at least one distance transform")
     if len(dts) > MAX_SCANS:
         raise ValueError(f"dt_loss supports at most {MAX_SCANS} distance transforms, got {len(dts)}")
-    named = [("points", points), ("flow", flow)] + [(f"dts[{k}]", d) for k, d in enumerate(dts)]
-    same_device(*named)
     for k, d in enumerate(dts):
         if not isinstance(d, torch.Tensor) or d.dim() != 3 or d.dtype != torch.float32 or d.numel() == 0:
             raise ValueError(f"dts[{k}] must be a non-empty float32 (Z, Y, X) grid, got "
                              f"{getattr(d, 'dtype', type(d).__name__)} {tuple(getattr(d, 'shape', ()))}")
+    named = [("points", points), ("flow", flow)] + [(f"dts[{k}]", d) for k, d in enumerate(dts)]
+    same_device(*named)
     K = len(dts)
     origins = [float(v) for v in origins]
     if len(origins) != 3 * K or len(time_offsets) != K or len(weights) != K:
@@ -81,6 +82,8 @@ def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor
 
     Each ``dts[k]`` is a float32 (Z, Y, X) distance transform whose sample (0,0,0) sits at
     ``origins[3k:3k+3]``; values interpolated to ``>= truncation`` count as 0 with no gradient.
+    NaN/inf points or flows raise ``ValueError`` here; with the raw op such a row makes the
+    loss NaN and gets a zero gradient row (README "Op reference", non-finite input).
 
     Speed: the kernels gather 8 DT samples per point and scan; ordering the points
     spatially (e.g. by voxel index, once per frame) lets neighbouring points share cache

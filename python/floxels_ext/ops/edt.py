@@ -37,7 +37,8 @@ def edt(occupancy: torch.Tensor, spacing: float = 1.0) -> torch.Tensor:
 def points_to_occupancy(points: torch.Tensor, origin: Sequence[float], spacing: float,
                         grid_shape: Sequence[int]) -> torch.Tensor:
     """Bool (Z, Y, X) grid marking, for each point, its nearest sample
-    (index = floor((p - origin)/spacing + 0.5), round half up); points outside are ignored."""
+    (index = floor((p - origin)/spacing + 0.5), round half up); points outside are ignored.
+    NaN/inf points raise ``ValueError`` here; the raw op ignores them like outside points."""
     points = as_points(points)
     shape = [int(s) for s in grid_shape]
     if len(shape) != 3 or min(shape) < 1:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ._checks import as_origin, as_spacing, require_tensors
 from ._lib import ops_ns
 from .corners import CompactCorners
 
@@ -45,9 +46,13 @@ class ProblemSetup:
 def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Sequence[float], spacing: float,
                   grid_shape: Sequence[int], tile: int) -> ProblemSetup:
     """Points sorted by (label, cell), their compact corners and the solver's segment tables,
-    with one host synchronisation (see ``reference.problem_setup`` for the definition)."""
+    with one host synchronisation (see ``reference.problem_setup`` for the definition).
+    Points with NaN/inf coordinates are refused (RuntimeError, after that synchronisation)."""
+    require_tensors(points=points)
+    if labels is not None:
+        require_tensors(labels=labels)
     order, ps, lab, idx, w, verts, seg_ptr, vtx_ptr, vtx_entry, ncl = ops_ns.problem_setup(
-        points, labels, [float(v) for v in origin], float(spacing), [int(s) for s in grid_shape], int(tile))
+        points, labels, as_origin(origin), as_spacing(spacing), [int(s) for s in grid_shape], int(tile))
     return ProblemSetup(order, ps, lab if labels is not None else None,
                         CompactCorners(idx, w, verts, [int(s) for s in grid_shape]),
                         (seg_ptr, vtx_ptr, vtx_entry), int(ncl))

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ._checks import as_origin, as_points, as_spacing, same_device
+from ._checks import as_origin, as_points, as_spacing, require_tensors, same_device
 from ._lib import ops_ns
 
 
@@ -78,6 +78,8 @@ def trilinear_gather(grid: torch.Tensor, points: torch.Tensor, origin: Sequence[
     Sample (iz, iy, ix) sits at ``origin + (ix, iy, iz) * spacing``. Points outside the
     lattice are clamped to its border like ``grid_sample(padding_mode="border",
     align_corners=True)``: border value, zero gradient for the clamped coordinate.
+    NaN/inf points raise ``ValueError`` here; the raw op gives them a NaN row (README
+    "Op reference", non-finite input).
     """
     points = as_points(points)
     _check_grid(grid, points)
@@ -86,8 +88,11 @@ def trilinear_gather(grid: torch.Tensor, points: torch.Tensor, origin: Sequence[
 
 def trilinear_scatter(values: torch.Tensor, points: torch.Tensor, origin: Sequence[float], spacing: float,
                       grid_shape: Sequence[int]) -> torch.Tensor:
-    """Adjoint of :func:`trilinear_gather`: accumulate ``values`` (N, C) into a zero (C, Z, Y, X) grid."""
+    """Adjoint of :func:`trilinear_gather`: accumulate ``values`` (N, C) into a zero (C, Z, Y, X) grid.
+
+    NaN/inf points raise ``ValueError`` here; the raw op ignores them."""
     points = as_points(points)
+    require_tensors(values=values)
     if values.dim() != 2 or values.shape[0] != points.shape[0]:
         raise ValueError(f"values must be (N, C) with N={points.shape[0]}, got {tuple(values.shape)}")
     if values.dtype != points.dtype:
