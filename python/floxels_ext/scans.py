@@ -118,13 +118,19 @@ def _as_tensor(scan, i: int) -> torch.Tensor:
 
 def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
     if device is not None:
-        dev = torch.device(device)
+        try:
+            dev = torch.device(device)
+        except (RuntimeError, TypeError, ValueError):
+            raise ValueError(f"unknown device {device!r}; use 'cpu' or 'cuda' (or 'cuda:N')") from None
     elif isinstance(first, torch.Tensor):
         dev = first.device
     else:
         dev = torch.device("cpu")
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device='cuda' requested but no CUDA device is available")
+        raise ValueError(f"device={str(dev)!r} requested but no CUDA device is available (torch "
+                         f"{torch.__version__}{'' if torch.version.cuda else ', a CPU-only build'}); use device='cpu'")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device {str(dev)!r}: there are only {torch.cuda.device_count()} CUDA device(s)")
     if dev.type not in ("cpu", "cuda"):
         raise ValueError(f"unsupported device {dev}; use 'cpu' or 'cuda'")
     return dev
