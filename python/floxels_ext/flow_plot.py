@@ -149,7 +149,7 @@ def _zoom(ax, pts, flow, gt, g, k, sp, vmax, unit, to_unit, speed) -> None:
     if gt is not None:
         txt += f" (true {np.median(np.linalg.norm(gt[g, :2], axis=1)) * to_unit:.2g})"
     ax.set_title(txt, fontsize=8)
-    ax.set_xlabel(f"x (m); arrows = {arrow_scale:g} frames of motion"
+    ax.set_xlabel(f"x (m); arrow = {arrow_scale:g} frame{'s' if arrow_scale != 1 else ''}"
                   + ("; black: truth" if gt is not None else ""), fontsize=7)
 
 
@@ -189,10 +189,18 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
         view = ((lo[0], hi[0]), (lo[1], hi[1]))
     zooms = objects[:max_zooms]
     ncols = 2 if gt is not None else 1
-    fig = plt.figure(figsize=(7.5 * ncols, 7.5 + (2.9 if zooms else 0)), dpi=dpi)
-    grid = fig.add_gridspec(2 if zooms else 1, max(len(zooms), 1) if zooms else 1,
-                            height_ratios=[7.5, 2.7] if zooms else None, hspace=0.3)
-    top_grid = grid[0, :].subgridspec(1, ncols, wspace=0.15)
+    if ncols == 2 or not zooms:  # scene(s) on top, zooms in a row below
+        fig = plt.figure(figsize=(7.5 * ncols, 7.5 + (2.9 if zooms else 0)), dpi=dpi)
+        grid = fig.add_gridspec(2 if zooms else 1, max(len(zooms), 1),
+                                height_ratios=[7.5, 2.7] if zooms else None, hspace=0.3)
+        top_grid = grid[0, :].subgridspec(1, ncols, wspace=0.15)
+        zoom_cells = [grid[1, k] for k in range(len(zooms))]
+    else:  # one scene on the left, zooms in a 2 x 2 block on the right
+        fig = plt.figure(figsize=(13.5, 7.8), dpi=dpi)
+        grid = fig.add_gridspec(1, 2, width_ratios=[7.5, 5.2], wspace=0.18)
+        top_grid = grid[0, 0].subgridspec(1, 1)
+        right = grid[0, 1].subgridspec(2, 2, hspace=0.35, wspace=0.3)
+        zoom_cells = [right[k // 2, k % 2] for k in range(len(zooms))]
     ax = fig.add_subplot(top_grid[0, 0])
     vm = vmax_frame
     # colours are in m/frame internally; the wheel's labels in the display unit
@@ -207,7 +215,7 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
                [float(np.median(gspeed[g])) * to_unit for g in objects], unit,
                f"ground truth ({int(gmov.sum())} moving points)", static_mask=mask)
     for k, g in enumerate(zooms):
-        _zoom(fig.add_subplot(grid[1, k]), pts, flow, gt, g, k, speeds[k], vm, unit, to_unit, speed)
+        _zoom(fig.add_subplot(zoom_cells[k]), pts, flow, gt, g, k, speeds[k], vm, unit, to_unit, speed)
     _wheel(ax, vm, to_unit, unit)
     if title:
         fig.suptitle(title, fontsize=11)
