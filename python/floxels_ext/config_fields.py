@@ -22,6 +22,8 @@ import types
 import typing
 from functools import lru_cache
 
+import numpy as np
+
 __all__ = ["ConfigTypeError", "check_field_types", "parse_option_value", "field_types"]
 
 _TRUE = {"true", "yes", "on", "1"}
@@ -92,7 +94,7 @@ def _coerce(value, tp):
             raise _Mismatch
         return tuple(_coerce(v, a) for v, a in zip(value, args))
     if tp is bool:
-        if isinstance(value, bool) or type(value).__name__ == "bool_":
+        if _is_bool(value):
             return bool(value)
         raise _Mismatch
     if tp is int:
@@ -118,7 +120,7 @@ def _coerce(value, tp):
 
 
 def _is_bool(v) -> bool:
-    return isinstance(v, bool) or type(v).__name__ == "bool_"
+    return isinstance(v, (bool, np.bool_))
 
 
 def check_field_types(obj) -> None:
