@@ -104,6 +104,10 @@ def offsets_from_times(times: list[float], target: int, supports: list[int], per
 
 def _as_tensor(scan, i: int) -> torch.Tensor:
     if isinstance(scan, np.ndarray):
+        if scan.dtype.kind not in "fiub":  # from_numpy refuses strings, objects, ...
+            raise TypeError(f"scan {i} must hold floats (float32/float64), got {scan.dtype}")
+        if not scan.dtype.isnative:  # e.g. big-endian data read from a file
+            scan = scan.astype(scan.dtype.newbyteorder("="))
         t = torch.from_numpy(np.ascontiguousarray(scan))
     elif isinstance(scan, torch.Tensor):
         t = scan
@@ -112,7 +116,7 @@ def _as_tensor(scan, i: int) -> torch.Tensor:
     if t.dim() != 2 or t.shape[1] != 3:
         raise ValueError(f"scan {i} must have shape (N, 3), got {tuple(t.shape)}")
     if not t.dtype.is_floating_point:
-        raise TypeError(f"scan {i} must hold floats (float32/float64), got {t.dtype}")
+        raise TypeError(f"scan {i} must hold floats (float32/float64), got {scan.dtype}")
     return t
 
 
