@@ -138,6 +138,12 @@ def test_fit_many_needs_pairs():
         Floxels(FAST).fit_many([])
 
 
+def test_sequence_refuses_a_single_scan():
+    scans, _ = _scans_at([0, 0.1, 0.2])
+    with pytest.raises(TypeError, match=r"not a single \(800, 3\) array"):
+        estimate_sequence(scans[0], FAST)
+
+
 def test_sequence_accepts_negative_frames():
     scans, _ = _scans_at([0, 0.1, 0.2, 0.3])
     cfg = FAST.replace(num_scans=3)
@@ -201,6 +207,9 @@ def test_dropped_frame_gives_the_right_offsets_and_flow():
     flow = estimate_flow(scans, 1, cfg, times=times)
     np.testing.assert_allclose(np.median(flow[n_static:], 0), [1.0, 0.5, 0.0], atol=0.05)
     assert np.abs(flow[:n_static]).max() < 0.05
+    # non-integer offsets reach the solver: a period of 0.2 s doubles the flow per period
+    flow2 = estimate_flow(scans, 1, cfg, times=times, frame_period=0.2)
+    np.testing.assert_allclose(np.median(flow2[n_static:], 0), [2.0, 1.0, 0.0], atol=0.1)
     ms = estimate_flow(scans, 1, cfg, times=times, flow_unit="m/s")
     np.testing.assert_allclose(ms, flow / 0.1, rtol=1e-5, atol=1e-5)
     # per-frame flows of a sequence with a gap: same unit as the others

@@ -562,8 +562,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     if config is not None and not isinstance(config, FloxelsConfig):
         raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
     cfg = config or FloxelsConfig()
-    if isinstance(scans, (torch.Tensor,)) or hasattr(scans, "shape"):
-        raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
+    if getattr(scans, "ndim", None) == 2:
+        raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
     scans = list(scans)
     n = len(scans)
     if n < 2:
