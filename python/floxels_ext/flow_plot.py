@@ -42,7 +42,8 @@ def _flow_colours(flow_xy: np.ndarray, vmax: float) -> np.ndarray:
 def moving_objects(points: np.ndarray, flow: np.ndarray, moving: np.ndarray, cell: float = 1.0,
                    min_points: int = 5) -> list[np.ndarray]:
     """Indices of the moving points grouped into objects (8-connected occupied cells of
-    ``cell`` metres in the top view), largest first; groups below ``min_points`` dropped."""
+    ``cell`` metres in the top view), largest first; groups below ``min_points`` dropped.
+    (A top-view grouping for pictures, not the estimator's DBSCAN.)"""
     from scipy import ndimage
 
     idx = np.flatnonzero(moving)
@@ -176,7 +177,8 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
     to_unit, unit = (1.0 / frame_period, "m/s") if frame_period else (1.0, "m/frame")
     speed = np.linalg.norm(flow[:, :2], axis=1)
     moving = mask & (speed > min_speed)
-    objects = moving_objects(pts, flow, moving)[:9]
+    # most evident first (points x speed): fast cars before a slowly creeping wall
+    objects = sorted(moving_objects(pts, flow, moving), key=lambda g: -g.size * float(np.median(speed[g])))[:9]
     speeds = [float(np.median(speed[g])) * to_unit for g in objects]
     all_speed = [speed[moving]] + ([np.linalg.norm(gt[mask, :2], axis=1)] if gt is not None else [])
     top = max((float(np.percentile(s, 98)) for s in all_speed if s.size), default=1.0)
