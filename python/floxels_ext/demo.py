@@ -78,8 +78,12 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError(f"--png {png}: directory {png.parent} does not exist")
     t0 = time.perf_counter()
     scans, target, gt, dyn = prepare_demo_scans(args.scene, args.seed, args.scans, args.small)
-    print(f"scene {args.scene} seed {args.seed}: {args.scans} scans simulated in {time.perf_counter() - t0:.1f} s; "
-          f"target has {len(scans[target])} points ({int(dyn.sum())} dynamic) after protocol cropping")
+    verbosity = getattr(args, "verbosity", 0)  # -q: the table only; -v: also the config
+    if verbosity > 0:
+        print(f"config: {cfg}")
+    if verbosity >= 0:
+        print(f"scene {args.scene} seed {args.seed}: {args.scans} scans simulated in {time.perf_counter() - t0:.1f} s; "
+              f"target has {len(scans[target])} points ({int(dyn.sum())} dynamic) after protocol cropping")
 
     res = Floxels(cfg, device).fit(scans, target)
     seconds = res.timings["total"]
@@ -97,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
         _print_metrics("pure-PyTorch reference", flow_metrics(ref, gt, dyn), time.perf_counter() - t0)
     print("(EPE in metres per frame, angle error in radians)")
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items())
-    print(f"stages: {stages}; {res.num_iters} iterations, lowest loss at {res.best_iter}")
+    if verbosity >= 0:
+        print(f"stages: {stages}; {res.num_iters} iterations, lowest loss at {res.best_iter}")
     _picture(png, scans[target], res.flow, gt, args)
     return 0
 

@@ -120,7 +120,9 @@ class Floxels:
         if not windows:
             raise ValueError("fit_many needs at least one (scans, target) window")
         for k, w in enumerate(windows):
-            if not (isinstance(w, (tuple, list)) and len(w) == 2 and isinstance(w[0], (list, tuple))):
+            # (a list of scans passed as one window has arrays where the scans should be)
+            if not (isinstance(w, (tuple, list)) and len(w) == 2 and hasattr(w[0], "__len__")
+                    and not hasattr(w[0], "shape") and not isinstance(w[0], str)):
                 raise TypeError(f"windows[{k}] must be a (scans, target) pair, e.g. fit_many([(scans, 2)]); "
                                 f"got {type(w).__name__}" + (f" of length {len(w)}" if hasattr(w, "__len__") else ""))
         preps = [prepare_scans(scans, target, self.device) for scans, target in windows]
@@ -497,7 +499,11 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     numpy input, else a tensor of the input's dtype on the input's device. Rows with NaN/inf
     coordinates are dropped (with a warning) and get NaN flow.
     """
-    _unit_factor(flow_unit, None, frame_period if frame_period is not None else (1.0 if times is not None else None))
+    if flow_unit not in ("frame", "m/s"):  # argument mistakes before any work
+        raise ValueError(f"flow_unit must be 'frame' or 'm/s', got {flow_unit!r}")
+    if flow_unit == "m/s" and times is None and frame_period is None:
+        raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
+    frame_period_of(None, frame_period)  # checks it
     flow = Floxels(config, device).fit(scans, target, times=times, frame_period=frame_period).flow
     to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
     return flow if to_unit == 1.0 else flow * to_unit
