@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import time
 from pathlib import Path
@@ -95,12 +96,57 @@ def _run_simulate(args) -> int:
 
 
 # ----------------------------------------------------------------------------- main
+def _add_verbosity(parser: argparse.ArgumentParser, default) -> None:
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", dest="verbosity", action="store_const", const=-1, default=default,
+                   help="print errors and the final summary only (no progress)")
+    g.add_argument("-v", "--verbose", dest="verbosity", action="store_const", const=1, default=default,
+                   help="print more detail")
+
+
+def _with_verbosity(add_parser):
+    """Subcommand parsers accept -q/-v too (``floxels run -q ...``); their default is
+    SUPPRESS so that a -q/-v given before the subcommand is not reset."""
+    def add(name, **kw):
+        p = add_parser(name, **kw)
+        _add_verbosity(p, argparse.SUPPRESS)
+        return p
+    return add
+
+
+
 _BUILTIN = [_add_simulate]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with every usage error reported as ``floxels: error: ...`` (exit 2), also
+    those of subcommands (argparse would say ``floxels demo: error: ...``)."""
+
+    def error(self, message: str):
+        self.print_usage(sys.stderr)
+        self.exit(2, f"floxels: error: {message}\n")
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        return version("floxels_ext")
+    except (ImportError, PackageNotFoundError):  # running from a source tree
+        from . import __version__
+
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="floxels", description="Floxels scene flow tools.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    """The top-level parser. Global options: ``--version``; ``-q/--quiet`` and ``-v/--verbose``
+    (also after the subcommand), stored as ``args.verbosity`` = -1, 0 or 1, which
+    subcommands read with ``getattr(args, "verbosity", 0)``."""
+    parser = _Parser(prog="floxels", description="Floxels scene flow tools.")
+    parser.add_argument("--version", action="version", version=f"floxels_ext {_version()}")
+    _add_verbosity(parser, 0)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
+    sub.add_parser = _with_verbosity(sub.add_parser)
     for add in _BUILTIN + _EXTRA:
         add(sub)
     for mod in SUBCOMMAND_MODULES:
@@ -109,18 +155,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .io import LidarFormatError, MissingDependencyError
     from .seqio import SequenceFormatError
 
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage
     try:
         rc = args.func(args)
-    except (CLIError, SequenceFormatError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
+    except (CLIError, SequenceFormatError, LidarFormatError, MissingDependencyError, FileNotFoundError,
+            NotADirectoryError, PermissionError) as e:
         print(f"floxels: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("floxels: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into e.g. `head`, which exited: not an error of ours
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     return 0 if rc is None else int(rc)
 
 

@@ -6,7 +6,11 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from .config_fields import check_field_types
+from .config_fields import parse_option_value as _parse_field
 from .ops.grid import DEFAULT_MAX_CELLS
+
+__all__ = ["FloxelsConfig", "parse_option_value"]
 
 
 @dataclass(frozen=True)
@@ -54,14 +58,17 @@ class FloxelsConfig:
     max_dt_cells: int = DEFAULT_MAX_CELLS  # memory cap for one distance transform (samples)
 
     def __post_init__(self) -> None:
+        # types first, generically from the field annotations (fields added later are covered)
+        check_field_types(self)
+
         def pos(name: str) -> None:
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"FloxelsConfig.{name} must be a positive finite number, got {v!r}")
 
         def nonneg(name: str) -> None:
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"FloxelsConfig.{name} must be a non-negative finite number, got {v!r}")
 
         for n in ("voxel_size", "dt_cell", "truncation", "lr", "dbscan_eps", "adam_eps"):
@@ -71,9 +78,9 @@ class FloxelsConfig:
             nonneg(n)
         for n in ("max_iters", "patience", "dbscan_min_samples", "max_dt_cells", "num_scans"):
             v = getattr(self, n)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            if v < 1:
                 raise ValueError(f"FloxelsConfig.{n} must be a positive integer, got {v!r}")
-        if not isinstance(self.lambda_g_decay_iters, int) or self.lambda_g_decay_iters < 0:
+        if self.lambda_g_decay_iters < 0:
             raise ValueError(f"FloxelsConfig.lambda_g_decay_iters must be an integer >= 0, "
                              f"got {self.lambda_g_decay_iters!r}")
         if not 2 <= self.num_scans <= 13:
@@ -87,6 +94,15 @@ class FloxelsConfig:
             raise ValueError(f"FloxelsConfig.dt_cell ({self.dt_cell}) should be much finer than "
                              f"voxel_size ({self.voxel_size})")
 
+    @classmethod
+    def from_strings(cls, options: dict[str, str], base: "FloxelsConfig | None" = None) -> "FloxelsConfig":
+        """A config from ``{field: text}`` (e.g. the CLI's ``--option KEY=VALUE``), each text
+        parsed for its field's type by :func:`parse_option_value`; ``base`` supplies the
+        other fields (default: the paper's defaults). Unknown fields or unparsable values
+        raise ``ValueError`` naming them."""
+        values = {k: _parse_field(cls, k, v) for k, v in options.items()}
+        return dataclasses.replace(base, **values) if base is not None else cls(**values)
+
     def replace(self, **changes) -> "FloxelsConfig":
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
@@ -98,7 +114,9 @@ class FloxelsConfig:
         a = it / self.lambda_g_decay_iters
         return self.lambda_g_start + a * (self.lambda_g_end - self.lambda_g_start)
 
-    def time_weight(self, t: int) -> float:
+    def time_weight(self, t: float) -> float:
+        """w(t) = 1 / |t|^power for a time offset ``t`` in frame periods (any real t != 0:
+        unequally spaced scans give non-integer offsets)."""
         return 1.0 / abs(t) ** self.time_weight_power
 
     def regulariser_scale(self, num_support: int) -> float:
@@ -106,3 +124,12 @@ class FloxelsConfig:
             return float(num_support)
         # paper: (2m - 1) with 2m support scans
         return float(max(num_support - 1, 1))
+
+
+def parse_option_value(field: str, text: str, cls=FloxelsConfig):
+    """The value of config field ``field`` written as ``text`` (the CLI's ``--option
+    field=text``), parsed for the field's annotated type: bools accept true/false, yes/no,
+    on/off, 1/0; tuples ``a,b`` or ``[a,b]``; numbers as Python writes them. ``ValueError``
+    naming the field otherwise (an unknown field lists the known ones). ``cls``: another
+    dataclass config (e.g. a baseline's)."""
+    return _parse_field(cls, field, text)

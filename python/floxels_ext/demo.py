@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 
 def add_parser(sub) -> None:
@@ -12,13 +13,16 @@ def add_parser(sub) -> None:
                                    "flow of its middle frame with Floxels, prints EPE/Acc5/Acc10/angle error "
                                    "for dynamic and static points and the time per frame, and writes a "
                                    "bird's-eye-view PNG of points and flow vectors.")
-    p.add_argument("--scene", default="crossing", help="urban, highway, crossing or parking (default crossing)")
+    from .sim.scenes import SCENES  # light: numpy only
+
+    p.add_argument("--scene", default="crossing", choices=sorted(SCENES), help="simulated scene (default crossing)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scans", type=int, default=5, help="scans per window, target in the middle (default 5)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--iters", type=int, default=None, help="override the maximum number of iterations")
     p.add_argument("--small", action="store_true", help="a sparser 32-beam lidar (faster)")
-    p.add_argument("--png", default="floxels_demo.png", help="output picture (default floxels_demo.png)")
+    p.add_argument("--png", default="floxels_demo.png",
+                   help="output picture (default floxels_demo.png; needs matplotlib, else skipped)")
     p.add_argument("--compare-reference", action="store_true",
                    help="also run the straightforward pure-PyTorch implementation and compare")
     p.set_defaults(func=run)
@@ -55,18 +59,31 @@ def run(args: argparse.Namespace) -> int:
     from .config import FloxelsConfig
     from .estimator import Floxels
     from .metrics import flow_metrics
-    from .viz import bev_png
+    from .scans import resolve_device
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = str(resolve_device(device, None))
+    except (RuntimeError, ValueError) as e:  # torch.device('gpu') raises RuntimeError
+        raise CLIError(f"--device {args.device}: {e}") from None
     if not 2 <= args.scans <= 13:
         raise CLIError(f"--scans must be in [2, 13], got {args.scans}")
+    if args.iters is not None and args.iters < 1:
+        raise CLIError(f"--iters must be >= 1, got {args.iters}")
     cfg = FloxelsConfig(num_scans=args.scans)
     if args.iters is not None:
-        cfg = cfg.replace(max_iters=args.iters)
+        cfg = cfg.replace(max_iters=args.iters, patience=min(cfg.patience, args.iters))
+    png = Path(args.png)
+    if not png.parent.is_dir():
+        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
     t0 = time.perf_counter()
     scans, target, gt, dyn = prepare_demo_scans(args.scene, args.seed, args.scans, args.small)
-    print(f"scene {args.scene} seed {args.seed}: {args.scans} scans simulated in {time.perf_counter() - t0:.1f} s; "
-          f"target has {len(scans[target])} points ({int(dyn.sum())} dynamic) after protocol cropping")
+    verbosity = getattr(args, "verbosity", 0)  # -q: the table only; -v: also the config
+    if verbosity > 0:
+        print(f"config: {cfg}")
+    if verbosity >= 0:
+        print(f"scene {args.scene} seed {args.seed}: {args.scans} scans simulated in {time.perf_counter() - t0:.1f} s; "
+              f"target has {len(scans[target])} points ({int(dyn.sum())} dynamic) after protocol cropping")
 
     res = Floxels(cfg, device).fit(scans, target)
     seconds = res.timings["total"]
@@ -84,7 +101,22 @@ def run(args: argparse.Namespace) -> int:
         _print_metrics("pure-PyTorch reference", flow_metrics(ref, gt, dyn), time.perf_counter() - t0)
     print("(EPE in metres per frame, angle error in radians)")
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items())
-    print(f"stages: {stages}; {res.num_iters} iterations, lowest loss at {res.best_iter}")
-    bev_png(args.png, scans[target], res.flow, scans[target + 1] if target + 1 < len(scans) else None)
-    print(f"wrote {args.png}")
+    if verbosity >= 0:
+        print(f"stages: {stages}; {res.num_iters} iterations, lowest loss at {res.best_iter}")
+    _picture(png, scans[target], res.flow, gt, args)
     return 0
+
+
+def _picture(png: Path, points, flow, gt, args) -> None:
+    """The estimate beside the ground truth (flow_plot); skipped with a note without matplotlib."""
+    from .io import MissingDependencyError
+    from .flow_plot import plot_flow_bev
+
+    try:
+        plot_flow_bev(png, points, flow, gt_flow=gt, frame_period=0.1,
+                      title=f"floxels demo: scene '{args.scene}', seed {args.seed}, {args.scans} scans "
+                            f"(10 Hz lidar; boxes: moving objects, speed = median over the object)")
+    except MissingDependencyError as e:
+        print(f"no picture: {e}")
+        return
+    print(f"wrote {png}")

@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from .config import FloxelsConfig
@@ -28,7 +29,8 @@ from .ops.grid import grid_from_bounds, point_bounds
 from .ops.corners import CompactCorners
 from .ops.setup import problem_setup
 from .ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
-from .scans import PreparedScans, prepare_scans, resolve_device, restore_outputs
+from .scans import (PreparedScans, check_times, frame_period_of, prepare_scans, resolve_device,
+                    restore_outputs)
 from .solver import SolverRun
 
 F = torch.ops.floxels
@@ -94,15 +96,17 @@ class Floxels:
 
     # -- public -----------------------------------------------------------------------
     def fit(self, scans: Sequence, target: int | None = None,
-            dt_cache: dict[int, DistanceTransform | None] | None = None) -> FloxelsResult:
-        """Estimate the flow of ``scans[target]`` (default: the middle scan).
+            dt_cache: dict[int, DistanceTransform | None] | None = None, *,
+            times: Sequence[float] | None = None, frame_period: float | None = None) -> FloxelsResult:
+        """Estimate the flow of ``scans[target]`` (default: the middle scan), per frame period.
 
         ``dt_cache`` maps scan index -> distance transform and is filled in place, so that
         callers optimising several targets over the same scans build each DT once.
+        ``times``/``frame_period``: scans not equally spaced, see :func:`estimate_flow`.
         """
         cache = dt_cache if dt_cache is not None else {}
         early = _DtStreams(self.config, cache)
-        prep = prepare_scans(scans, target, self.device, on_ready=early)
+        prep = prepare_scans(scans, target, self.device, on_ready=early, times=times, period=frame_period)
         return self._fit_group([(prep, cache)], early)[0]
 
     def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
@@ -111,6 +115,16 @@ class Floxels:
         stopping and lowest-loss flow, as when fitted alone) but share every kernel
         launch, which keeps a GPU busy. For sliding windows over one sequence use
         :func:`estimate_sequence`, which also shares the distance transforms."""
+        if isinstance(windows, (str, bytes)) or not isinstance(windows, Sequence):
+            raise TypeError(f"windows must be a list of (scans, target) pairs, got {type(windows).__name__}")
+        if not windows:
+            raise ValueError("fit_many needs at least one (scans, target) window")
+        for k, w in enumerate(windows):
+            # (a list of scans passed as one window has arrays where the scans should be)
+            if not (isinstance(w, (tuple, list)) and len(w) == 2 and hasattr(w[0], "__len__")
+                    and not hasattr(w[0], "shape") and not isinstance(w[0], str)):
+                raise TypeError(f"windows[{k}] must be a (scans, target) pair, e.g. fit_many([(scans, 2)]); "
+                                f"got {type(w).__name__}" + (f" of length {len(w)}" if hasattr(w, "__len__") else ""))
         preps = [prepare_scans(scans, target, self.device) for scans, target in windows]
         return self._fit_group([(p, {}) for p in preps])
 
@@ -469,16 +483,41 @@ def _sync_device(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None):
-    """Flow (per frame step) of every point of ``scans[target]``.
+def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None,
+                  *, times: Sequence[float] | None = None, frame_period: float | None = None,
+                  flow_unit: str = "frame"):
+    """Flow of every point of ``scans[target]``.
 
-    ``scans``: 2 to 13 (N_i, 3) float arrays/tensors in one ego-motion-compensated frame,
-    consecutive at the sensor rate; ``target`` defaults to the middle scan, every other scan
-    is a support scan at time offset ``index - target``. Returns (N_target, 3): numpy
-    float32 for numpy input, else a tensor of the input's dtype on the input's device.
-    Rows with NaN/inf coordinates are dropped (with a warning) and get NaN flow.
+    ``scans``: 2 to 13 (N_i, 3) float arrays/tensors in one ego-motion-compensated frame;
+    ``target`` defaults to the middle scan (negative indices count from the end). Without
+    ``times`` the scans are taken as consecutive at the sensor rate: support scan ``i`` is at
+    time offset ``i - target``. ``times``: the scans' timestamps in seconds (one per scan,
+    finite, strictly increasing; e.g. a dropped frame leaves a gap): offsets are then
+    ``(t_i - t_target) / period`` with ``period = frame_period`` or, by default, the median
+    step of ``times``. ``flow_unit``: ``"frame"`` (default: metres per frame period) or
+    ``"m/s"`` (needs ``times`` or ``frame_period``). Returns (N_target, 3): numpy float32 for
+    numpy input, else a tensor of the input's dtype on the input's device. Rows with NaN/inf
+    coordinates are dropped (with a warning) and get NaN flow.
     """
-    return Floxels(config, device).fit(scans, target).flow
+    if flow_unit not in ("frame", "m/s"):  # argument mistakes before any work
+        raise ValueError(f"flow_unit must be 'frame' or 'm/s', got {flow_unit!r}")
+    if flow_unit == "m/s" and times is None and frame_period is None:
+        raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
+    frame_period_of(None, frame_period)  # checks it
+    flow = Floxels(config, device).fit(scans, target, times=times, frame_period=frame_period).flow
+    to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
+    return flow if to_unit == 1.0 else flow * to_unit
+
+
+def _unit_factor(flow_unit: str, times, frame_period) -> float:
+    """Factor from metres per frame period to ``flow_unit``; ``times`` already checked."""
+    if flow_unit not in ("frame", "m/s"):
+        raise ValueError(f"flow_unit must be 'frame' or 'm/s', got {flow_unit!r}")
+    if flow_unit == "frame":
+        return 1.0
+    if times is None and frame_period is None:
+        raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
+    return 1.0 / frame_period_of(times, frame_period)
 
 
 def _batches(frames: list[int], size: int, ramp: bool) -> list[list[int]]:
@@ -505,7 +544,8 @@ def window_for(frame: int, num_frames: int, num_scans: int) -> tuple[int, int]:
 def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, device=None,
                       frames: Sequence[int] | None = None,
                       callback: Callable[[int, FloxelsResult], None] | None = None,
-                      batch_size: int | None = None) -> list:
+                      batch_size: int | None = None, *, times: Sequence[float] | None = None,
+                      frame_period: float | None = None, flow_unit: str = "frame") -> list:
     """Flow of every frame of a sequence (or of ``frames``) with a sliding window of
     ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
     every window that needs it (and freed once no later window does).
@@ -516,18 +556,39 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     DBSCAN, sorting) while the GPU optimises the current one; the first batches are then
     smaller (4, 8, ... up to ``batch_size``) so that the GPU starts early.
 
+    ``frames``: indices into ``scans``; negative ones count from the end, like ``target``.
+    ``times``/``frame_period``/``flow_unit``: scans not equally spaced and the unit of the
+    flow, as in :func:`estimate_flow` (the period is the median step of the whole sequence's
+    times; each window's offsets come from its scans' times).
+
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
-    ``callback(frame, result)`` is called after each frame (e.g. to write it to disk).
+    ``callback(frame, result)`` is called after each frame (e.g. to write it to disk), with
+    ``result.flow`` in ``flow_unit``.
     """
+    if config is not None and not isinstance(config, FloxelsConfig):
+        raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
     cfg = config or FloxelsConfig()
+    if getattr(scans, "ndim", None) == 2:
+        raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
     scans = list(scans)
     n = len(scans)
     if n < 2:
         raise ValueError(f"a sequence needs at least 2 scans, got {n}")
-    frames = list(range(n)) if frames is None else [int(f) for f in frames]
-    for f in frames:
-        if not 0 <= f < n:
-            raise IndexError(f"frame {f} is out of range for {n} scans")
+    if times is not None:
+        times = check_times(times, n)
+    period = frame_period_of(times, frame_period)
+    to_unit = _unit_factor(flow_unit, times, frame_period)
+    if frames is None:
+        frames = list(range(n))
+    else:
+        given = list(frames)
+        for f in given:
+            if isinstance(f, bool) or not isinstance(f, (int, np.integer)):
+                raise TypeError(f"frames must hold integer indices, got {f!r}")
+        frames = [int(f) + n if int(f) < 0 else int(f) for f in given]
+        for f, g in zip(frames, given):
+            if not 0 <= f < n:
+                raise IndexError(f"frame {g} is out of range for {n} scans (valid: {-n} .. {n - 1})")
     est = Floxels(cfg, device)
     dev = resolve_device(device, scans[0])
     if batch_size is None:
@@ -551,7 +612,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
             out = []
             for f in batch:
                 start, stop = window_for(f, n, cfg.num_scans)
-                out.append((prepare_scans(scans[start:stop], f - start, device, converted, start),
+                out.append((prepare_scans(scans[start:stop], f - start, device, converted, start,
+                                          times=None if times is None else times[start:stop], period=period),
                             _WindowCache(cache, start)))
             return out
         if side is None:
@@ -580,6 +642,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
             for i in [i for i in d if i < horizon]:
                 del d[i]
         for f, res in zip(batch, results):
+            if to_unit != 1.0:
+                res.flow = res.flow * to_unit
             out.append(res.flow)
             if callback is not None:
                 callback(f, res)

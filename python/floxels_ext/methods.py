@@ -2,12 +2,15 @@
 
 A method is a :class:`Method`: a name, a one-line description, and
 
-* ``estimate_sequence(scans, frames, device, options, callback)``: estimate the flow of each
-  frame index in ``frames`` of ``scans`` (a list of (N_i, 3) float32 numpy arrays in one
-  ego-motion-compensated frame, consecutive at the sensor rate), calling
+* ``estimate_sequence(scans, frames, device, options, callback, times=None)``: estimate the
+  flow of each frame index in ``frames`` of ``scans`` (a list of (N_i, 3) float32 numpy arrays
+  in one ego-motion-compensated frame, consecutive at the sensor rate or, with ``times``, at
+  those timestamps in seconds: one per scan, strictly increasing), calling
   ``callback(frame, flow)`` with a (N_frame, 3) float32 numpy array as soon as each frame is
   done (so that callers can write it and stay resumable). ``options`` is a dict of
   method-specific settings (e.g. ``{"num_scans": 5}``); unknown keys raise ``ValueError``.
+  The flow is always per frame period (the median step of ``times`` when given), so
+  unequally spaced scans (a dropped frame) give flows comparable with the others.
 
 Modules register their methods lazily: list the module in ``METHOD_MODULES``; it must call
 :func:`register` at import time. Keeping heavy imports inside the functions keeps
@@ -60,7 +63,7 @@ def get_method(name: str) -> Method:
 
 
 # ----------------------------------------------------------------------------- floxels
-def _floxels_sequence(scans, frames, device, options, callback) -> None:
+def _floxels_sequence(scans, frames, device, options, callback, times=None) -> None:
     from .config import FloxelsConfig
     from .estimator import estimate_sequence
 
@@ -69,7 +72,7 @@ def _floxels_sequence(scans, frames, device, options, callback) -> None:
         cfg = FloxelsConfig(**options)
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
-    estimate_sequence(scans, cfg, device=device, frames=list(frames),
+    estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times,
                       callback=lambda f, res: callback(f, res.flow))
 
 

@@ -3,6 +3,8 @@
 Policy for bad input (documented in the README):
 * fewer than 2 scans, a target index out of range, scans of different dtypes or kinds
   (numpy vs tensor), or arrays that are not (N, 3) floats: ``ValueError``/``TypeError``;
+* ``times`` (seconds, one per scan, finite, strictly increasing): the scans need not be
+  equally spaced; time offsets are ``(t_k - t_target) / period`` frame periods;
 * rows with NaN/inf coordinates are dropped with a ``UserWarning``; in the target scan
   their flow is returned as NaN so the output keeps one row per input point;
 * an empty target scan gives an empty (0, 3) flow; an empty support scan contributes no loss.
@@ -10,6 +12,9 @@ Policy for bad input (documented in the README):
 
 from __future__ import annotations
 
+import math
+import os
+import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,7 +30,7 @@ class PreparedScans:
     points: list[torch.Tensor]     # finite rows only, float32, on the compute device
     finite_masks: list[torch.Tensor]  # (N_i,) bool on the compute device: which input rows were kept
     target: int
-    offsets: list[int]             # time offset of every support scan (index - target)
+    offsets: list[float]           # time offset of every support scan in frame periods (index - target)
     supports: list[int]            # indices of the support scans
     was_numpy: bool
     in_dtype: torch.dtype | np.dtype
@@ -36,36 +41,108 @@ class PreparedScans:
     bounds: list[tuple[list[float], list[float]] | None] | None = None
 
 
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def warn_user(message: str, category=UserWarning) -> None:
+    """``warnings.warn`` attributed to the first caller outside this package (the user's
+    line), however deep inside the package it is raised."""
+    if sys.version_info >= (3, 12):
+        warnings.warn(message, category, skip_file_prefixes=(_PACKAGE_DIR,))
+        return
+    level, frame = 2, sys._getframe(1)
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level)
+
+
+def check_times(times, n: int) -> list[float]:
+    """``times`` as floats after checking: one per scan, finite, strictly increasing."""
+    if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
+        raise TypeError(f"times must be a sequence of {n} numbers (seconds), got {type(times).__name__}")
+    vals = []
+    for k, t in enumerate(times):
+        if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) and not (
+                isinstance(t, (np.ndarray, torch.Tensor)) and t.ndim == 0):
+            raise TypeError(f"times[{k}] must be a number (seconds), got {t!r}")
+        vals.append(float(t))
+    if len(vals) != n:
+        raise ValueError(f"times has {len(vals)} entries but there are {n} scans (one time per scan)")
+    bad = [k for k, t in enumerate(vals) if not math.isfinite(t)]
+    if bad:
+        raise ValueError(f"times[{bad[0]}] is {vals[bad[0]]}; times must be finite")
+    for k in range(1, n):
+        if not vals[k] > vals[k - 1]:
+            raise ValueError(f"times must be strictly increasing: times[{k - 1}] = {vals[k - 1]} and "
+                             f"times[{k}] = {vals[k]}")
+    return vals
+
+
+def frame_period_of(times: list[float] | None, frame_period=None) -> float | None:
+    """The frame period (s): ``frame_period`` if given, else the median step of ``times``."""
+    if frame_period is not None:
+        if isinstance(frame_period, bool) or not isinstance(frame_period, (int, float, np.integer, np.floating)):
+            raise TypeError(f"frame_period must be a number of seconds, got {frame_period!r}")
+        if not (math.isfinite(frame_period) and frame_period > 0):
+            raise ValueError(f"frame_period must be a positive finite number of seconds, got {frame_period}")
+        return float(frame_period)
+    if times is None:
+        return None
+    return float(np.median(np.diff(np.asarray(times, np.float64))))
+
+
+def offsets_from_times(times: list[float], target: int, supports: list[int], period: float) -> list[float]:
+    """Time offsets (frame periods) of the support scans; values within 1e-6 of an integer
+    are snapped to it, so equally spaced times give exactly the offsets of no times."""
+    out = []
+    for i in supports:
+        t = (times[i] - times[target]) / period
+        r = round(t)
+        out.append(float(r) if abs(t - r) <= 1e-6 * max(1.0, abs(t)) else t)
+    return out
+
+
 def _as_tensor(scan, i: int) -> torch.Tensor:
     if isinstance(scan, np.ndarray):
+        if scan.dtype.kind not in "fiub":  # from_numpy refuses strings, objects, ...
+            raise TypeError(f"scan {i} must hold floats (float32/float64), got {scan.dtype}")
+        if not scan.dtype.isnative:  # e.g. big-endian data read from a file
+            scan = scan.astype(scan.dtype.newbyteorder("="))
         t = torch.from_numpy(np.ascontiguousarray(scan))
     elif isinstance(scan, torch.Tensor):
         t = scan
     else:
-        raise TypeError(f"scan {i} must be a numpy array or torch tensor, got {type(scan).__name__}")
+        raise TypeError(f"scan {i} must be a numpy array or torch tensor of shape (N, 3), got {type(scan).__name__}")
     if t.dim() != 2 or t.shape[1] != 3:
         raise ValueError(f"scan {i} must have shape (N, 3), got {tuple(t.shape)}")
     if not t.dtype.is_floating_point:
-        raise TypeError(f"scan {i} must hold floats (float32/float64), got {t.dtype}")
+        raise TypeError(f"scan {i} must hold floats (float32/float64), got {scan.dtype}")
     return t
 
 
 def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
     if device is not None:
-        dev = torch.device(device)
+        try:
+            dev = torch.device(device)
+        except (RuntimeError, TypeError, ValueError):
+            raise ValueError(f"unknown device {device!r}; use 'cpu' or 'cuda' (or 'cuda:N')") from None
     elif isinstance(first, torch.Tensor):
         dev = first.device
     else:
         dev = torch.device("cpu")
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device='cuda' requested but no CUDA device is available")
+        raise ValueError(f"device={str(dev)!r} requested but no CUDA device is available (torch "
+                         f"{torch.__version__}{'' if torch.version.cuda else ', a CPU-only build'}); use device='cpu'")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device {str(dev)!r}: there are only {torch.cuda.device_count()} CUDA device(s)")
     if dev.type not in ("cpu", "cuda"):
         raise ValueError(f"unsupported device {dev}; use 'cpu' or 'cuda'")
     return dev
 
 
 def prepare_scans(scans: Sequence, target: int | None, device, converted: dict | None = None,
-                  first_index: int = 0, on_ready=None) -> PreparedScans:
+                  first_index: int = 0, on_ready=None, times: Sequence[float] | None = None,
+                  period: float | None = None) -> PreparedScans:
     """Validate a window of scans and move them to the compute device.
 
     ``converted`` (sequence index -> (points, finite mask, bounds)) lets sliding windows over one
@@ -73,7 +150,8 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     index of ``scans[0]`` (also used in warnings). ``on_ready(i, points, bounds, is_target)``
     is called as soon as a host scan staged for the GPU has its upload queued (support scans
     first, the target last), so the caller can queue work on it while later scans are
-    still being copied."""
+    still being copied. ``times`` (seconds, one per scan of the window, checked) with
+    ``period`` (default: their median step) give the time offsets; else ``index - target``."""
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -81,10 +159,14 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
         raise ValueError(f"Floxels needs at least 2 scans (a target and a support scan), got {len(scans)}")
     if len(scans) > 13:
         raise ValueError(f"at most 13 scans are supported per window, got {len(scans)}")
+    for i, s in enumerate(scans):
+        if not isinstance(s, (np.ndarray, torch.Tensor)):
+            raise TypeError(f"scan {first_index + i} must be a numpy array or torch tensor of shape (N, 3), "
+                            f"got {type(s).__name__}")
     kinds = {isinstance(s, np.ndarray) for s in scans}
     if len(kinds) > 1:
         raise TypeError("scans mix numpy arrays and torch tensors; pass one kind")
-    tensors = [_as_tensor(s, i) for i, s in enumerate(scans)]
+    tensors = [_as_tensor(s, first_index + i) for i, s in enumerate(scans)]
     dtypes = {t.dtype for t in tensors}
     if len(dtypes) > 1:
         raise TypeError(f"scans have different dtypes {sorted(str(d) for d in dtypes)}; convert them to one dtype")
@@ -96,11 +178,14 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
         target = n // 2
     if not isinstance(target, (int, np.integer)) or isinstance(target, bool):
         raise TypeError(f"target must be an integer index, got {type(target).__name__}")
-    target = int(target)
+    given = target = int(target)
     if target < 0:
         target += n
     if not 0 <= target < n:
-        raise IndexError(f"target index {target} is out of range for {n} scans")
+        raise IndexError(f"target index {given} is out of range for {n} scans (valid: {-n} .. {n - 1})")
+    if times is not None:
+        times = check_times(times, n)
+        period = frame_period_of(times, period)
     dev = resolve_device(device, scans[0])
 
     todo = [i for i in range(n) if converted is None or first_index + i not in converted]
@@ -120,8 +205,10 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
         masks.append(finite)
         bounds.append(b)
     supports = [i for i in range(n) if i != target]
+    offsets = ([float(i - target) for i in supports] if times is None
+               else offsets_from_times(times, target, supports, period))
     return PreparedScans(points=points, finite_masks=masks, target=target,
-                         offsets=[i - target for i in supports], supports=supports,
+                         offsets=offsets, supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
                          in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds)
 
@@ -158,8 +245,8 @@ def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int
     bad = torch.stack([(~f).sum() for f in finite]).tolist()
     for k, t, f, b in zip(checked, moved, finite, bad):
         if b:
-            warnings.warn(f"scan {indices[k]}: dropping {b} point(s) with NaN/inf coordinates"
-                          + (" (their flow is NaN)" if is_target[k] else ""), UserWarning, stacklevel=4)
+            warn_user(f"scan {indices[k]}: dropping {b} point(s) with NaN/inf coordinates"
+                      + (" (their flow is NaN)" if is_target[k] else ""))
             t = t[f]
         out[k] = (t.contiguous(), f, None)
     return out

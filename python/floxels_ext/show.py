@@ -1,10 +1,12 @@
-"""``floxels show``: bird's-eye view of one ``floxels run`` output (points + flow arrows), and
-optionally a rerun recording (``pip install 'floxels_ext[viz]'``).
+"""``floxels show``: bird's-eye view of one ``floxels run`` output, and optionally a rerun
+recording (``pip install 'floxels_ext[viz]'``).
 
-Points that were optimised are coloured by height, the others (ground, cropped) dim grey.
-Arrows go from each moving point p to p + scale * flow; their hue is the heading (legend
-wheel in the top-right corner: moving east cyan, north blue-violet, west red, south
-yellow-green) and their brightness the speed.
+With matplotlib (extra ``viz``) the picture is :func:`floxels_ext.flow_plot.plot_flow_bev`:
+metres on the axes, a scale bar, moving points coloured by direction and speed (colour
+wheel), moving objects boxed with their speeds, zoom panels on them. Without matplotlib a
+plain raster (:func:`render_frame`) is written instead: optimised points coloured by height,
+the others dim grey, flow arrows whose hue is the heading (wheel top right) and brightness
+the speed.
 """
 
 from __future__ import annotations
@@ -46,9 +48,7 @@ def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, c
     ok = np.isfinite(pts).all(1)
     flow = np.nan_to_num(np.asarray(data["flow"], np.float64))
     if center is None:
-        lo, hi = pts[ok, :2].min(0), pts[ok, :2].max(0)
-        inside = ok.any() and np.all(lo <= 0) and np.all(hi >= 0)
-        center = (0.0, 0.0) if inside else (np.median(pts[ok, :2], 0) if ok.any() else (0.0, 0.0))
+        center = _default_center(pts)
     mask = np.asarray(data.get("mask", ok), bool) & ok
     kw = dict(center=center, extent=extent, resolution=resolution)
     # optimised points coloured by height with their flow; the rest (ground, cropped) dim grey below
@@ -57,6 +57,19 @@ def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, c
     empty = np.all(img == BACKGROUND, axis=2) & ~np.all(rest == BACKGROUND, axis=2)
     img[empty] = (0.45 * rest[empty] + 0.55 * np.array(BACKGROUND)).astype(np.uint8)
     return direction_wheel(img) if legend else img
+
+
+def _default_center(points) -> tuple[float, float]:
+    """The sensor (origin) when the points surround it, else the points' median."""
+    pts = np.asarray(points, np.float64)
+    ok = np.isfinite(pts).all(1)
+    if not ok.any():
+        return (0.0, 0.0)
+    lo, hi = pts[ok, :2].min(0), pts[ok, :2].max(0)
+    if np.all(lo <= 0) and np.all(hi >= 0):
+        return (0.0, 0.0)
+    m = np.median(pts[ok, :2], 0)
+    return (float(m[0]), float(m[1]))
 
 
 def add_parser(sub) -> None:
@@ -70,7 +83,10 @@ def add_parser(sub) -> None:
     p.add_argument("--extent", type=float, default=40.0, help="half-width of the view in metres (default 40)")
     p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1)")
     p.add_argument("--center", help="X,Y view centre (default: the sensor, else the points' median)")
-    p.add_argument("--flow-scale", type=float, default=1.0, help="arrow length = flow x this (default 1)")
+    p.add_argument("--flow-scale", type=float, default=1.0,
+                   help="arrow length = flow x this (default 1; plain raster without matplotlib only)")
+    p.add_argument("--frame-period", type=float, default=None, metavar="S",
+                   help="seconds between frames, to label speeds in m/s (default: m/frame)")
     p.add_argument("--rerun", metavar="FILE.rrd", help="also save a rerun recording (needs rerun-sdk)")
     p.set_defaults(func=run)
 
@@ -118,14 +134,47 @@ def write_rerun(path: Path, data: dict, name: str) -> None:
         rr.log(f"{name}/flow", rr.Arrows3D(origins=pts[moving], vectors=v, colors=rgb))
 
 
+def load_flow_output(path: Path) -> dict:
+    """One ``floxels run`` output as a dict with at least ``points`` and ``flow`` (N, 3) and
+    ``mask``; anything else is a CLIError saying the file is not a floxels flow output.
+    (The one place that knows the output format: ``floxels_ext.outputs`` will provide the
+    reader.)"""
+    from .cli import CLIError
+
+    path = Path(path)
+    not_output = f"{path}: not a floxels flow output (expected a .npz written by 'floxels run'"
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if path.suffix.lower() != ".npz":
+        raise CLIError(f"{not_output}; this is a {path.suffix or 'suffix-less'} file)")
+    if magic[:2] != b"PK":
+        raise CLIError(f"{not_output}; this file is not a .npz (zip) archive)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+    except Exception as e:  # corrupt zip, pickled members, ...
+        raise CLIError(f"{not_output}; it cannot be read: {e})") from None
+    missing = [k for k in ("points", "flow") if k not in d]
+    if missing:
+        raise CLIError(f"{not_output} with 'points' and 'flow'; it has {sorted(d) or 'no arrays'})")
+    if d["points"].ndim != 2 or d["points"].shape[1:] != (3,) or d["flow"].shape != d["points"].shape:
+        raise CLIError(f"{not_output}; 'points' {d['points'].shape} and 'flow' {d['flow'].shape} must both be "
+                       f"(N, 3))")
+    ok = np.isfinite(d["points"]).all(1)
+    mask = d.get("mask")
+    if mask is None or mask.shape != ok.shape:
+        mask = ok
+    d["mask"] = np.asarray(mask, bool)
+    return d
+
+
 def run(args: argparse.Namespace) -> int:
-    from .accumulate import load_run_frame
     from .cli import CLIError
     from .io import MissingDependencyError
     from .viz import write_png
 
     path = _resolve(args.target, args.frame)
-    data = load_run_frame(path)
+    data = load_flow_output(path)
     center = None
     if args.center:
         try:
@@ -133,14 +182,30 @@ def run(args: argparse.Namespace) -> int:
             assert len(center) == 2
         except (ValueError, AssertionError):
             raise CLIError(f"--center expects X,Y, got {args.center!r}") from None
-    if args.extent <= 0 or args.resolution <= 0 or args.extent / args.resolution > 8000:
+    if not (args.extent > 0 and args.resolution > 0) or args.extent / args.resolution > 8000:
         raise CLIError("--extent and --resolution must be > 0 and give at most 16000 pixels across")
-    img = render_frame(data, extent=args.extent, resolution=args.resolution, center=center,
-                       flow_scale=args.flow_scale)
+    if args.frame_period is not None and not args.frame_period > 0:
+        raise CLIError(f"--frame-period must be > 0 seconds, got {args.frame_period}")
     png = Path(args.png) if args.png else Path(f"{path.stem}.png")
-    write_png(png, img)
+    if not png.parent.is_dir():
+        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
     n_mov = int((np.linalg.norm(np.nan_to_num(data["flow"]), axis=1) > 0.05).sum())
-    print(f"wrote {png} ({img.shape[1]}x{img.shape[0]}, {len(data['points'])} points, {n_mov} moving)")
+    try:
+        from .flow_plot import plot_flow_bev
+
+        if center is None:
+            center = _default_center(data["points"])
+        view = ((center[0] - args.extent, center[0] + args.extent), (center[1] - args.extent, center[1] + args.extent))
+        plot_flow_bev(png, data["points"], data["flow"], mask=data["mask"], view=view,
+                      frame_period=args.frame_period, title=f"floxels show: {path}")
+        size = "matplotlib"
+    except MissingDependencyError as e:
+        print(f"note: {e}; writing a plain raster instead")
+        img = render_frame(data, extent=args.extent, resolution=args.resolution, center=center,
+                           flow_scale=args.flow_scale)
+        write_png(png, img)
+        size = f"{img.shape[1]}x{img.shape[0]}"
+    print(f"wrote {png} ({size}, {len(data['points'])} points, {n_mov} moving)")
     if args.rerun:
         try:
             write_rerun(Path(args.rerun), data, path.stem)

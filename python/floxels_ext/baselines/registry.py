@@ -3,6 +3,11 @@
 Both are two-scan methods: frame ``i`` is estimated towards scan ``i + 1``. The last frame of
 a sequence has no next scan; its flow is estimated towards the previous scan (time offset -1)
 and negated, i.e. it assumes constant velocity over the last two frames.
+
+With ``times`` (seconds, one per scan) a pair need not be one frame period apart (a dropped
+frame): the pair's flow is scaled to one period, ``flow * period / (t_other - t_frame)``
+(period: the median step of ``times``; this also does the negation above), i.e. constant
+velocity across the gap.
 """
 
 from __future__ import annotations
@@ -34,11 +39,16 @@ def pair_for_frame(frame: int, num_scans: int) -> tuple[int, float]:
     return (frame + 1, 1.0) if frame + 1 < num_scans else (frame - 1, -1.0)
 
 
-def run_sequence(fit, cfg, scans, frames, device, callback=None, timings=None) -> list:
+def run_sequence(fit, cfg, scans, frames, device, callback=None, timings=None, times=None) -> list:
     """Flow of each frame in ``frames`` (default all) with the two-scan method ``fit``;
     ``callback(frame, flow)`` after each. ``timings`` (a list), when given, receives the
-    seconds spent per frame."""
+    seconds spent per frame. ``times``: scan timestamps (s); flows are scaled to per period."""
+    from ..scans import check_times, frame_period_of
+
     scans = list(scans)
+    if times is not None:
+        times = check_times(times, len(scans))
+        period = frame_period_of(times)
     frames = list(range(len(scans))) if frames is None else [int(f) for f in frames]
     for f in frames:  # validate all before spending time on any
         pair_for_frame(f, len(scans))
@@ -47,7 +57,11 @@ def run_sequence(fit, cfg, scans, frames, device, callback=None, timings=None) -
         other, sign = pair_for_frame(f, len(scans))
         t0 = time.perf_counter()
         flow = fit(scans[f], scans[other], cfg, device).flow
-        if sign < 0:
+        if times is not None:
+            scale = period / (times[other] - times[f])
+            if scale != 1.0:
+                flow = flow * scale
+        elif sign < 0:
             flow = -flow
         if timings is not None:
             timings.append(time.perf_counter() - t0)
@@ -57,16 +71,17 @@ def run_sequence(fit, cfg, scans, frames, device, callback=None, timings=None) -
     return out
 
 
-def _nsfp_sequence(scans, frames, device, options, callback) -> None:
+def _nsfp_sequence(scans, frames, device, options, callback, times=None) -> None:
     from .nsfp import fit_nsfp
 
-    run_sequence(fit_nsfp, _config(NSFPConfig, "nsfp", options), scans, frames, device, callback)
+    run_sequence(fit_nsfp, _config(NSFPConfig, "nsfp", options), scans, frames, device, callback, times=times)
 
 
-def _fastnsf_sequence(scans, frames, device, options, callback) -> None:
+def _fastnsf_sequence(scans, frames, device, options, callback, times=None) -> None:
     from .fastnsf import fit_fastnsf
 
-    run_sequence(fit_fastnsf, _config(FastNSFConfig, "fastnsf", options), scans, frames, device, callback)
+    run_sequence(fit_fastnsf, _config(FastNSFConfig, "fastnsf", options), scans, frames, device, callback,
+                 times=times)
 
 
 methods.register(methods.Method(

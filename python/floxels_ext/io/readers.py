@@ -87,11 +87,63 @@ def _bin_plausibly_5_columns(flat: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(ring)) and np.all(ring == np.round(ring)) and np.all((ring >= 0) & (ring < 1024)))
 
 
+def _disorder(a: np.ndarray) -> float:
+    """How far consecutive rows of x, y, z jump, relative to each column's spread (median
+    |step| / interquartile range, averaged over x, y, z). Lidar files are stored in scan
+    order, so read with the right column count this is small (~0.01); read with a wrong
+    count, each column mixes x, y, z and intensity and it is large. Shuffled points give
+    ~0.5 for every count (no evidence either way). Median over the three columns: one
+    noisy column (e.g. z of a flat ground) does not hide the others' order."""
+    xyz = a[:, :3].astype(np.float64)
+    xyz = xyz[np.isfinite(xyz).all(1)][:200_000]
+    if xyz.shape[0] < 16:
+        return float("nan")
+    q75, q25 = np.percentile(xyz, [75, 25], axis=0)
+    step = np.median(np.abs(np.diff(xyz, axis=0)), axis=0)
+    return float(np.median(step / np.maximum(q75 - q25, 1e-6)))
+
+
+def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size: int, explicit: bool) -> None:
+    """Refuse a .bin whose values cannot be lidar coordinates (garbage, wrong dtype) or that
+    another column count reads clearly better than ``cols`` (a wrong ``--bin-columns``)."""
+    xyz = a[:, :3]
+    # NaN rows are legitimate (kept, flagged invalid); huge finite values are what random
+    # bytes or another dtype read as float32 look like
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad = (np.isfinite(xyz) & (np.abs(xyz) > 1e5)).any(1)
+    frac = float(bad.mean())
+    if frac > 0.1 or not np.isfinite(xyz).all(1).any():
+        what = f"{100 * frac:.0f}% of the {len(a)} rows" if frac > 0.1 else f"none of the {len(a)} rows"
+        raise _fail(path, f"{what} read with {cols} float32 columns have "
+                          + ("coordinates beyond 100 km" if frac > 0.1 else "finite coordinates")
+                          + ": not a float32 x y z ... .bin lidar file, "
+                          f"or the wrong column count" + ("" if explicit else " (set it with --bin-columns)"))
+    if not explicit:
+        return
+    score = {c: _disorder(flat.reshape(-1, c)) for c in range(3, 9) if size % (4 * c) == 0}
+    score = {c: v for c, v in score.items() if np.isfinite(v)}
+    if cols not in score or len(score) < 2:
+        return
+    low = min(score.values())
+    # the smallest count that reads the rows in order (a multiple of the true count reads
+    # x, y, z of every other row in order too, losing the rows between)
+    best = min(c for c, v in score.items() if v <= 2 * low)
+    if low < 0.1 and best != cols:
+        raise _fail(path, f"reading it with {cols} columns (--bin-columns) scrambles the coordinates: "
+                          f"the rows look like {best} float32 columns (KITTI has 4, nuScenes 5); "
+                          f"use --bin-columns {best} or leave it out")
+
+
 def read_bin(path, bin_columns: int | None = None) -> LidarScan:
-    """KITTI (x, y, z, intensity) or nuScenes (x, y, z, intensity, ring) float32 ``.bin``."""
+    """KITTI (x, y, z, intensity) or nuScenes (x, y, z, intensity, ring) float32 ``.bin``.
+
+    ``bin_columns`` forces the column count; it is refused when the file's size is not a
+    whole number of such rows or when another count reads the file clearly better (rows in
+    scan order). Files whose values are mostly NaN/inf or beyond 100 km are refused."""
     size = os.path.getsize(path)
-    if bin_columns is not None and bin_columns < 3:
-        raise ValueError(f"bin_columns must be >= 3, got {bin_columns}")
+    if bin_columns is not None and (isinstance(bin_columns, bool) or not isinstance(bin_columns, (int, np.integer))
+                                    or bin_columns < 3):
+        raise ValueError(f"bin_columns must be an integer >= 3, got {bin_columns!r}")
     if size == 0:
         raise _fail(path, "the frame has no points (empty file)")
     if bin_columns is None:
@@ -103,10 +155,12 @@ def read_bin(path, bin_columns: int | None = None) -> LidarScan:
         cols = fits[0] if len(fits) == 1 else (5 if _bin_plausibly_5_columns(flat) else 4)
     else:
         if size % (4 * bin_columns):
-            raise _fail(path, f"size {size} bytes is not a whole number of rows of {bin_columns} float32 columns")
+            raise _fail(path, f"size {size} bytes is not a whole number of rows of {bin_columns} float32 columns "
+                              f"(--bin-columns {bin_columns}); truncated, or a different column count?")
         flat = np.fromfile(path, dtype="<f4")
-        cols = bin_columns
+        cols = int(bin_columns)
     a = flat.reshape(-1, cols)
+    _check_bin_plausible(path, a, cols, flat, size, explicit=bin_columns is not None)
     names = ["intensity", "ring"] + [f"c{i}" for i in range(5, cols)]
     return _finish(path, a[:, :3], {names[i - 3]: a[:, i] for i in range(3, cols)})
 
@@ -121,7 +175,17 @@ def _array_points(path, a: np.ndarray, what: str) -> tuple[np.ndarray, dict]:
         return (np.stack([a[c].astype(np.float64) for c in "xyz"], 1),
                 {n: a[n] for n in a.dtype.names if n not in _XYZ and a[n].ndim == 1})
     if a.ndim != 2 or a.shape[1] < 3:
-        raise _fail(path, f"{what}: expected an (N, >=3) array, got shape {a.shape}")
+        raise _fail(path, f"{what}: expected an (N, >=3) array, got shape {a.shape}"
+                    + (" (transposed? save arr.T)" if a.ndim == 2 and a.shape[0] in (3, 4, 5) else ""))
+    if 3 <= a.shape[0] <= 8 and a.shape[1] > a.shape[0]:
+        # (3, N) is far more often a transposed cloud than N=3 points with many columns
+        raise _fail(path, f"{what}: shape {a.shape} looks transposed (coordinates along rows); points must be "
+                          f"rows: save it as shape ({a.shape[1]}, {a.shape[0]}) (arr.T)")
+    if a.shape[1] > 64:
+        raise _fail(path, f"{what}: shape {a.shape}: {a.shape[1]} columns per point is not a lidar frame "
+                          f"(expected (N, >=3) with x, y, z first)")
+    if not np.issubdtype(a.dtype, np.number) or np.issubdtype(a.dtype, np.complexfloating):
+        raise _fail(path, f"{what}: coordinates must be real numbers, got dtype {a.dtype}")
     return a[:, :3], {("intensity" if i == 3 else f"c{i}"): a[:, i] for i in range(3, a.shape[1])}
 
 

@@ -54,5 +54,6 @@ def grid_from_bounds(lo: list[float], hi: list[float], spacing: float, padding: 
         ext = ", ".join(f"{h - l:.1f}" for l, h in zip(lo, hi))
         raise GridTooLargeError(
             f"a grid at {spacing} m over an extent of ({ext}) m would have {cells:,} samples "
-            f"(cap {max_cells:,}); crop the points or raise max_cells")
+            f"(cap {max_cells:,}); crop the points, or raise the cap: FloxelsConfig.max_dt_cells "
+            f"(the ops' max_cells=)")
     return origin, [n_xyz[2], n_xyz[1], n_xyz[0]]
