@@ -1,0 +1,361 @@
+"""The machinery of ``floxels run``: reading and preprocessing ahead on worker threads, the
+optimisation in the calling thread, writing on a writer thread (see :func:`run_pipeline`).
+
+Why threads: reading (file I/O), the numpy/torch preprocessing and ``np.savez`` release the
+GIL for most of their time, and frames are hundreds of kB, so threads overlap them with the
+optimiser without copying frames between processes. Memory stays flat: frames are read at most
+one chunk ahead (:class:`FrameLoader`), dropped once behind the current window, and results wait
+in a bounded queue (the optimiser blocks when the writer is behind).
+
+Windows and time offsets are exactly those of a serial run: the scans handed to the method are
+those of frames ``[lo, hi)`` of each chunk, an unreadable frame an empty scan in its place, all
+moved into one world frame re-centred on the first readable frame of the chunk.
+"""
+
+from __future__ import annotations
+
+import inspect
+import queue
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["PreparedFrame", "FrameLoader", "ChunkScans", "Stages", "plan_chunks", "run_pipeline"]
+
+
+@dataclass
+class PreparedFrame:
+    points: np.ndarray       # (N, 3) float32, native coordinates, file order
+    mask: np.ndarray         # (N,) bool: optimised points
+    to_world: np.ndarray     # (4, 4) native -> world
+
+
+@dataclass
+class Stages:
+    """Seconds per stage. read/preprocess/write: summed over worker threads (CPU time spent);
+    wait_input: the optimiser waited for frames; estimate: inside the method; wait_writer: the
+    optimiser waited for the writer (queue full); wall: the whole pipeline."""
+
+    read: float = 0.0
+    preprocess: float = 0.0
+    transform: float = 0.0
+    estimate: float = 0.0
+    write: float = 0.0
+    wait_input: float = 0.0
+    wait_writer: float = 0.0
+    wall: float = 0.0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def add(self, name: str, dt: float) -> None:
+        with self._lock:
+            setattr(self, name, getattr(self, name) + dt)
+
+    def as_dict(self) -> dict:
+        d = {k: round(getattr(self, k), 6) for k in
+             ("read", "preprocess", "transform", "estimate", "write", "wait_input", "wait_writer", "wall")}
+        d["outside_estimate"] = round(max(0.0, self.wall - self.estimate), 6)  # the device idles then
+        return d
+
+
+class FrameLoader:
+    """Reads and preprocesses frames on ``workers`` threads, ahead of use (:meth:`prefetch`).
+
+    ``pose_mode``: "table" (``poses[i]``), "frame" (the file's own ``pose``), "identity" (no
+    ego-motion) or "seqio" (points already in the world frame; the file's ``pose`` locates the
+    sensor for cropping). ``pre_device``: torch device for the preprocessing (None: numpy)."""
+
+    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4,
+                 pre_device=None, stages: Stages | None = None, warn) -> None:
+        self.seq, self.settings, self.poses, self.pose_mode = seq, settings, poses, pose_mode
+        self.report, self.warn = report, warn
+        self.pre_device = pre_device
+        self.stages = stages or Stages()
+        self.pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="floxels-read")
+        self.futures: dict = {}
+        self.errors: dict[int, str] = {}
+        self.nonfinite: dict[int, int] = {}
+        self._warned_no_pose = False
+        self._lock = threading.Lock()
+
+    # --------------------------------------------------------------- scheduling
+    def prefetch(self, indices) -> None:
+        for i in indices:
+            if i not in self.futures:
+                self.futures[i] = self.pool.submit(self._load, i)
+
+    def get(self, i: int) -> PreparedFrame | None:
+        self.prefetch([i])
+        fut = self.futures[i]
+        if not fut.done():
+            t0 = time.perf_counter()
+            res = fut.result()
+            self.stages.add("wait_input", time.perf_counter() - t0)
+            return res
+        return fut.result()
+
+    def peek(self, i: int) -> PreparedFrame | None:
+        """The frame if it is loaded already (never waits)."""
+        fut = self.futures.get(i)
+        return fut.result() if fut is not None and fut.done() and fut.exception() is None else None
+
+    def evict_below(self, lo: int) -> None:
+        for k in [k for k in self.futures if k < lo]:
+            self.futures.pop(k).cancel()
+
+    def close(self) -> None:
+        for fut in self.futures.values():
+            fut.cancel()
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+    # --------------------------------------------------------------- one frame
+    def _fail(self, i: int, msg: str) -> None:
+        with self._lock:
+            self.errors[i] = msg
+        self.report(f"floxels: error: {msg}")
+
+    def _load(self, i: int) -> PreparedFrame | None:
+        from .io import LidarFormatError, MissingDependencyError
+        from .preprocess import preprocess_mask, transform_points
+
+        path = self.seq.frames[i].path
+        t0 = time.perf_counter()
+        try:
+            scan = self.seq.load(i)
+            sensor_from_native = None
+            if self.pose_mode == "seqio":
+                to_world = np.eye(4)
+                if scan.pose is not None:
+                    sensor_from_native = np.linalg.inv(scan.pose)
+                else:
+                    with self._lock:
+                        first, self._warned_no_pose = not self._warned_no_pose, True
+                    if first:
+                        self.warn(f"{path} has no 'pose': ranges and heights are measured from the world origin")
+            elif self.pose_mode == "frame":
+                if scan.pose is None:
+                    raise LidarFormatError(f"{path}: no 'pose' in this frame, but other frames of the sequence "
+                                           f"have one (give --poses)")
+                to_world = scan.pose
+            elif self.pose_mode == "identity":
+                to_world = np.eye(4)
+            else:  # "table": seq.poses or odometry
+                to_world = self.poses[i]
+        except MissingDependencyError:
+            raise
+        except (LidarFormatError, ValueError, OSError) as e:
+            self._fail(i, str(e))
+            return None
+        pts = scan.points
+        finite = np.isfinite(pts).all(axis=1)
+        n_bad = int(len(pts) - finite.sum())
+        if n_bad == len(pts):
+            self._fail(i, f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)")
+            return None
+        if n_bad:
+            with self._lock:
+                self.nonfinite[i] = n_bad
+        t1 = time.perf_counter()
+        self.stages.add("read", t1 - t0)
+        pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
+        try:
+            mask = preprocess_mask(pts_sensor, self.settings, device=self.pre_device) \
+                if self.settings is not None else finite
+        except ValueError as e:
+            self._fail(i, f"{path}: preprocessing failed: {e}")
+            return None
+        self.stages.add("preprocess", time.perf_counter() - t1)
+        return PreparedFrame(pts, mask, np.asarray(to_world, np.float64))
+
+
+class ChunkScans(Sequence):
+    """The ego-motion-compensated scans of frames ``[lo, hi)`` as a lazy sequence: item ``k`` is
+    frame ``lo + k``'s kept points moved into the chunk's world frame (re-centred on
+    ``anchor``), made on first access and dropped once a later window starts after it."""
+
+    def __init__(self, loader: FrameLoader, lo: int, hi: int, anchor: np.ndarray) -> None:
+        self.loader, self.lo, self.hi, self.anchor = loader, lo, hi, anchor
+        self._made: dict[int, np.ndarray] = {}
+        self._floor = 0
+
+    def __len__(self) -> int:
+        return self.hi - self.lo
+
+    def _scan(self, k: int) -> np.ndarray:
+        if k not in self._made:
+            p = self.loader.get(self.lo + k)
+            t0 = time.perf_counter()
+            if p is None:
+                s = np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
+            else:
+                T = p.to_world.copy()
+                T[:3, 3] -= self.anchor
+                kept = p.points[p.mask].astype(np.float64)
+                s = (kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+            self._made[k] = s
+            self.loader.stages.add("transform", time.perf_counter() - t0)
+        return self._made[k]
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            idx = range(len(self))[k]
+            if k.step in (None, 1) and len(idx):  # a window: nothing before it is asked for again
+                for j in [j for j in self._made if j < idx[0]]:
+                    del self._made[j]
+            return [self._scan(j) for j in idx]
+        k = int(k)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        return self._scan(k)
+
+
+def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
+    """Targets per method call. ``chunk``: fixed size; None: 8, 16, 32, then 64 (small first
+    calls start the device early while later frames are still being read)."""
+    out, k, size = [], 0, (chunk or 8)
+    while k < len(todo):
+        out.append(todo[k:k + size])
+        k += size
+        if chunk is None:
+            size = min(64, size * 2)
+    return out
+
+
+def _accepts_times(fn) -> bool:
+    try:
+        return "times" in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+class _Writer:
+    """Writes results on a thread; ``put`` blocks while ``depth`` results wait (flat memory)."""
+
+    def __init__(self, write_one, stages: Stages, depth: int = 32) -> None:
+        self.write_one, self.stages = write_one, stages
+        self.q: queue.Queue = queue.Queue(maxsize=depth)
+        self.failures: dict[int, str] = {}
+        self.written = 0
+        self.thread = threading.Thread(target=self._loop, name="floxels-write", daemon=True)
+        self.thread.start()
+
+    def put(self, item) -> None:
+        t0 = time.perf_counter()
+        self.q.put(item)
+        self.stages.add("wait_writer", time.perf_counter() - t0)
+
+    def _loop(self) -> None:
+        while True:
+            item = self.q.get()
+            if item is None:
+                return
+            t0 = time.perf_counter()
+            try:
+                self.write_one(*item)
+                self.written += 1
+            except Exception as e:  # a full disk, a permission problem: this frame fails, not the run
+                self.failures[item[0]] = f"cannot write the output: {e}"
+            self.stages.add("write", time.perf_counter() - t0)
+
+    def close(self) -> None:
+        """Write what is queued (finished results are not thrown away), then stop."""
+        self.q.put(None)
+        self.thread.join()
+
+
+def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_scans: int, chunk: int | None,
+                 device, options: dict, write_one, on_written, next_pose=lambda i: None, times_s=None,
+                 writer_depth: int = 32) -> dict:
+    """Estimate every frame of ``todo`` (sorted sequence indices of ``n`` frames).
+
+    ``write_one(i, prepared, flow_kept, elapsed_s, next_to_world)`` runs on the writer thread
+    (``next_pose(i)``, called on this thread, gives the last argument: the next frame's pose or None);
+    ``on_written(i)`` (progress) on the calling thread, as results are handed over.
+    Returns {"failed": {i: message}, "times": [s/frame], "delivered": count}; raises
+    ``EstimationError`` (a ValueError/TypeError of the method before any frame was delivered)."""
+    stages = loader.stages
+    pad = num_scans - 1
+    chunks = plan_chunks(todo, chunk)
+    pass_times = times_s is not None and _accepts_times(method.estimate_sequence)
+    writer = _Writer(write_one, stages, writer_depth)
+    failed: dict[int, str] = {}
+    elapsed: list[float] = []
+    delivered = 0
+    t_start = time.perf_counter()
+
+    def window(c):
+        return max(0, c[0] - pad), min(n, c[-1] + pad + 1)
+
+    try:
+        for ci, targets_all in enumerate(chunks):
+            lo, hi = window(targets_all)
+            loader.evict_below(lo)
+            loader.prefetch(range(lo, hi))
+            if ci + 1 < len(chunks):  # read the next chunk while this one is optimised
+                loader.prefetch(range(*window(chunks[ci + 1])))
+            # the first readable frame of the chunk anchors its world frame (float32 precision)
+            anchor = None
+            for i in range(lo, hi):
+                p = loader.get(i)
+                if p is not None:
+                    anchor = p.to_world[:3, 3].copy()
+                    break
+            targets = []
+            for i in targets_all:
+                if loader.get(i) is None:
+                    failed[i] = loader.errors.get(i, "unreadable")
+                    on_written(i)
+                else:
+                    targets.append(i)
+            if not targets:
+                continue
+            scans = ChunkScans(loader, lo, hi, anchor)
+            t_last = [time.perf_counter()]
+
+            def on_frame(f_local, flow_kept, lo=lo):
+                nonlocal delivered
+                i = lo + int(f_local)
+                now = time.perf_counter()
+                dt, t_last[0] = now - t_last[0], now
+                elapsed.append(dt)
+                flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)
+                writer.put((i, loader.get(i), flow_kept, dt, next_pose(i)))
+                delivered += 1
+                on_written(i)
+
+            extra = {"times": list(times_s[lo:hi])} if pass_times else {}
+            t0 = time.perf_counter()
+            try:
+                method.estimate_sequence(scans, [i - lo for i in targets], device, dict(options), on_frame, **extra)
+            except (ValueError, TypeError) as e:
+                if delivered == 0 and not failed:
+                    raise EstimationError(str(e)) from None
+                for i in targets:
+                    failed.setdefault(i, f"estimation failed: {e}")
+                loader.report(f"floxels: error: frames {loader.seq.frames[targets[0]].name}.."
+                              f"{loader.seq.frames[targets[-1]].name}: {e}")
+            except RuntimeError as e:  # e.g. out of GPU memory: lose this chunk, keep going
+                for i in targets:
+                    failed.setdefault(i, f"estimation failed: {e}")
+                loader.report(f"floxels: error: frames {loader.seq.frames[targets[0]].name}.."
+                              f"{loader.seq.frames[targets[-1]].name}: {e}")
+            finally:
+                stages.add("estimate", time.perf_counter() - t0)
+            del scans
+    finally:
+        writer.close()  # results already computed are written, also on Ctrl-C
+        loader.close()
+        stages.add("wall", time.perf_counter() - t_start)
+    for i, msg in writer.failures.items():
+        failed[i] = msg
+    return {"failed": failed, "times": elapsed, "delivered": delivered, "written": writer.written}
+
+
+class EstimationError(ValueError):
+    """The method rejected its input before any frame was done (bad options, bad scans)."""
