@@ -39,7 +39,9 @@ class PreparedFrame:
 class Stages:
     """Seconds per stage. read/preprocess/write: summed over worker threads (CPU time spent);
     wait_input: the optimiser waited for frames; estimate: inside the method; wait_writer: the
-    optimiser waited for the writer (queue full); wall: the whole pipeline."""
+    optimiser waited for the writer (queue full); wall: the whole pipeline. ``wait_input_in_estimate``:
+    the part of wait_input spent inside the method (it asks for the scans lazily), so
+    ``estimate - wait_input_in_estimate`` is the time the method actually computed."""
 
     read: float = 0.0
     preprocess: float = 0.0
@@ -47,8 +49,10 @@ class Stages:
     estimate: float = 0.0
     write: float = 0.0
     wait_input: float = 0.0
+    wait_input_in_estimate: float = 0.0
     wait_writer: float = 0.0
     wall: float = 0.0
+    in_estimate: bool = False  # set by the thread calling the method
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def add(self, name: str, dt: float) -> None:
@@ -57,8 +61,12 @@ class Stages:
 
     def as_dict(self) -> dict:
         d = {k: round(getattr(self, k), 6) for k in
-             ("read", "preprocess", "transform", "estimate", "write", "wait_input", "wait_writer", "wall")}
-        d["outside_estimate"] = round(max(0.0, self.wall - self.estimate), 6)  # the device idles then
+             ("read", "preprocess", "transform", "estimate", "write", "wait_input", "wait_input_in_estimate",
+              "wait_writer", "wall")}
+        # the method waits for nothing but its own work: the rest of the wall time is host-bound
+        d["compute"] = round(max(0.0, self.estimate - self.wait_input_in_estimate - self.wait_writer), 6)
+        d["outside_estimate"] = round(max(0.0, self.wall - self.estimate), 6)
+        d["host_bound"] = round(max(0.0, self.wall - d["compute"]), 6)
         return d
 
 
@@ -76,11 +84,14 @@ class FrameLoader:
         self.pre_device = pre_device
         self.stages = stages or Stages()
         self.pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="floxels-read")
+        # transforms wait for loads: a pool of their own, so they never queue behind later loads
+        self.tpool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="floxels-move")
         self.futures: dict = {}
         self.errors: dict[int, str] = {}
         self.nonfinite: dict[int, int] = {}
         self._warned_no_pose = False
         self._lock = threading.Lock()
+        self._tls = threading.local()
 
     # --------------------------------------------------------------- scheduling
     def prefetch(self, indices) -> None:
@@ -94,7 +105,10 @@ class FrameLoader:
         if not fut.done():
             t0 = time.perf_counter()
             res = fut.result()
-            self.stages.add("wait_input", time.perf_counter() - t0)
+            dt = time.perf_counter() - t0
+            self.stages.add("wait_input", dt)
+            if self.stages.in_estimate:
+                self.stages.add("wait_input_in_estimate", dt)
             return res
         return fut.result()
 
@@ -110,6 +124,7 @@ class FrameLoader:
     def close(self) -> None:
         for fut in self.futures.values():
             fut.cancel()
+        self.tpool.shutdown(wait=True, cancel_futures=True)
         self.pool.shutdown(wait=True, cancel_futures=True)
 
     # --------------------------------------------------------------- one frame
@@ -163,8 +178,18 @@ class FrameLoader:
         self.stages.add("read", t1 - t0)
         pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
         try:
-            mask = preprocess_mask(pts_sensor, self.settings, device=self.pre_device) \
-                if self.settings is not None else finite
+            if self.settings is None:
+                mask = finite
+            elif self.pre_device is not None and str(self.pre_device).startswith("cuda"):
+                import torch
+
+                # a stream per worker: its kernels and read-back do not queue behind the optimiser's
+                if getattr(self._tls, "stream", None) is None:
+                    self._tls.stream = torch.cuda.Stream(device=self.pre_device)
+                with torch.cuda.stream(self._tls.stream):
+                    mask = preprocess_mask(pts_sensor, self.settings, device=self.pre_device)
+            else:
+                mask = preprocess_mask(pts_sensor, self.settings, device=self.pre_device)
         except ValueError as e:
             self._fail(i, f"{path}: preprocessing failed: {e}")
             return None
@@ -173,39 +198,50 @@ class FrameLoader:
 
 
 class ChunkScans(Sequence):
-    """The ego-motion-compensated scans of frames ``[lo, hi)`` as a lazy sequence: item ``k`` is
-    frame ``lo + k``'s kept points moved into the chunk's world frame (re-centred on
-    ``anchor``), made on first access and dropped once a later window starts after it."""
+    """The ego-motion-compensated scans of frames ``[lo, hi)`` as a sequence: item ``k`` is frame
+    ``lo + k``'s kept points moved into the chunk's world frame (re-centred on ``anchor``). The
+    transforms run on the loader's transform threads as soon as the chunk is planned; an item
+    is dropped once a later window starts after it."""
 
     def __init__(self, loader: FrameLoader, lo: int, hi: int, anchor: np.ndarray) -> None:
         self.loader, self.lo, self.hi, self.anchor = loader, lo, hi, anchor
-        self._made: dict[int, np.ndarray] = {}
-        self._floor = 0
+        self._futs = {k: loader.tpool.submit(self._make, k) for k in range(hi - lo)}
 
     def __len__(self) -> int:
         return self.hi - self.lo
 
+    def _make(self, k: int) -> np.ndarray:
+        fut = self.loader.futures.get(self.lo + k)
+        p = fut.result() if fut is not None else self.loader.get(self.lo + k)
+        t0 = time.perf_counter()
+        if p is None:
+            return np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
+        T = p.to_world.copy()
+        T[:3, 3] -= self.anchor
+        kept = p.points[p.mask].astype(np.float64)
+        s = (kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        self.loader.stages.add("transform", time.perf_counter() - t0)
+        return s
+
     def _scan(self, k: int) -> np.ndarray:
-        if k not in self._made:
-            p = self.loader.get(self.lo + k)
+        fut = self._futs.get(k)
+        if fut is None:  # dropped (asked for again after its window passed): make it again
+            fut = self._futs[k] = self.loader.tpool.submit(self._make, k)
+        if not fut.done():
             t0 = time.perf_counter()
-            if p is None:
-                s = np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
-            else:
-                T = p.to_world.copy()
-                T[:3, 3] -= self.anchor
-                kept = p.points[p.mask].astype(np.float64)
-                s = (kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-            self._made[k] = s
-            self.loader.stages.add("transform", time.perf_counter() - t0)
-        return self._made[k]
+            fut.result()
+            dt = time.perf_counter() - t0
+            self.loader.stages.add("wait_input", dt)
+            if self.loader.stages.in_estimate:
+                self.loader.stages.add("wait_input_in_estimate", dt)
+        return fut.result()
 
     def __getitem__(self, k):
         if isinstance(k, slice):
             idx = range(len(self))[k]
             if k.step in (None, 1) and len(idx):  # a window: nothing before it is asked for again
-                for j in [j for j in self._made if j < idx[0]]:
-                    del self._made[j]
+                for j in [j for j in self._futs if j < idx[0]]:
+                    del self._futs[j]
             return [self._scan(j) for j in idx]
         k = int(k)
         if k < 0:
@@ -213,6 +249,11 @@ class ChunkScans(Sequence):
         if not 0 <= k < len(self):
             raise IndexError(k)
         return self._scan(k)
+
+    def close(self) -> None:
+        for f in self._futs.values():
+            f.cancel()
+        self._futs.clear()
 
 
 def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
@@ -331,6 +372,7 @@ def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_sc
 
             extra = {"times": list(times_s[lo:hi])} if pass_times else {}
             t0 = time.perf_counter()
+            stages.in_estimate = True
             try:
                 method.estimate_sequence(scans, [i - lo for i in targets], device, dict(options), on_frame, **extra)
             except (ValueError, TypeError) as e:
@@ -346,7 +388,9 @@ def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_sc
                 loader.report(f"floxels: error: frames {loader.seq.frames[targets[0]].name}.."
                               f"{loader.seq.frames[targets[-1]].name}: {e}")
             finally:
+                stages.in_estimate = False
                 stages.add("estimate", time.perf_counter() - t0)
+            scans.close()
             del scans
     finally:
         writer.close()  # results already computed are written, also on Ctrl-C

@@ -45,7 +45,7 @@ def preprocess_mask_torch(points_sensor, settings: Preprocess = Preprocess(), de
     """:func:`floxels_ext.preprocess.preprocess_mask` computed with torch on ``device``;
     ``points_sensor`` a numpy array or tensor (N, 3). Returns a numpy (N,) bool array."""
     p = torch.as_tensor(np.asarray(points_sensor) if not torch.is_tensor(points_sensor) else points_sensor)
-    p = p.to(device=device, dtype=torch.float64)
+    p = p.to(device=device).to(torch.float64)  # copy as stored (float32: half the bytes), widen there
     finite = torch.isfinite(p).all(1)
     r = torch.hypot(p[:, 0], p[:, 1])
     keep = finite.clone()
