@@ -165,6 +165,19 @@ def test_torch_preprocessing_gives_the_numpy_masks(k):
         np.testing.assert_array_equal(preprocess_mask(ps, _SETTINGS[k], device="cpu"), a)
 
 
+@pytest.mark.cuda
+def test_torch_preprocessing_on_cuda_gives_the_numpy_masks():
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from floxels_ext.preprocess_torch import preprocess_mask_torch
+
+    _, ps = _sim_frame("urban", 6)
+    for st in _SETTINGS:
+        np.testing.assert_array_equal(preprocess_mask_torch(ps, st, "cuda"), preprocess_mask(ps, st))
+
+
 def test_stray_far_points_neither_crash_nor_change_the_near_masks():
     """Issue 17.1: rows at |x| ~ 1e30 crashed ground removal; a point 1.5 km away made it
     quadratic in the extent and changed the mask of near points. The crop comes first now."""
