@@ -180,3 +180,31 @@ def test_baseline_method_through_the_pipeline(seq, tmp_path, capsys):
     assert rc == 0, cap.err
     assert sorted(os.listdir(tmp_path / "out")) == ["000002.npz", "000003.npz", "run_summary.json"]
     assert np.isfinite(read_flow_output(tmp_path / "out" / "000002.npz")["flow"]).all()
+
+
+def test_process_workers_same_outputs_and_clean_interrupt(seq, tmp_path, capsys, monkeypatch):
+    """Worker processes give the thread path's files; Ctrl-C leaves no temporaries, no children."""
+    import multiprocessing
+
+    done = [0]
+
+    def est(scans, frames, device, options, callback):
+        for f in frames:
+            if done[0] == options.get("stop_after"):
+                raise KeyboardInterrupt
+            callback(f, np.tile(V_WORLD, (len(scans[f]), 1)))
+            done[0] += 1
+
+    monkeypatch.setitem(methods._REGISTRY, "fake2", methods.Method("fake2", "test double", est))
+    d = _bin_dir(seq, tmp_path / "in")
+    base = [d, "--method", "fake2", "--poses", tmp_path / "poses.txt", "--scans", "3", "--workers", "2"]
+    assert _run(base + ["--out", tmp_path / "t", "--worker-kind", "thread"], capsys)[0] == 0
+    assert _run(base + ["--out", tmp_path / "p", "--worker-kind", "process"], capsys)[0] == 0
+    for i in range(N):
+        a, b = (read_flow_output(tmp_path / k / f"{i:06d}.npz") for k in "tp")
+        assert np.array_equal(a["flow"], b["flow"]) and np.array_equal(a["mask"], b["mask"])
+    done[0] = 0
+    rc, cap = _run(base + ["--out", tmp_path / "i", "--worker-kind", "process", "--option", "stop_after=2"], capsys)
+    assert rc == 130
+    assert sorted(os.listdir(tmp_path / "i")) == ["000000.npz", "000001.npz"]
+    assert multiprocessing.active_children() == []

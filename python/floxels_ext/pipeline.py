@@ -30,9 +30,15 @@ __all__ = ["PreparedFrame", "FrameLoader", "ChunkScans", "Stages", "plan_chunks"
 
 @dataclass
 class PreparedFrame:
-    points: np.ndarray       # (N, 3) float32, native coordinates, file order
-    mask: np.ndarray         # (N,) bool: optimised points
+    kept: np.ndarray         # (M, 3) float32: the optimised points, native coordinates, file order
+    mask: np.ndarray         # (N,) bool: which rows of the file they are
+    nonfinite: np.ndarray    # indices of the rows with NaN/inf coordinates
     to_world: np.ndarray     # (4, 4) native -> world
+    points: np.ndarray | None = None  # (N, 3) all rows, only when asked for (--self-contained)
+
+    @property
+    def n(self) -> int:
+        return len(self.mask)
 
 
 @dataclass
@@ -70,131 +76,190 @@ class Stages:
         return d
 
 
+def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, pre_device=None) -> dict:
+    """Read and preprocess frame ``i`` (runs on a worker thread or process). Returns a dict:
+    ``frame`` (a PreparedFrame) or ``error`` (a message naming the file), ``warning``, and the
+    seconds spent reading and preprocessing. ``pose_mode``: "table" (``poses[i]``), "frame" (the
+    file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
+    frame; the file's ``pose`` locates the sensor for cropping)."""
+    from .io import LidarFormatError, MissingDependencyError
+    from .preprocess import preprocess_mask, transform_points
+
+    path = seq.frames[i].path
+    out: dict = {"read": 0.0, "preprocess": 0.0}
+    t0 = time.perf_counter()
+    try:
+        scan = seq.load(i)
+        sensor_from_native = None
+        if pose_mode == "seqio":
+            to_world = np.eye(4)
+            if scan.pose is not None:
+                sensor_from_native = np.linalg.inv(scan.pose)
+            else:
+                out["warning"] = "no_pose"
+        elif pose_mode == "frame":
+            if scan.pose is None:
+                raise LidarFormatError(f"{path}: no 'pose' in this frame, but other frames of the sequence "
+                                       f"have one (give --poses)")
+            to_world = scan.pose
+        elif pose_mode == "identity":
+            to_world = np.eye(4)
+        else:  # "table": seq.poses or odometry
+            to_world = poses[i]
+    except MissingDependencyError:
+        raise
+    except (LidarFormatError, ValueError, OSError) as e:
+        out["error"] = str(e)
+        return out
+    pts = np.asarray(scan.points, np.float32)
+    finite = np.isfinite(pts).all(axis=1)
+    nonfinite = np.flatnonzero(~finite)
+    if len(nonfinite) == len(pts):
+        out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
+        return out
+    t1 = time.perf_counter()
+    out["read"] = t1 - t0
+    pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
+    try:
+        if settings is None:
+            mask = finite
+        elif pre_device is not None and str(pre_device).startswith("cuda"):
+            import torch
+
+            # a stream per worker thread: its kernels and read-back do not queue behind the optimiser's
+            if getattr(_TLS, "stream", None) is None:
+                _TLS.stream = torch.cuda.Stream(device=pre_device)
+            with torch.cuda.stream(_TLS.stream):
+                mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+        else:
+            mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+    except ValueError as e:
+        out["error"] = f"{path}: preprocessing failed: {e}"
+        return out
+    out["preprocess"] = time.perf_counter() - t1
+    out["frame"] = PreparedFrame(pts[mask], mask, nonfinite, np.asarray(to_world, np.float64),
+                                 pts if keep_points else None)
+    return out
+
+
+_TLS = threading.local()
+_WORKER: dict = {}
+
+
+def _init_process(kwargs) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it stops us)
+    _WORKER.update(kwargs)
+
+
+def _process_load(i: int) -> dict:
+    return load_frame(i, **_WORKER)
+
+
+def _nothing() -> None:
+    return None
+
+
 class FrameLoader:
-    """Reads and preprocesses frames on ``workers`` threads, ahead of use (:meth:`prefetch`).
+    """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
+    processes (``kind="process"``: numpy preprocessing without sharing the GIL with the
+    optimiser's host work; forked at construction, before the device is used)."""
 
-    ``pose_mode``: "table" (``poses[i]``), "frame" (the file's own ``pose``), "identity" (no
-    ego-motion) or "seqio" (points already in the world frame; the file's ``pose`` locates the
-    sensor for cropping). ``pre_device``: torch device for the preprocessing (None: numpy)."""
-
-    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4,
-                 pre_device=None, stages: Stages | None = None, warn) -> None:
-        self.seq, self.settings, self.poses, self.pose_mode = seq, settings, poses, pose_mode
-        self.report, self.warn = report, warn
-        self.pre_device = pre_device
+    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
+                 pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn) -> None:
+        self.seq, self.report, self.warn = seq, report, warn
         self.stages = stages or Stages()
-        self.pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="floxels-read")
+        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+        workers = max(1, workers)
+        if kind == "process":
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork"),
+                                            initializer=_init_process, initargs=(self.kwargs,))
+            for f in [self.pool.submit(_nothing) for _ in range(workers)]:
+                f.result()  # start them all now
+            self._submit = lambda i: self.pool.submit(_process_load, i)
+        else:
+            self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
+            self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
         # transforms wait for loads: a pool of their own, so they never queue behind later loads
-        self.tpool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="floxels-move")
+        self.tpool = ThreadPoolExecutor(max_workers=min(workers, 8), thread_name_prefix="floxels-move")
         self.futures: dict = {}
+        self.done: dict[int, PreparedFrame | None] = {}
         self.errors: dict[int, str] = {}
         self.nonfinite: dict[int, int] = {}
         self._warned_no_pose = False
         self._lock = threading.Lock()
-        self._tls = threading.local()
 
-    # --------------------------------------------------------------- scheduling
     def prefetch(self, indices) -> None:
-        for i in indices:
-            if i not in self.futures:
-                self.futures[i] = self.pool.submit(self._load, i)
+        with self._lock:
+            for i in indices:
+                if i not in self.futures and i not in self.done:
+                    self.futures[i] = self._submit(i)
+
+    def _collect(self, i: int, res: dict) -> PreparedFrame | None:
+        with self._lock:
+            if i in self.done:
+                return self.done[i]
+            self.stages.add("read", res["read"])
+            self.stages.add("preprocess", res["preprocess"])
+            fr = res.get("frame")
+            if "error" in res:
+                self.errors[i] = res["error"]
+            elif len(fr.nonfinite):
+                self.nonfinite[i] = len(fr.nonfinite)
+            first_no_pose = res.get("warning") == "no_pose" and not self._warned_no_pose
+            self._warned_no_pose |= first_no_pose
+            self.done[i] = fr
+        if "error" in res:
+            self.report(f"floxels: error: {res['error']}")
+        if first_no_pose:
+            self.warn(f"{self.seq.frames[i].path} has no 'pose': ranges and heights are measured from the world origin")
+        return fr
 
     def get(self, i: int) -> PreparedFrame | None:
-        self.prefetch([i])
-        fut = self.futures[i]
+        """Frame ``i`` (None if it cannot be used); waits for it. Thread-safe."""
+        with self._lock:
+            if i in self.done:
+                return self.done[i]
+            fut = self.futures.get(i)
+            if fut is None:
+                fut = self.futures[i] = self._submit(i)
         if not fut.done():
             t0 = time.perf_counter()
-            res = fut.result()
+            fut.result()
             dt = time.perf_counter() - t0
             self.stages.add("wait_input", dt)
             if self.stages.in_estimate:
                 self.stages.add("wait_input_in_estimate", dt)
-            return res
-        return fut.result()
+        fr = self._collect(i, fut.result())
+        with self._lock:
+            self.futures.pop(i, None)
+        return fr
 
     def peek(self, i: int) -> PreparedFrame | None:
         """The frame if it is loaded already (never waits)."""
+        if i in self.done:
+            return self.done[i]
         fut = self.futures.get(i)
-        return fut.result() if fut is not None and fut.done() and fut.exception() is None else None
+        if fut is None or not fut.done() or fut.exception() is not None:
+            return None
+        return self._collect(i, fut.result())
 
     def evict_below(self, lo: int) -> None:
-        for k in [k for k in self.futures if k < lo]:
-            self.futures.pop(k).cancel()
+        with self._lock:
+            for k in [k for k in self.futures if k < lo]:
+                self.futures.pop(k).cancel()
+            for k in [k for k in self.done if k < lo]:
+                del self.done[k]
 
     def close(self) -> None:
         for fut in self.futures.values():
             fut.cancel()
         self.tpool.shutdown(wait=True, cancel_futures=True)
         self.pool.shutdown(wait=True, cancel_futures=True)
-
-    # --------------------------------------------------------------- one frame
-    def _fail(self, i: int, msg: str) -> None:
-        with self._lock:
-            self.errors[i] = msg
-        self.report(f"floxels: error: {msg}")
-
-    def _load(self, i: int) -> PreparedFrame | None:
-        from .io import LidarFormatError, MissingDependencyError
-        from .preprocess import preprocess_mask, transform_points
-
-        path = self.seq.frames[i].path
-        t0 = time.perf_counter()
-        try:
-            scan = self.seq.load(i)
-            sensor_from_native = None
-            if self.pose_mode == "seqio":
-                to_world = np.eye(4)
-                if scan.pose is not None:
-                    sensor_from_native = np.linalg.inv(scan.pose)
-                else:
-                    with self._lock:
-                        first, self._warned_no_pose = not self._warned_no_pose, True
-                    if first:
-                        self.warn(f"{path} has no 'pose': ranges and heights are measured from the world origin")
-            elif self.pose_mode == "frame":
-                if scan.pose is None:
-                    raise LidarFormatError(f"{path}: no 'pose' in this frame, but other frames of the sequence "
-                                           f"have one (give --poses)")
-                to_world = scan.pose
-            elif self.pose_mode == "identity":
-                to_world = np.eye(4)
-            else:  # "table": seq.poses or odometry
-                to_world = self.poses[i]
-        except MissingDependencyError:
-            raise
-        except (LidarFormatError, ValueError, OSError) as e:
-            self._fail(i, str(e))
-            return None
-        pts = scan.points
-        finite = np.isfinite(pts).all(axis=1)
-        n_bad = int(len(pts) - finite.sum())
-        if n_bad == len(pts):
-            self._fail(i, f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)")
-            return None
-        if n_bad:
-            with self._lock:
-                self.nonfinite[i] = n_bad
-        t1 = time.perf_counter()
-        self.stages.add("read", t1 - t0)
-        pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
-        try:
-            if self.settings is None:
-                mask = finite
-            elif self.pre_device is not None and str(self.pre_device).startswith("cuda"):
-                import torch
-
-                # a stream per worker: its kernels and read-back do not queue behind the optimiser's
-                if getattr(self._tls, "stream", None) is None:
-                    self._tls.stream = torch.cuda.Stream(device=self.pre_device)
-                with torch.cuda.stream(self._tls.stream):
-                    mask = preprocess_mask(pts_sensor, self.settings, device=self.pre_device)
-            else:
-                mask = preprocess_mask(pts_sensor, self.settings, device=self.pre_device)
-        except ValueError as e:
-            self._fail(i, f"{path}: preprocessing failed: {e}")
-            return None
-        self.stages.add("preprocess", time.perf_counter() - t1)
-        return PreparedFrame(pts, mask, np.asarray(to_world, np.float64))
 
 
 class ChunkScans(Sequence):
@@ -211,14 +276,13 @@ class ChunkScans(Sequence):
         return self.hi - self.lo
 
     def _make(self, k: int) -> np.ndarray:
-        fut = self.loader.futures.get(self.lo + k)
-        p = fut.result() if fut is not None else self.loader.get(self.lo + k)
+        p = self.loader.get(self.lo + k)
         t0 = time.perf_counter()
         if p is None:
             return np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
         T = p.to_world.copy()
         T[:3, 3] -= self.anchor
-        kept = p.points[p.mask].astype(np.float64)
+        kept = p.kept.astype(np.float64)
         s = (kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
         self.loader.stages.add("transform", time.perf_counter() - t0)
         return s
