@@ -18,6 +18,7 @@ the rigid motion of the frame itself to the next one, for those who need raw dis
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import statistics
@@ -301,7 +302,7 @@ def run(args) -> int:
     from .io.sources import InputError, discover_input
     from .methods import available_methods, get_method
     from .outputs import FORMAT_VERSION, cleanup_temps
-    from .pipeline import EstimationError, FrameLoader, Stages, run_pipeline
+    from .pipeline import EstimationError, FrameLoader, Stages, run_pipeline, single_threaded_blas
     from .preprocess import Preprocess
     from .progress import Progress
 
@@ -408,11 +409,14 @@ def run(args) -> int:
 
     bar = Progress(len(todo), verbosity=verbosity)
     t0 = time.perf_counter()
+    # with the method on the GPU, numpy's BLAS serves only the per-scan host work: one thread each
+    blas = single_threaded_blas() if device.startswith("cuda") else contextlib.nullcontext()
     try:
-        res = run_pipeline(loader=loader, method=get_method(args.method), todo=todo, n=len(seq),
-                           num_scans=args.scans, chunk=args.chunk, device=device, options=options,
-                           write_one=write_one, next_pose=next_pose, times_s=times_s,
-                           on_written=lambda i: bar.update(note=seq.frames[i].name))
+        with blas:
+            res = run_pipeline(loader=loader, method=get_method(args.method), todo=todo, n=len(seq),
+                               num_scans=args.scans, chunk=args.chunk, device=device, options=options,
+                               write_one=write_one, next_pose=next_pose, times_s=times_s,
+                               on_written=lambda i: bar.update(note=seq.frames[i].name))
     except EstimationError as e:
         raise CLIError(f"{args.method}: {e}") from None
     except MissingDependencyError as e:
