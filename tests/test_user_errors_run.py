@@ -208,3 +208,18 @@ def test_process_workers_same_outputs_and_clean_interrupt(seq, tmp_path, capsys,
     assert rc == 130
     assert sorted(os.listdir(tmp_path / "i")) == ["000000.npz", "000001.npz"]
     assert multiprocessing.active_children() == []
+
+
+def test_reader_errors_name_the_file_and_chunk_plan(tmp_path):
+    from floxels_ext.outputs import OutputError
+    from floxels_ext.pipeline import plan_chunks
+
+    np.savez(tmp_path / "a.npz", flow=np.zeros((3, 3), np.float32))  # no points, no source
+    with pytest.raises(OutputError, match="a.npz: no 'points' and no 'source'"):
+        read_flow_output(tmp_path / "a.npz")
+    assert read_flow_output(tmp_path / "a.npz", points=False)["mask"].all()
+    (tmp_path / "b.npz").write_bytes(b"junk")
+    with pytest.raises(OutputError, match="b.npz: cannot read"):
+        read_flow_output(tmp_path / "b.npz")
+    assert [len(c) for c in plan_chunks(list(range(150)), None)] == [8, 16, 32, 64, 30]
+    assert [len(c) for c in plan_chunks(list(range(5)), 2)] == [2, 2, 1]
