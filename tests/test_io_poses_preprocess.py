@@ -8,8 +8,8 @@ import pytest
 from floxels_ext.accumulate import accumulate
 from floxels_ext.io import MissingDependencyError, PoseFormatError, read_poses
 from floxels_ext.io.poses import check_poses, match_timestamps, quat_to_matrix, read_av2_poses
-from floxels_ext.preprocess import (Preprocess, crop_mask, ground_mask, preprocess_mask, relative_pose,
-                                    transform_points)
+from floxels_ext.preprocess import (Preprocess, crop_mask, ground_mask, ground_surface, preprocess_mask,
+                                    relative_pose, transform_points)
 
 
 def _rot_z(a, t=(0, 0, 0)):
@@ -143,6 +143,58 @@ def test_crop_and_preprocess_settings():
         Preprocess(min_range=60, max_range=50)
     with pytest.raises(ValueError, match="ground_window"):
         Preprocess(ground_window=0)
+
+
+_SETTINGS = [Preprocess(), Preprocess(max_range=None), Preprocess(remove_ground=False),
+             Preprocess(max_height=None, ground_max_rise=None), Preprocess(min_range=None, ground_window=3.0)]
+
+
+@pytest.mark.parametrize("k", range(len(_SETTINGS)))
+def test_torch_preprocessing_gives_the_numpy_masks(k):
+    """The GPU path (run here on CPU tensors) must select exactly the numpy path's points."""
+    from floxels_ext.preprocess_torch import preprocess_mask_torch
+
+    for scene, seed in (("urban", 3), ("parking", 4)):
+        _, ps = _sim_frame(scene, seed)
+        ps = ps.copy()
+        ps[3] = np.nan
+        ps[4] = [1e30, 2.0, 0.0]
+        ps[5] = [900.0, -40.0, -3.0]
+        a = preprocess_mask(ps, _SETTINGS[k])
+        np.testing.assert_array_equal(preprocess_mask_torch(ps, _SETTINGS[k], "cpu"), a)
+        np.testing.assert_array_equal(preprocess_mask(ps, _SETTINGS[k], device="cpu"), a)
+
+
+@pytest.mark.cuda
+def test_torch_preprocessing_on_cuda_gives_the_numpy_masks():
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from floxels_ext.preprocess_torch import preprocess_mask_torch
+
+    _, ps = _sim_frame("urban", 6)
+    for st in _SETTINGS:
+        np.testing.assert_array_equal(preprocess_mask_torch(ps, st, "cuda"), preprocess_mask(ps, st))
+
+
+def test_stray_far_points_neither_crash_nor_change_the_near_masks():
+    """Issue 17.1: rows at |x| ~ 1e30 crashed ground removal; a point 1.5 km away made it
+    quadratic in the extent and changed the mask of near points. The crop comes first now."""
+    import time
+
+    _, ps = _sim_frame("urban", 5)
+    base = preprocess_mask(ps)
+    bad = np.concatenate([ps, [[1e30, 0, 0], [-1e30, 1e30, 5], [1500.0, 20.0, -1.0]]]).astype(np.float32)
+    t0 = time.perf_counter()
+    m = preprocess_mask(bad)
+    assert time.perf_counter() - t0 < 2.0
+    np.testing.assert_array_equal(m[:len(ps)], base)
+    assert not m[len(ps):].any()
+    m2 = preprocess_mask(bad, Preprocess(max_range=None))  # no range crop: the grid stays bounded
+    assert not m2[len(ps):].any()
+    with pytest.raises(ValueError, match="ground grid"):
+        ground_surface(bad, max_distance=None)  # unbounded on request: a clear error, not 1e30 cells
 
 
 # ----------------------------------------------------------------------------- odometry

@@ -10,6 +10,7 @@ import pytest
 
 from floxels_ext import cli, methods
 from floxels_ext.io.writers import write_ply
+from floxels_ext.outputs import read_flow_output
 from floxels_ext.preprocess import transform_points
 from floxels_ext.seqio import save_sequence
 
@@ -69,6 +70,11 @@ def _write(seq, d, fmt):
     return d
 
 
+def _listing(d):
+    """The files of an OUT_DIR but the run summary (temporaries included: none may remain)."""
+    return sorted(f for f in os.listdir(d) if f != "run_summary.json")
+
+
 def _run(args, capsys=None):
     rc = cli.main(["run", *map(str, args), "--device", "cpu"])
     out = capsys.readouterr() if capsys is not None else None
@@ -77,9 +83,9 @@ def _run(args, capsys=None):
 
 def _check_outputs(seq, out, names, nan_frame=1):
     for i, name in enumerate(names):
-        with np.load(out / f"{name}.npz") as z:
-            flow, mask, pts = z["flow"], z["mask"], z["points"]
-            assert str(z["method"]) == "fake"
+        z = read_flow_output(out / f"{name}.npz")
+        flow, mask, pts = z["flow"], z["mask"], z["points"]
+        assert z["method"] == "fake"
         n = len(seq.frames[i])
         assert flow.shape == (n, 3) and mask.shape == (n,) and pts.shape == (n, 3)
         finite = np.isfinite(pts).all(1)
@@ -118,9 +124,9 @@ def test_run_seqio_and_av2(seq, fake, tmp_path, capsys):
     save_sequence(tmp_path / "sim", seq)
     rc, cap = _run([tmp_path / "sim", "--out", tmp_path / "o1", "--method", "fake"], capsys)
     assert rc == 0, cap.err
-    with np.load(tmp_path / "o1" / "000002.npz") as z:  # seqio points are in the world frame already
-        np.testing.assert_allclose(z["flow"][z["mask"]], np.tile(V_WORLD, (z["mask"].sum(), 1)), atol=1e-6)
-        np.testing.assert_array_equal(z["points"], seq.frames[2].points)
+    z = read_flow_output(tmp_path / "o1" / "000002.npz")  # seqio points are in the world frame already
+    np.testing.assert_allclose(z["flow"][z["mask"]], np.tile(V_WORLD, (z["mask"].sum(), 1)), atol=1e-6)
+    np.testing.assert_array_equal(z["points"], seq.frames[2].points)
     # Argoverse 2 log layout
     pa = pytest.importorskip("pyarrow")
     feather = pytest.importorskip("pyarrow.feather")
@@ -155,7 +161,7 @@ def test_resume_skips_and_cleans_temp_files(seq, fake, tmp_path, capsys):
     rc, cap = _run(args, capsys)
     assert rc == 0
     assert "4 already done, 1 to estimate" in cap.err and "removed 1 temporary" in cap.err
-    assert sorted(os.listdir(tmp_path / "out")) == [f"{i:06d}.npz" for i in range(N_FRAMES)]
+    assert _listing(tmp_path / "out") == [f"{i:06d}.npz" for i in range(N_FRAMES)]
     assert os.stat(tmp_path / "out" / "000000.npz").st_mtime_ns == stamp
     assert len(fake[-1][1]) == 1  # only the missing frame was estimated
     rc, cap = _run(args + ["--force", "--frames", "1:3"], capsys)
@@ -167,7 +173,7 @@ def test_interrupt_leaves_only_complete_files(seq, fake, tmp_path, capsys):
     rc, cap = _run([d, "--out", tmp_path / "out", "--method", "fake", "--poses", tmp_path / "in_poses.txt",
                     "--option", "interrupt_after=2"], capsys)
     assert rc == 130
-    files = sorted(os.listdir(tmp_path / "out"))
+    files = _listing(tmp_path / "out")
     assert files == ["000000.npz", "000001.npz"]  # complete frames only, no temporaries
     for f in files:
         with np.load(tmp_path / "out" / f) as z:
@@ -183,7 +189,7 @@ def test_corrupt_and_empty_frames_do_not_stop_the_others(seq, fake, tmp_path, ca
     assert "000002.bin" in cap.err and "truncated" in cap.err
     assert "000003.bin" in cap.err and "no points" in cap.err
     assert "2 failed" in cap.err
-    assert sorted(os.listdir(tmp_path / "out")) == ["000000.npz", "000001.npz", "000004.npz"]
+    assert _listing(tmp_path / "out") == ["000000.npz", "000001.npz", "000004.npz"]
     scans = fake[0][0]
     assert len(scans) == N_FRAMES and len(scans[2]) == 0 and len(scans[3]) == 0  # time offsets kept
 
@@ -235,7 +241,7 @@ def test_floxels_end_to_end_then_eval_show_accumulate(seq, tmp_path, capsys):
     out = tmp_path / "out"
     rc, cap = _run([tmp_path / "sim", "--out", out, "--scans", "3", "--max-iters", "8"], capsys)
     assert rc == 0, cap.err
-    assert sorted(os.listdir(out)) == [f"{i:06d}.npz" for i in range(N_FRAMES)]
+    assert _listing(out) == [f"{i:06d}.npz" for i in range(N_FRAMES)]
     assert cli.main(["eval", str(out), str(tmp_path / "sim")]) == 0  # same names, same point order
     with np.load(out / "000002.npz") as z:
         assert z["flow"].dtype == np.float32 and np.isfinite(z["flow"]).all() and str(z["method"]) == "floxels"

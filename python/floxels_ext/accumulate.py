@@ -87,33 +87,21 @@ def accumulate(points: list, flows: list, reference: int, *, mode: str = "consta
 
 
 def _run_frames(run_dir: Path) -> list[Path]:
-    if not run_dir.is_dir():
-        raise FileNotFoundError(f"{run_dir} is not a directory" if run_dir.exists() else f"{run_dir} does not exist")
-    from .io.readers import natural_key
+    from .outputs import run_outputs
 
-    files = sorted((p for p in run_dir.glob("*.npz") if not p.name.startswith(".")), key=lambda p: natural_key(p.name))
-    if not files:
-        raise FileNotFoundError(f"{run_dir} holds no frame outputs (*.npz from floxels run)")
-    return files
+    return run_outputs(run_dir)
 
 
 def load_run_frame(path: Path) -> dict:
-    """One ``floxels run`` output, checked; errors name the file."""
+    """One ``floxels run`` output (:func:`floxels_ext.outputs.read_flow_output`, points included:
+    stored or read back from the source file); errors name the file."""
     from .cli import CLIError
+    from .outputs import OutputError, read_flow_output
 
     try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-    except Exception as e:
-        raise CLIError(f"{path}: cannot read ({e})") from None
-    missing = [k for k in ("points", "flow") if k not in d]
-    if missing:
-        raise CLIError(f"{path}: missing {missing}; expected an output of 'floxels run'")
-    if d["points"].shape != d["flow"].shape or d["points"].ndim != 2 or d["points"].shape[1] != 3:
-        raise CLIError(f"{path}: 'points' {d['points'].shape} and 'flow' {d['flow'].shape} must both be (N, 3)")
-    d.setdefault("pose", np.eye(4))
-    d.setdefault("mask", np.isfinite(d["points"]).all(1))
-    return d
+        return read_flow_output(path)
+    except OutputError as e:
+        raise CLIError(str(e)) from None
 
 
 def accumulate_run(run_dir, frame: int | str, *, neighbours: int = 2, mode: str = "constant-velocity",

@@ -63,40 +63,78 @@ def _trimmed_plane(xy: np.ndarray, z: np.ndarray, iters: int = 6, keep_above: fl
     return coef
 
 
+def _plane_cap(opened: np.ndarray, cell_size: float, max_rise: float | None) -> np.ndarray:
+    """Step 3 of the module docstring: cap the opened surface at the trimmed plane + max_rise.
+    Shared by the numpy and the torch implementations (the least-squares fit runs here, in
+    numpy, on the small grid, so both give identical surfaces)."""
+    if max_rise is None:
+        return opened
+    cells = np.argwhere(np.isfinite(opened))
+    coef = _trimmed_plane((cells + 0.5) * cell_size, opened[cells[:, 0], cells[:, 1]])
+    if coef is None:
+        return opened
+    shape = opened.shape
+    ci = np.indices(shape).reshape(2, -1).T
+    plane = (np.c_[(ci + 0.5) * cell_size, np.ones(len(ci))] @ coef).reshape(shape)
+    return np.minimum(opened, plane + max_rise)
+
+
+def _check_ground_args(cell_size, window, max_distance) -> None:
+    if not (cell_size > 0 and window > 0):
+        raise ValueError(f"cell_size and window must be > 0, got {cell_size}, {window}")
+    if max_distance is not None and not (np.isfinite(max_distance) and max_distance > 0):
+        raise ValueError(f"max_distance must be a finite number > 0 (or None), got {max_distance}")
+    if max_distance is not None and (2 * max_distance / cell_size + 1) ** 2 > MAX_GROUND_CELLS:
+        raise ValueError(f"a ground grid of {cell_size} m cells over +-{max_distance} m would have more than "
+                         f"{MAX_GROUND_CELLS:,} cells; lower max_distance or raise cell_size")
+
+
+# The ground grid covers at most this many cells (+-500 m at 0.5 m): the grid, not the points'
+# extent, bounds the memory, so a stray point kilometres away costs nothing.
+MAX_GROUND_CELLS = 2001 * 2001
+
+
 def ground_surface(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
-                   max_rise: float | None = 0.5):
-    """Local ground height under each point (see the module docstring), NaN for non-finite rows.
+                   max_rise: float | None = 0.5, max_distance: float | None = 200.0):
+    """Local ground height under each point (see the module docstring), NaN for non-finite rows
+    and for points farther than ``max_distance`` metres (horizontally) from the frame origin:
+    only the points within that distance build the grid (``None``: all finite points, whose
+    extent must then stay within :data:`MAX_GROUND_CELLS` cells).
 
     Returns an (N,) float64 array."""
     from scipy import ndimage
 
-    if cell_size <= 0 or window <= 0:
-        raise ValueError(f"cell_size and window must be > 0, got {cell_size}, {window}")
+    _check_ground_args(cell_size, window, max_distance)
     p = np.asarray(points, np.float64)
     out = np.full(len(p), np.nan)
     ok = np.isfinite(p).all(axis=1)
+    if max_distance is not None:
+        with np.errstate(invalid="ignore"):
+            ok &= np.hypot(p[:, 0], p[:, 1]) <= max_distance
     if not ok.any():
         return out
     q = p[ok]
-    ij = np.floor(q[:, :2] / cell_size).astype(np.int64)
-    ij -= ij.min(axis=0)
-    shape = tuple(ij.max(axis=0) + 1)
+    lo = np.floor(q[:, :2].min(axis=0) / cell_size)
+    hi = np.floor(q[:, :2].max(axis=0) / cell_size)
+    if np.prod(hi - lo + 1) > MAX_GROUND_CELLS:
+        raise ValueError(f"points spread over {(hi - lo + 1)[0] * cell_size:.0f} x {(hi - lo + 1)[1] * cell_size:.0f} m: "
+                         f"the ground grid would exceed {MAX_GROUND_CELLS:,} cells; crop them (max_distance)")
+    ij = (np.floor(q[:, :2] / cell_size) - lo).astype(np.int64)
+    shape = tuple((hi - lo + 1).astype(np.int64))
     lowest = np.full(shape, np.inf)
     np.minimum.at(lowest, (ij[:, 0], ij[:, 1]), q[:, 2])
-    size = max(1, int(round(window / cell_size)) | 1)  # odd, so the window is centred
+    size = _window_cells(window, cell_size)
     eroded = ndimage.minimum_filter(lowest, size=size, mode="constant", cval=np.inf)
     # empty cells must not raise the dilation: they become -inf there
     opened = ndimage.maximum_filter(np.where(np.isfinite(eroded), eroded, -np.inf), size=size,
                                     mode="constant", cval=-np.inf)
-    if max_rise is not None:
-        cells = np.argwhere(np.isfinite(opened))
-        coef = _trimmed_plane((cells + 0.5) * cell_size, opened[cells[:, 0], cells[:, 1]])
-        if coef is not None:
-            ci = np.indices(shape).reshape(2, -1).T
-            plane = (np.c_[(ci + 0.5) * cell_size, np.ones(len(ci))] @ coef).reshape(shape)
-            opened = np.minimum(opened, plane + max_rise)
+    opened = _plane_cap(opened, cell_size, max_rise)
     out[ok] = opened[ij[:, 0], ij[:, 1]]
     return out
+
+
+def _window_cells(window: float, cell_size: float) -> int:
+    return max(1, int(round(window / cell_size)) | 1)  # odd, so the window is centred
 
 
 def ground_mask(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
@@ -143,6 +181,9 @@ class Preprocess:
     ground_window: float = 8.0          # m, opening window (wider than the largest object)
     ground_threshold: float = 0.3       # m above the ground surface still counted as ground
     ground_max_rise: float | None = 0.5  # m the surface may rise above the fitted plane (None: no cap)
+    # m: without max_range, only points this close (horizontally) build the ground grid; farther
+    # ones have no ground height (never ground; dropped by the max_height crop)
+    ground_max_distance: float = 200.0
 
     def __post_init__(self) -> None:
         for name in ("min_range", "max_range", "max_height"):
@@ -151,17 +192,35 @@ class Preprocess:
                 raise ValueError(f"{name} must be a finite number >= 0 (or None), got {v}")
         if self.min_range is not None and self.max_range is not None and self.min_range >= self.max_range:
             raise ValueError(f"min_range ({self.min_range}) must be below max_range ({self.max_range})")
-        for name in ("ground_cell", "ground_window", "ground_threshold"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("ground_cell", "ground_window", "ground_threshold", "ground_max_distance"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
+        _check_ground_args(self.ground_cell, self.ground_window, self.grid_distance)
+
+    @property
+    def grid_distance(self) -> float:
+        """Horizontal distance (m) of the points that build the ground grid: the range crop plus
+        one window (so the opening near the crop edge sees the same neighbourhood), the crop
+        first, so far-away points cannot blow the grid up."""
+        if self.max_range is None:
+            return self.ground_max_distance
+        return self.max_range + self.ground_window
 
 
-def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess()) -> np.ndarray:
-    """(N,) bool of the points of one scan (in its sensor frame, z up) kept by ``settings``."""
+def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess(), device=None) -> np.ndarray:
+    """(N,) bool of the points of one scan (in its sensor frame, z up) kept by ``settings``.
+
+    ``device`` (a torch device, e.g. "cuda"): run the grid work there
+    (:func:`floxels_ext.preprocess_torch.preprocess_mask_torch`, identical masks)."""
+    if device is not None:
+        from .preprocess_torch import preprocess_mask_torch
+
+        return preprocess_mask_torch(points_sensor, settings, device)
     need_surface = settings.remove_ground or settings.max_height is not None
-    surface = ground_surface(points_sensor, cell_size=settings.ground_cell,
-                             window=settings.ground_window,
-                             max_rise=settings.ground_max_rise) if need_surface else None
+    surface = ground_surface(points_sensor, cell_size=settings.ground_cell, window=settings.ground_window,
+                             max_rise=settings.ground_max_rise,
+                             max_distance=settings.grid_distance) if need_surface else None
     keep = crop_mask(points_sensor, min_range=settings.min_range, max_range=settings.max_range,
                      max_height=settings.max_height, ground_height=surface)
     if settings.remove_ground:

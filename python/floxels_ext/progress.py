@@ -1,7 +1,9 @@
-"""A minimal progress printer on stderr (no tqdm dependency).
+"""Progress bars on stderr: tqdm (a core dependency) on a terminal; plain lines otherwise (logs,
+CI) or when tqdm is missing.
 
-On a terminal it redraws one line (bar, count, s/frame, ETA); otherwise (logs, CI) it prints a
-plain line about every 5 % of the work so logs stay short.
+``Progress(total, label, verbosity)``: verbosity -1 (``floxels -q``) shows no bar; messages
+(:meth:`Progress.message`) are printed without garbling the bar in every case. Off a terminal
+a line is printed about every 5 % of the work so logs stay short.
 """
 
 from __future__ import annotations
@@ -16,38 +18,48 @@ def _hms(s: float) -> str:
 
 
 class Progress:
-    def __init__(self, total: int, label: str = "frames", stream=None, width: int = 28) -> None:
-        self.total, self.label, self.width = max(0, int(total)), label, width
+    def __init__(self, total: int, label: str = "frames", stream=None, verbosity: int = 0) -> None:
+        self.total, self.label = max(0, int(total)), label
         self.stream = stream if stream is not None else sys.stderr
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.enabled = verbosity >= 0
         self.done = 0
         self.t0 = time.perf_counter()
         self._last_pct = -1
+        self._bar = None
+        if self.enabled and getattr(self.stream, "isatty", lambda: False)():
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                tqdm = None
+            if tqdm is not None:
+                self._bar = tqdm(total=self.total, desc=label, unit="frame", file=self.stream, dynamic_ncols=True,
+                                 mininterval=0.5, leave=True)
 
     def update(self, n: int = 1, note: str = "") -> None:
         self.done += n
+        if not self.enabled:
+            return
+        if self._bar is not None:
+            if note:
+                self._bar.set_postfix_str(note, refresh=False)
+            self._bar.update(n)
+            return
         elapsed = time.perf_counter() - self.t0
         rate = elapsed / self.done if self.done else 0.0
-        eta = rate * (self.total - self.done)
         pct = 100 * self.done // self.total if self.total else 100
-        if self.tty:
-            fill = self.width * self.done // self.total if self.total else self.width
-            line = (f"\r[{'#' * fill}{'.' * (self.width - fill)}] {self.done}/{self.total} {self.label} "
-                    f"{rate:.2f} s/frame ETA {_hms(eta)} {note}")
-            self.stream.write(line[:160].ljust(100))
-            self.stream.flush()
-        elif pct // 5 != self._last_pct // 5 or self.done == self.total:
+        if pct // 5 != self._last_pct // 5 or self.done == self.total:
             self._last_pct = pct
-            print(f"{self.done}/{self.total} {self.label} ({pct}%), {rate:.2f} s/frame, ETA {_hms(eta)} {note}".rstrip(),
-                  file=self.stream, flush=True)
+            print(f"{self.done}/{self.total} {self.label} ({pct}%), {rate:.2f} s/frame, "
+                  f"ETA {_hms(rate * (self.total - self.done))} {note}".rstrip(), file=self.stream, flush=True)
 
     def message(self, text: str) -> None:
         """Print a line without garbling the bar."""
-        if self.tty:
-            self.stream.write("\r" + " " * 100 + "\r")
-        print(text, file=self.stream, flush=True)
+        if self._bar is not None:
+            self._bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
 
     def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

@@ -1,10 +1,12 @@
 """``floxels run INPUT --out OUT_DIR``: scene flow for every frame of a real lidar sequence.
 
-Per frame, in order: read the file (``floxels_ext.io``), crop and remove the ground in the
+Per frame: read the file (``floxels_ext.io``), crop and remove the ground in the
 scan's own sensor frame (``floxels_ext.preprocess``), bring the scans of its window into one
 frame with the poses (ego-motion compensation), estimate the flow with the chosen method and
-write ``OUT_DIR/<frame name>.npz`` (see ``OUTPUT`` below). Frames already written are skipped,
-so an interrupted run continues where it stopped.
+write ``OUT_DIR/<frame name>.npz`` (see :data:`floxels_ext.outputs.OUTPUT`). Frames already
+written with the same settings are skipped, so an interrupted run continues where it stopped.
+Reading and preprocessing run ahead on worker threads and writing on a writer thread while the
+method optimises (:mod:`floxels_ext.pipeline`).
 
 Coordinates: the scans of a window are compensated in a world frame re-centred on the chunk
 being processed (world axes, so float32 stays precise with city-scale AV2 coordinates); the
@@ -16,32 +18,18 @@ the rigid motion of the frame itself to the next one, for those who need raw dis
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
-import re
 import statistics
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-OUTPUT = """\
-Output: OUT_DIR/<frame name>.npz per frame with
-  flow        (N,3) float32  motion to the next frame (metres per frame step), in the frame
-                             file's own coordinates and point order; ego-motion compensated
-                             (static = 0). Points not optimised (cropped, ground) get 0,
-                             rows with NaN/inf input coordinates get NaN.
-  mask        (N,)  bool     points that passed cropping and ground removal and were optimised
-                             (the points the paper evaluates)
-  points      (N,3) float32  the input points (same order)
-  pose        (4,4) float64  the frame's coordinates -> the sequence's world frame
-  ego_motion  (4,4) float64  the frame's coordinates -> the next frame's (when known)
-  method, num_scans, elapsed_s, source, options (JSON)  metadata
-"""
-
-_TMP_RE = re.compile(r"^\..+\.npz\.\d+\.tmp$")
+from .outputs import OUTPUT, write_output  # noqa: F401  (write_output: re-exported for callers)
 
 
 def _opt_float(text: str) -> float | None:
@@ -101,9 +89,25 @@ def add_parser(sub) -> None:
                    help="coordinates of the stored points: each scan's sensor frame, or one world frame "
                         "(.npz with the sensor 'pose', as 'floxels simulate' writes); auto: world for a "
                         "'floxels simulate' directory (sequence.json present), else sensor")
-    p.add_argument("--chunk", type=int, default=16, help="targets estimated together (shared distance "
-                   "transforms; default 16)")
-    p.add_argument("--force", action="store_true", help="recompute frames already written")
+    p.add_argument("--chunk", type=int, default=None, help="targets per method call (one re-centred world frame, "
+                   "shared distance transforms); default: 8, 16, 32, then 64 (the device starts early)")
+    p.add_argument("--force", action="store_true", help="recompute frames already written (also those written "
+                   "with other settings)")
+    p.add_argument("--dynamic-threshold", type=float, default=0.05, metavar="M",
+                   help="m per frame step: optimised points moving faster are flagged 'dynamic' (default 0.05, "
+                        "0.5 m/s at 10 Hz as in the Argoverse 2 protocol)")
+    p.add_argument("--self-contained", action="store_true", help="also store the input points in every output "
+                   "(default: read back from the recorded source file)")
+    p.add_argument("--compress", action="store_true", help="zip-compress the outputs (smaller, slower)")
+    p.add_argument("--summary", metavar="FILE", help="JSON summary of the run (default OUT_DIR/run_summary.json)")
+    p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: the CPU "
+                   "cores, at most 16)")
+    p.add_argument("--worker-kind", choices=["auto", "thread", "process"], default="auto",
+                   help="readers/preprocessors as threads or processes (processes keep the GIL free for the "
+                        "optimiser's host work); auto: processes on hosts with 8+ cores, else threads")
+    p.add_argument("--preprocess-device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="where cropping/ground removal run: numpy on the CPU, or torch on the GPU (same masks; "
+                        "worker threads); auto: cpu (with worker processes, faster on a 16-core host)")
     p.set_defaults(func=run)
 
 
@@ -146,93 +150,6 @@ def _parse_frames(text: str | None, n: int) -> list[int]:
     return sel
 
 
-@dataclass
-class _Prepared:
-    points: np.ndarray       # (N, 3) float32, native coordinates, file order
-    mask: np.ndarray         # (N,) bool: optimised points
-    to_world: np.ndarray     # (4, 4) native -> world
-
-
-class _Frames:
-    """Reads and preprocesses frames on demand, keeping the ones still needed (an LRU by index)."""
-
-    def __init__(self, seq, settings, poses, pose_mode: str, report) -> None:
-        self.seq, self.settings, self.poses, self.pose_mode, self.report = seq, settings, poses, pose_mode, report
-        self.cache: dict[int, _Prepared | None] = {}
-        self.errors: dict[int, str] = {}
-        self._warned_no_pose = False
-
-    def get(self, i: int) -> _Prepared | None:
-        if i not in self.cache:
-            self.cache[i] = self._load(i)
-        return self.cache[i]
-
-    def evict_below(self, lo: int) -> None:
-        for k in [k for k in self.cache if k < lo]:
-            del self.cache[k]
-
-    def _load(self, i: int) -> _Prepared | None:
-        from .io import LidarFormatError, MissingDependencyError
-        from .preprocess import preprocess_mask, transform_points
-
-        if i in self.errors:
-            return None
-        try:
-            scan = self.seq.load(i)
-            sensor_from_native = np.eye(4)
-            if self.pose_mode == "seqio":
-                to_world = np.eye(4)
-                if scan.pose is not None:
-                    sensor_from_native = np.linalg.inv(scan.pose)
-                elif not self._warned_no_pose:
-                    self._warned_no_pose = True
-                    self.report(f"floxels: warning: {self.seq.frames[i].path} has no 'pose': ranges and heights "
-                                f"are measured from the world origin")
-            elif self.pose_mode == "frame":
-                if scan.pose is None:
-                    raise LidarFormatError(f"{self.seq.frames[i].path}: no 'pose' in this frame, but other frames "
-                                           f"of the sequence have one (give --poses)")
-                to_world = scan.pose
-            elif self.pose_mode == "identity":
-                to_world = np.eye(4)
-            else:  # "table": seq.poses or odometry
-                to_world = self.poses[i]
-        except MissingDependencyError:
-            raise
-        except (LidarFormatError, ValueError, OSError) as e:
-            msg = str(e)
-            self.errors[i] = msg
-            self.report(f"floxels: error: {msg}")
-            return None
-        pts = scan.points
-        pts_sensor = pts if self.pose_mode != "seqio" else transform_points(pts, sensor_from_native)
-        mask = preprocess_mask(pts_sensor, self.settings) if self.settings is not None else \
-            np.isfinite(pts).all(axis=1)
-        return _Prepared(pts, mask, np.asarray(to_world, np.float64))
-
-
-def _cleanup_temps(out: Path) -> int:
-    n = 0
-    for p in out.iterdir():
-        if _TMP_RE.match(p.name):
-            p.unlink(missing_ok=True)
-            n += 1
-    return n
-
-
-def write_output(path: Path, **arrays) -> Path:
-    """Atomic .npz write: a temporary name in the same directory, then os.replace."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
 def _resolve_poses(seq, args, out: Path, report):
     """(pose_mode, poses) for the sequence; raises CLIError when ego-motion cannot be resolved."""
     from .cli import CLIError
@@ -257,14 +174,14 @@ def _resolve_poses(seq, args, out: Path, report):
             except ValueError:
                 continue
     if args.odometry == "kiss-icp":
-        return "table", _odometry(seq, out, report)
+        return "table", _odometry(seq, out, report, int(getattr(args, "verbosity", 0) or 0))
     raise CLIError(f"{seq.root}: no poses for ego-motion compensation. Give one of: --poses FILE (KITTI "
                    f"poses.txt, .npy/.npz (F,4,4), AV2 city_SE3_egovehicle.feather); --odometry kiss-icp "
                    f"(estimate them; needs pip install 'floxels_ext[odometry]'); or --no-ego-motion if the scans "
                    f"are already in one common frame")
 
 
-def _odometry(seq, out: Path, report) -> np.ndarray:
+def _odometry(seq, out: Path, report, verbosity: int = 0) -> np.ndarray:
     from .io import read_poses
     from .io.poses import PoseFormatError
     from .odometry import kiss_icp_poses
@@ -287,7 +204,7 @@ def _odometry(seq, out: Path, report) -> np.ndarray:
             except ValueError:
                 yield np.zeros((0, 3), np.float32)
 
-    bar = Progress(len(seq), "frames (KISS-ICP odometry)")
+    bar = Progress(len(seq), "frames (KISS-ICP odometry)", verbosity=verbosity)
     poses = kiss_icp_poses(scans(), progress=lambda i: bar.update())
     bar.close()
     tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
@@ -295,6 +212,85 @@ def _odometry(seq, out: Path, report) -> np.ndarray:
     os.replace(tmp, cache)
     report(f"wrote odometry poses to {cache} (KITTI format)")
     return poses
+
+
+def _check_args(args, torch):
+    """Validate the plain arguments; returns (device, options). Raises CLIError."""
+    from .cli import CLIError
+    from .methods import available_methods
+
+    if not args.input or not args.out:
+        raise CLIError("floxels run needs INPUT and --out OUT_DIR")
+    if args.method not in available_methods():
+        raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
+    if not 2 <= args.scans <= 13:
+        raise CLIError(f"--scans must be in [2, 13], got {args.scans}")
+    if args.chunk is not None and args.chunk < 1:
+        raise CLIError("--chunk must be >= 1")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError("--workers must be >= 1")
+    if not (np.isfinite(args.dynamic_threshold) and args.dynamic_threshold >= 0):
+        raise CLIError(f"--dynamic-threshold must be a finite number >= 0 (m per frame), got {args.dynamic_threshold}")
+    if args.calib and not args.poses:
+        raise CLIError("--calib turns the camera poses of --poses into lidar poses; it needs --poses FILE")
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        raise CLIError(f"--device must be cpu or cuda, got {device!r}")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise CLIError("--device cuda requested but no CUDA device is available")
+    if args.preprocess_device == "cuda" and not torch.cuda.is_available():
+        raise CLIError("--preprocess-device cuda requested but no CUDA device is available")
+    options = _parse_options(args.option, args.max_iters)
+    if "num_scans" in options and options["num_scans"] != args.scans:
+        raise CLIError(f"--option num_scans={options['num_scans']} contradicts --scans {args.scans}; "
+                       f"give the window size once, with --scans")
+    if args.method == "floxels":  # the baselines estimate from a (frame, next frame) pair
+        options = {"num_scans": args.scans, **options}
+        from .config import FloxelsConfig  # fail fast on a bad option instead of after reading data
+        try:
+            FloxelsConfig(**options)
+        except (TypeError, ValueError) as e:
+            raise CLIError(f"bad --option for floxels: {e}") from None
+    return device, options
+
+
+def _check_out_dir(out: Path, seq) -> None:
+    from .cli import CLIError
+
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {out} exists and is not a directory")
+    o = out.resolve()
+    frame_dir = seq.frames[0].path.parent.resolve()
+    for d, what in ((seq.root.resolve(), "the input directory"), (frame_dir, "the directory of the frame files")):
+        if o == d:
+            raise CLIError(f"--out {out} is {what}: the outputs would be taken for input frames by the next run; "
+                           f"choose another directory")
+
+
+def _check_resume(out_path: dict, selected: list[int], settings: dict, force: bool) -> list[int]:
+    """Frames to estimate: those without an output, and (with --force) all; an output written
+    with other settings stops the run (CLIError) unless --force."""
+    from .cli import CLIError
+    from .outputs import read_settings, settings_mismatch
+
+    if force:
+        return list(selected)
+    todo, clash = [], None
+    for i in selected:
+        if not out_path[i].is_file():
+            todo.append(i)
+            continue
+        rec = read_settings(out_path[i])
+        if rec is None:  # unreadable (e.g. truncated by a crash of the machine): recompute it
+            todo.append(i)
+            continue
+        diff = settings_mismatch(rec, settings)
+        if diff and clash is None:
+            clash = (out_path[i], diff)
+    if clash is not None:
+        raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
+                       f"use --force to recompute, or another --out")
+    return todo
 
 
 def run(args) -> int:
@@ -305,45 +301,24 @@ def run(args) -> int:
     from .io.poses import PoseFormatError
     from .io.sources import InputError, discover_input
     from .methods import available_methods, get_method
+    from .outputs import FORMAT_VERSION, cleanup_temps
+    from .pipeline import EstimationError, FrameLoader, Stages, run_pipeline, single_threaded_blas
     from .preprocess import Preprocess
     from .progress import Progress
 
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
     if args.list_methods:
         for name in available_methods():
             print(f"{name:<12} {get_method(name).description}")
         return 0
-    if not args.input or not args.out:
-        raise CLIError("floxels run needs INPUT and --out OUT_DIR")
-    if args.method not in available_methods():
-        raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
-    if not 2 <= args.scans <= 13:
-        raise CLIError(f"--scans must be in [2, 13], got {args.scans}")
-    if args.chunk < 1:
-        raise CLIError("--chunk must be >= 1")
-    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
-        raise CLIError(f"--device must be cpu or cuda, got {device!r}")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise CLIError("--device cuda requested but no CUDA device is available")
-    options = _parse_options(args.option, args.max_iters)
-    if args.method == "floxels":  # the baselines estimate from a (frame, next frame) pair
-        options = {"num_scans": args.scans, **options}
-    if args.method == "floxels":  # fail fast on a bad option instead of after reading data
-        from .config import FloxelsConfig
-        try:
-            FloxelsConfig(**options)
-        except (TypeError, ValueError) as e:
-            raise CLIError(f"bad --option for floxels: {e}") from None
+    device, options = _check_args(args, torch)
     try:
         settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
                               remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
                               ground_window=args.ground_window, ground_threshold=args.ground_threshold)
     except ValueError as e:
         raise CLIError(str(e)) from None
-
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CLIError(f"--out {out} exists and is not a directory")
     try:
         seq = discover_input(args.input, poses_file=args.poses, calib=args.calib, bin_columns=args.bin_columns,
                              ext=args.ext, points_frame=args.points_frame)
@@ -351,116 +326,149 @@ def run(args) -> int:
         raise CLIError(str(e)) from None
     if len(seq) < 2:
         raise CLIError(f"{seq.root} holds {len(seq)} frame; scene flow needs at least 2")
+    _check_out_dir(out, seq)
     selected = _parse_frames(args.frames, len(seq))
     out.mkdir(parents=True, exist_ok=True)
-    stale = _cleanup_temps(out)
+    stale = cleanup_temps(out)
     bar: Progress | None = None
 
-    def report(msg: str) -> None:
+    def report(msg: str) -> None:  # errors and warnings: shown at every verbosity
         (bar.message(msg) if bar is not None else print(msg, file=sys.stderr, flush=True))
 
+    def info(msg: str) -> None:
+        if verbosity >= 0:
+            report(msg)
+
     if stale:
-        report(f"removed {stale} temporary file(s) left by an interrupted run")
+        info(f"removed {stale} temporary file(s) left by an interrupted run")
     try:
         pose_mode, poses = _resolve_poses(seq, args, out, report)
     except (PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
+    run_settings = {"method": args.method, "num_scans": args.scans, "options": options,
+                    "preprocess": asdict(settings), "ego_motion": pose_mode,
+                    "pose_source": str(seq.pose_source) if seq.pose_source else None,
+                    "dynamic_threshold": args.dynamic_threshold}
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
-    todo = [i for i in selected if args.force or not out_path[i].is_file()]
+    todo = _check_resume(out_path, selected, run_settings, args.force)
     skipped = len(selected) - len(todo)
-    print(f"{seq.root}: {len(seq)} frames ({seq.kind}), {len(selected)} selected, {skipped} already done, "
-          f"{len(todo)} to estimate with {args.method} on {device} "
-          f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})",
-          file=sys.stderr, flush=True)
+    info(f"{seq.root}: {len(seq)} frames ({seq.kind}), {len(selected)} selected, {skipped} already done, "
+         f"{len(todo)} to estimate with {args.method} on {device} "
+         f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})")
 
-    frames = _Frames(seq, settings, poses, pose_mode, report)
-    method = get_method(args.method)
-    times: list[float] = []
-    failed: dict[int, str] = {}
-    written = 0
-    bar = Progress(len(todo))
-    n = len(seq)
-    pad = args.scans - 1
-    k = 0
-    while k < len(todo):
-        chunk = todo[k:k + args.chunk]
-        k += len(chunk)
-        lo, hi = max(0, chunk[0] - pad), min(n, chunk[-1] + pad + 1)
-        frames.evict_below(lo)
-        prepared = {i: frames.get(i) for i in range(lo, hi)}
-        targets = []
-        for i in chunk:
-            if prepared[i] is None:
-                failed[i] = frames.errors.get(i, "unreadable")
-                bar.update()
-            else:
-                targets.append(i)
-        if not targets:
-            continue
-        anchor = next(p for p in prepared.values() if p is not None).to_world[:3, 3].copy()
-        scans = []
-        for i in range(lo, hi):
-            p = prepared[i]
-            if p is None:
-                scans.append(np.zeros((0, 3), np.float32))  # keeps the time offsets of the others right
-                continue
-            T = p.to_world.copy()
-            T[:3, 3] -= anchor
-            kept = p.points[p.mask].astype(np.float64)
-            scans.append((kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
-        t_last = [time.perf_counter()]
+    workers = args.workers or max(1, min(16, os.cpu_count() or 1))
+    pre_dev = "cuda" if args.preprocess_device == "cuda" else None
+    kind = args.worker_kind
+    if kind == "auto":
+        kind = "process" if (os.cpu_count() or 1) >= 8 and pre_dev is None and workers > 1 else "thread"
+    if kind == "process" and pre_dev is not None:
+        raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
+    stages = Stages()
+    loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
+                         keep_points=args.self_contained, stages=stages,
+                         warn=lambda m: report(f"floxels: warning: {m}"))
+    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
+    # pipeline passes them to methods whose estimate_sequence takes ``times``
+    stamps = [f.timestamp_ns for f in seq.frames]
+    times_s = [(t - stamps[0]) * 1e-9 for t in stamps] if all(t is not None for t in stamps) else None
+    meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
+            "options": np.str_(json.dumps(options, default=str)),
+            "settings": np.str_(json.dumps(run_settings, default=str)),
+            "dynamic_threshold": np.float64(args.dynamic_threshold), "format": np.int32(FORMAT_VERSION),
+            "bin_columns": np.int32(seq.bin_columns or 0),
+            "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
 
-        def on_frame(f_local: int, flow_kept, lo=lo) -> None:
-            nonlocal written
-            i = lo + int(f_local)
-            p = prepared[i]
-            flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)
-            full = np.zeros_like(p.points)
-            full[~np.isfinite(p.points).all(axis=1)] = np.nan
-            # world-axes flow -> the frame's native axes: R^T f (row vectors: f @ R)
-            full[p.mask] = (flow_kept.astype(np.float64) @ p.to_world[:3, :3]).astype(np.float32)
-            now = time.perf_counter()
-            elapsed = now - t_last[0]
-            t_last[0] = now
-            extra = {}
-            nxt = prepared.get(i + 1) if i + 1 < hi else (frames.cache.get(i + 1) if i + 1 < n else None)
-            if nxt is not None and pose_mode != "seqio":
-                extra["ego_motion"] = np.linalg.solve(nxt.to_world, p.to_world)
-            write_output(out_path[i], flow=full, mask=p.mask, points=p.points, pose=p.to_world,
-                         method=np.str_(args.method), num_scans=np.int32(args.scans),
-                         elapsed_s=np.float64(elapsed), source=np.str_(str(seq.frames[i].path)),
-                         options=np.str_(json.dumps(options, default=str)), **extra)
-            times.append(elapsed)
-            written += 1
-            bar.update(note=seq.frames[i].name)
+    def write_one(i, p, flow_kept, elapsed, next_to_world):
+        full = np.zeros((p.n, 3), np.float32)
+        full[p.nonfinite] = np.nan
+        # world-axes flow -> the frame's native axes: R^T f (row vectors: f @ R)
+        full[p.mask] = (flow_kept.astype(np.float64) @ p.to_world[:3, :3]).astype(np.float32)
+        speed = np.linalg.norm(full[p.mask], axis=1)
+        dynamic = np.zeros(len(full), bool)
+        dynamic[p.mask] = speed > args.dynamic_threshold
+        extra = {}
+        if next_to_world is not None:
+            extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)
+        if args.self_contained:
+            extra["points"] = p.points
+        if stamps[i] is not None:
+            extra["timestamp_ns"] = np.int64(stamps[i])
+        write_output(out_path[i], compress=args.compress, flow=full, mask=p.mask, dynamic=dynamic,
+                     pose=p.to_world, elapsed_s=np.float64(elapsed),
+                     source=np.str_(str(seq.frames[i].path.resolve())), **meta, **extra)
 
-        try:
-            method.estimate_sequence(scans, [i - lo for i in targets], device, dict(options), on_frame)
-        except (ValueError, TypeError) as e:
-            if written == 0 and not failed:
-                bar.close()
-                raise CLIError(f"{args.method}: {e}") from None
-            for i in targets:
-                if not out_path[i].is_file() or args.force:
-                    failed.setdefault(i, f"estimation failed: {e}")
-            report(f"floxels: error: frames {seq.frames[targets[0]].name}..{seq.frames[targets[-1]].name}: {e}")
-        except RuntimeError as e:  # e.g. out of GPU memory: lose this chunk, keep going
-            for i in targets:
-                failed.setdefault(i, f"estimation failed: {e}")
-            report(f"floxels: error: frames {seq.frames[targets[0]].name}..{seq.frames[targets[-1]].name}: {e}")
-    bar.close()
-    for i, msg in frames.errors.items():  # unreadable support scans count as failures too
+    def next_pose(i):
+        if i + 1 >= len(seq) or pose_mode == "seqio":
+            return None
+        if pose_mode == "table":
+            return poses[i + 1]
+        if pose_mode == "identity":
+            return np.eye(4)
+        nxt = loader.peek(i + 1)
+        return None if nxt is None else nxt.to_world
+
+    bar = Progress(len(todo), verbosity=verbosity)
+    t0 = time.perf_counter()
+    # with the method on the GPU, numpy's BLAS serves only the per-scan host work: one thread each
+    blas = single_threaded_blas() if device.startswith("cuda") else contextlib.nullcontext()
+    try:
+        with blas:
+            res = run_pipeline(loader=loader, method=get_method(args.method), todo=todo, n=len(seq),
+                               num_scans=args.scans, chunk=args.chunk, device=device, options=options,
+                               write_one=write_one, next_pose=next_pose, times_s=times_s,
+                               on_written=lambda i: bar.update(note=seq.frames[i].name))
+    except EstimationError as e:
+        raise CLIError(f"{args.method}: {e}") from None
+    except MissingDependencyError as e:
+        raise CLIError(str(e)) from None
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    failed = res["failed"]
+    for i, msg in loader.errors.items():  # unreadable support scans count as failures too
         failed.setdefault(i, msg)
-
-    summary = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failed)} failed"
+    written = res["written"]
+    nonfinite = {i: k for i, k in loader.nonfinite.items() if i in set(todo)}
+    if nonfinite:
+        first = sorted(nonfinite)[:3]
+        report(f"floxels: warning: {len(nonfinite)} frame(s) have rows with NaN/inf coordinates (their flow is "
+               f"NaN): " + ", ".join(f"{seq.frames[i].path.name} ({nonfinite[i]} rows)" for i in first)
+               + (" ..." if len(nonfinite) > 3 else ""))
+    times = res["times"]
+    msgs = {}
+    for i in sorted(failed):
+        path = str(seq.frames[i].path)
+        msgs[i] = failed[i] if failed[i].startswith(path) else path + ": " + failed[i]
+    summary = {"input": str(seq.root), "out": str(out), "method": args.method, "device": device,
+               "frames": len(seq), "selected": len(selected), "written": written, "skipped": skipped,
+               "failed": len(failed), "failures": [{"frame": seq.frames[i].name, "message": msgs[i]} for i in msgs],
+               "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
+               "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
+               "s_per_frame_median": round(statistics.median(times), 6) if times else None,
+               "stages_s": stages.as_dict(), "workers": workers, "worker_kind": kind,
+               "preprocess_device": pre_dev or "cpu",
+               "settings": json.loads(json.dumps(run_settings, default=str))}
+    summary_path = Path(args.summary) if args.summary else out / "run_summary.json"
+    try:
+        tmp = summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        os.replace(tmp, summary_path)
+    except OSError as e:
+        report(f"floxels: warning: cannot write the summary {summary_path}: {e}")
+    line = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failed)} failed"
     if times:
-        summary += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
-                    f"{sum(times):.1f} s total")
-    print(summary, file=sys.stderr)
+        line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
+                 f"{sum(times):.1f} s total")
+    if verbosity >= 0:
+        print(line, file=sys.stderr)
+    if verbosity >= 1:
+        st = stages.as_dict()
+        print("stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()) + f"; summary: {summary_path}",
+              file=sys.stderr)
     if failed:
         print("failed frames:", file=sys.stderr)
-        for i in sorted(failed):
-            path = str(seq.frames[i].path)
-            print(f"  {failed[i] if failed[i].startswith(path) else path + ': ' + failed[i]}", file=sys.stderr)
+        for i in msgs:
+            print(f"  {msgs[i]}", file=sys.stderr)
         return 1
     return 0

@@ -1,0 +1,179 @@
+"""``floxels run`` end to end vs the optimiser's ceiling (issue 16).
+
+Builds one simulated sequence (``--beams`` lidar, ``--frames`` frames, ground included) and writes
+it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argoverse 2 log
+(``sensors/lidar/<ns>.feather`` + ``city_SE3_egovehicle.feather``). Then, in one process:
+
+* ``floxels run`` on each (after a short warm-up run: CUDA context, kernels), frames/s end to end
+  and the per-stage breakdown the run records in ``run_summary.json``;
+* the ceiling: ``estimate_sequence`` on the same preprocessed, ego-motion-compensated scans,
+  already in memory (one call, all frames);
+* the serial host work per frame (read + numpy preprocessing) for reference.
+
+    python bench/bench_run.py                             # GPU host: 64 frames, 128 beams
+    python bench/bench_run.py --frames 16 --beams 32      # CPU-sized
+
+Prints a table and writes bench/results/bench_run_<device>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from floxels_ext import cli
+from floxels_ext.pipeline import single_threaded_blas
+from floxels_ext.preprocess import Preprocess, preprocess_mask, transform_points
+
+
+def build(root: Path, frames: int, beams: int, azimuth: int, seed: int) -> tuple[Path, Path, int]:
+    import pyarrow as pa
+    import pyarrow.feather as feather
+
+    from floxels_ext.sim import simulate_sequence
+
+    seq = simulate_sequence("urban", frames, seed, beams=beams, azimuth_steps=azimuth)
+    kitti, av2 = root / "kitti", root / "av2"
+    (kitti / "velodyne").mkdir(parents=True)
+    (av2 / "sensors" / "lidar").mkdir(parents=True)
+    rows = {k: [] for k in ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")}
+    npts = []
+    for i, fr in enumerate(seq.frames):
+        p = transform_points(fr.points, np.linalg.inv(fr.pose))
+        npts.append(len(p))
+        inten = np.zeros(len(p), np.float32)
+        np.c_[p, inten].astype(np.float32).tofile(kitti / "velodyne" / f"{i:06d}.bin")
+        t = 1_600_000_000_000_000_000 + 100_000_000 * i
+        feather.write_feather(pa.table({"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "intensity": inten}),
+                              str(av2 / "sensors" / "lidar" / f"{t}.feather"), compression="uncompressed")
+        R = fr.pose[:3, :3]
+        yaw = np.arctan2(R[1, 0], R[0, 0])  # the simulated ego only yaws
+        for k, v in zip(rows, (t, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2), *fr.pose[:3, 3])):
+            rows[k].append(v)
+    np.savetxt(kitti / "poses.txt", np.stack([f.pose[:3] for f in seq.frames]).reshape(-1, 12), fmt="%.9g")
+    feather.write_feather(pa.table(rows), str(av2 / "city_SE3_egovehicle.feather"))
+    return kitti, av2, int(np.mean(npts))
+
+
+def run_cli(args_list: list[str]) -> tuple[float, dict]:
+    t0 = time.perf_counter()
+    rc = cli.main(args_list)
+    wall = time.perf_counter() - t0
+    if rc != 0:
+        sys.exit(f"floxels run failed (exit {rc}): {' '.join(args_list)}")
+    out = Path(args_list[args_list.index("--out") + 1])
+    return wall, json.loads((out / "run_summary.json").read_text())
+
+
+def ceiling(kitti: Path, scans_n: int, device: str, options: dict) -> dict:
+    """Serial host work per frame, then estimate_sequence on the prepared scans (one call)."""
+    from floxels_ext.config import FloxelsConfig
+    from floxels_ext.estimator import estimate_sequence
+    from floxels_ext.io import read_points, read_poses
+
+    files = sorted((kitti / "velodyne").glob("*.bin"))
+    poses = read_poses(kitti / "poses.txt")
+    settings = Preprocess()
+    t_read = t_pre = 0.0
+    scans = []
+    anchor = poses[0][:3, 3]
+    for f, T in zip(files, poses):
+        t0 = time.perf_counter()
+        pts = read_points(f).points
+        t1 = time.perf_counter()
+        with single_threaded_blas():  # as floxels run does (see there)
+            m = preprocess_mask(pts, settings)
+        t2 = time.perf_counter()
+        t_read, t_pre = t_read + t1 - t0, t_pre + t2 - t1
+        T = T.copy()
+        T[:3, 3] -= anchor
+        scans.append(transform_points(pts[m], T))
+    cfg = FloxelsConfig(**{"num_scans": scans_n, **options})
+    estimate_sequence(scans[:8], cfg, device=device, frames=[3])  # warm-up
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    estimate_sequence(scans, cfg, device=device)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    est = time.perf_counter() - t0
+    n = len(scans)
+    return {"frames": n, "estimate_s": est, "frames_per_s": n / est, "serial_read_ms": 1e3 * t_read / n,
+            "serial_preprocess_ms": 1e3 * t_pre / n, "kept_points_mean": int(np.mean([len(s) for s in scans]))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=64)
+    ap.add_argument("--beams", type=int, default=128)
+    ap.add_argument("--azimuth", type=int, default=1800, help="azimuth steps per revolution (default 1800)")
+    ap.add_argument("--scans", type=int, default=5)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--max-iters", type=int, help="optimiser iterations (default: the config's)")
+    ap.add_argument("--run-args", default="", help="extra floxels run arguments (quoted)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
+    args = ap.parse_args()
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_run_"))
+    try:
+        t0 = time.perf_counter()
+        kitti, av2, npts = build(tmp, args.frames, args.beams, args.azimuth, args.seed)
+        print(f"sequence: {args.frames} frames, {args.beams} beams, {npts} raw points/frame (ground included), "
+              f"built in {time.perf_counter() - t0:.1f} s", flush=True)
+        options = {} if args.max_iters is None else {"max_iters": args.max_iters}
+        common = ["--device", args.device, "--scans", str(args.scans), *args.run_args.split()]
+        if args.max_iters is not None:
+            common += ["--max-iters", str(args.max_iters)]
+        # warm-up: CUDA context, kernel loading, first allocations (not a user-visible cost per frame)
+        run_cli(["run", str(kitti / "velodyne"), "--out", str(tmp / "warm"), "--poses", str(kitti / "poses.txt"),
+                 "--frames", "0:6", "--force", *common])
+        rows = {}
+        for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
+                           ("av2", [str(av2)])):
+            wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{name}"), *common])
+            rows[name] = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ}
+        ceil = ceiling(kitti, args.scans, args.device, options)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    n = args.frames
+    print(f"\nfloxels run end to end on {args.device} ({n} frames, {args.scans} scans, "
+          f"workers {rows['kitti']['summary']['workers']}, preprocessing on {rows['kitti']['summary']['preprocess_device']})")
+    hdr = ("input", "frames/s", "ms/frame", "read", "preproc", "transform", "estimate", "compute", "write",
+           "wait in", "idle dev", "host %", "vs ceiling")
+    print(" | ".join(f"{h:>9}" for h in hdr))
+    for name, r in rows.items():
+        st = r["summary"]["stages_s"]
+        host_pct = 100 * (r["wall_s"] - st["compute"]) / r["wall_s"]  # everything but the method computing
+        r["host_pct"] = host_pct
+        r["ratio_to_ceiling"] = ceil["frames_per_s"] / r["frames_per_s"]
+        vals = [name, f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
+            [f"{1e3 * st[k] / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute", "write",
+                                                 "wait_input")] + \
+            [f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
+        print(" | ".join(f"{v:>9}" for v in vals))
+    print("(stage columns: ms per frame; read/preproc/transform/write are summed over worker threads and overlap "
+          "the estimate; 'idle dev' = wall - compute: time the method was not computing)")
+    print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "
+          f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
+          f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (numpy, one thread)")
+    res = {"device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
+           "frames": n, "beams": args.beams, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
+           "runs": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()}, "ceiling": ceil}
+    path = Path(args.json or Path(__file__).parent / "results" / f"bench_run_{args.device.split(':')[0]}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(res, indent=2, default=str) + "\n")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
