@@ -58,6 +58,8 @@ def add_parser(sub) -> None:
     import argparse
     import textwrap
 
+    from .dataset_run import add_dataset_arguments
+
     p = sub.add_parser(
         "run", help="estimate scene flow for a whole lidar sequence (resumable)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -104,6 +106,7 @@ def add_parser(sub) -> None:
     p.add_argument("--chunk", type=int, default=16, help="targets estimated together (shared distance "
                    "transforms; default 16)")
     p.add_argument("--force", action="store_true", help="recompute frames already written")
+    add_dataset_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -298,6 +301,11 @@ def _odometry(seq, out: Path, report) -> np.ndarray:
 
 
 def run(args) -> int:
+    from .dataset_run import maybe_run_dataset
+
+    rc = maybe_run_dataset(args)
+    if rc is not None:
+        return rc
     import torch
 
     from .cli import CLIError
