@@ -102,7 +102,8 @@ def _missing_report(task, since: float | None, limit: int = 8) -> str:
     """Names the output files (and the first input) of the task's frames left unwritten."""
     def written(name: str) -> bool:
         try:
-            return since is None or os.stat(task.out_dir / f"{name}.npz").st_mtime >= since
+            mtime = os.stat(task.out_dir / f"{name}.npz").st_mtime
+            return since is None or mtime >= since
         except OSError:
             return False
 
@@ -120,19 +121,20 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     from .dataset_run import floxels_task, remove_temps, task_job
     from .progress import Progress
 
-    todo_tasks = [t for t in tasks if t.todo]
-    if not todo_tasks:
-        print(f"dataset {args.input}: {n_sequences} sequences, all {sum(len(t.names) for t in tasks)} frames "
-              f"already done", file=sys.stderr)
-        return 0
-    ray = connect(args.ray)
-    gpus, cpus, device = _resources(ray, args)
     out_dirs = sorted({t.out_dir for t in tasks})
     for d in out_dirs:  # temporaries of an interrupted job; none of ours is running yet
         d.mkdir(parents=True, exist_ok=True)
         stale = remove_temps(d)
         if stale:
             print(f"removed {stale} temporary file(s) left by an interrupted run in {d}", file=sys.stderr)
+    todo_tasks = [t for t in tasks if t.todo]
+    if not todo_tasks:
+        n = sum(len(t.names) for t in tasks)
+        print(f"dataset {args.input}: {n_sequences} sequences, {n} frames, {n} already done, nothing to estimate",
+              file=sys.stderr)
+        return 0
+    ray = connect(args.ray)
+    gpus, cpus, device = _resources(ray, args)
     total = sum(len(t.names) for t in tasks)
     todo = sum(len(t.todo) for t in todo_tasks)
     since = time.time() - 1.0 if args.force else None
