@@ -11,7 +11,20 @@ from floxels_ext.cli import CLIError
 from floxels_ext.dataset import SequenceSpec, discover_dataset, parse_frame_range, plan_tasks
 from floxels_ext.seqio import save_sequence
 
-FAST = ["--device", "cpu", "--max-iters", "3", "--scans", "3", "--chunk", "2"]
+FAST = ["--device", "cpu", "--scans", "3", "--chunk", "2", "--method", "fake"]
+
+
+@pytest.fixture(autouse=True)
+def fake(monkeypatch):
+    """An instant method (these tests check the plumbing; test_ray.py runs Floxels itself): the flow
+    of a point is a function of its world position, so a wrong pose shows."""
+    from floxels_ext import methods
+
+    def est(scans, frames, device, options, callback):
+        for f in frames:
+            callback(f, np.asarray(scans[f], np.float32) * 0.01)
+
+    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
 
 
 def _touch(p, data=b""):

@@ -19,7 +19,7 @@ from floxels_ext import cli  # noqa: E402
 from floxels_ext.seqio import save_sequence  # noqa: E402
 
 FLAGS = ["--device", "cpu", "--max-iters", "3", "--scans", "3", "--chunk", "1"]
-N_FRAMES = 6
+N_FRAMES = 4
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_ray_equals_local(cluster, dataset, tmp_path, capsys):
     # tasks of 2 frames: each sequence is cut into 3 chunks that share its output directory
     assert cli.main(["run", str(lst), "--out", str(out), "--ray", "--task-frames", "2", *FLAGS]) == 0
     err = capsys.readouterr().err
-    assert "3 sequences, 18 frames, 0 already done, 18 to estimate in 9 task(s) on Ray" in err
+    assert "3 sequences, 12 frames, 0 already done, 12 to estimate in 6 task(s) on Ray" in err
     _assert_same(out, local)
 
 
