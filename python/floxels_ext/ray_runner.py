@@ -155,7 +155,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     bar = Progress(todo, "frames")
     shown = 0
     t0 = time.perf_counter()
-    t_slots = t0
+    t_slots = t_count = t0
     try:
         while pending or inflight:
             now = time.perf_counter()
@@ -167,7 +167,9 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
                 t = pending.pop(0)
                 inflight[remote.remote(task_job(t, common, device, threads))] = t
             running = len(inflight)
-            ready, _ = ray.wait(list(inflight), num_returns=len(inflight), timeout=0.5)
+            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)  # back as soon as one ends
+            if ready:
+                ready, _ = ray.wait(list(inflight), num_returns=len(inflight), timeout=0)
             for ref in ready:
                 t = inflight.pop(ref)
                 try:
@@ -188,6 +190,9 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
                         failures += res["failed"] or [f"{t.label} (on {res['host']}): exit {res['rc']}; "
                                                       f"{_missing_report(t, since)}\n{res['log']}"]
                 counted_done += _count_written(t, since)
+            if time.perf_counter() - t_count < 0.5 and (pending or inflight):
+                continue  # list the running tasks' directories twice a second at most
+            t_count = time.perf_counter()
             done = counted_done + sum(_count_written(t, since) for t in inflight.values())
             if done > shown:
                 el = time.perf_counter() - t0
