@@ -159,6 +159,8 @@ def discover_dataset(input_path, out=None, patterns: list[str] | None = None) ->
     if not root.exists():
         return None  # the plain run reports a missing INPUT
     if root.is_file():
+        if root.suffix.lower() in _lidar_suffixes():
+            return None  # one frame file: the plain run explains that INPUT must be a directory
         specs = _read_list(root)
     else:
         if is_sequence_dir(root):

@@ -160,8 +160,10 @@ def _check_options(args, dataset: bool) -> None:
     from .cli import CLIError
 
     if args.ray is None:
-        used = [f for f, v in (("--gpus-per-task", args.gpus_per_task), ("--workers", args.workers))
-                if v is not None]
+        used = [f for f, v, default in (("--gpus-per-task", args.gpus_per_task, None),
+                                        ("--workers", args.workers, None), ("--cpus-per-task", args.cpus_per_task, 1.0),
+                                        ("--task-frames", args.task_frames, 192), ("--retries", args.retries, 3))
+                if v != default]
         if used:
             raise CLIError(f"{', '.join(used)} only apply with --ray")
     if dataset and (args.poses or args.calib):
@@ -235,6 +237,7 @@ def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
         if not t.todo and not args.force:
             continue
         print(f"[{k}/{len(tasks)}] {t.seq.path} -> {t.out_dir}", file=sys.stderr, flush=True)
+        remove_temps(t.out_dir)  # nothing else writes there now
         res = floxels_task(task_job(t, common, args.device), quiet=False)
         if res["rc"] == 2:
             if ran == 0:
