@@ -32,13 +32,14 @@ _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "
 
 
 def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group(
-        "datasets and clusters",
+    import textwrap
+
+    g = p.add_argument_group("datasets and clusters", textwrap.fill(
         "INPUT may also be a dataset: a directory holding sequences at any depth (an Argoverse 2 split "
         "of log folders, KITTI odometry with sequences/NN/velodyne and poses/NN.txt, a directory of "
         "'floxels simulate' sequences) or a text file listing sequence directories (one a line, "
         "optionally 'PATH --poses FILE --calib FILE'). OUT then mirrors the input tree. Without --ray "
-        "the sequences run one after another here.")
+        "the sequences run one after another here.", 92))
     g.add_argument("--ray", nargs="?", const="auto", metavar="auto|ADDRESS",
                    help="run as tasks on a Ray cluster (pip install 'floxels_ext[ray]'): 'auto' (the default "
                         "when the flag is bare) joins the cluster this machine belongs to or starts a local "
@@ -56,9 +57,9 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                         "(default 192)")
     g.add_argument("--retries", type=int, default=3, metavar="N",
                    help="times Ray re-runs a task whose worker or node died (default 3)")
-    g.add_argument("--sequences", nargs="+", metavar="GLOB",
-                   help="only the sequences whose output sub-path matches one of these shell patterns "
-                        "(e.g. 'sequences/0[0-9]/*')")
+    g.add_argument("--sequences", action="append", metavar="GLOB",
+                   help="only the sequences whose output sub-path matches this shell pattern (e.g. "
+                        "'sequences/0[0-9]/*'); repeatable")
 
 
 def common_options(args) -> dict:
