@@ -175,6 +175,9 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
                 try:
                     res = ray.get(ref)
                 except ray.exceptions.RayError as e:
+                    if isinstance(getattr(e, "cause", None), ImportError) and succeeded == 0:
+                        raise CLIError(f"a Ray worker cannot import what a task needs ({e.cause}); install the "
+                                       f"same floxels_ext and its dependencies on every node") from None
                     lines = str(e).strip().splitlines()
                     failures.append(f"{t.label}: {type(e).__name__}: {lines[-1] if lines else e}; "
                                     f"{_missing_report(t, since)}")
