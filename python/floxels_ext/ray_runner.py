@@ -76,7 +76,7 @@ def _resources(ray, args) -> tuple[float, float, str]:
         have = ", ".join(f"{r.get('CPU', 0):g} CPU + {r.get('GPU', 0):g} GPU" for r in nodes) or "no live node"
         raise CLIError(f"no node of the Ray cluster can hold a task of {gpus:g} GPU + {args.cpus_per_task:g} CPU "
                        f"(nodes: {have}); change --gpus-per-task / --cpus-per-task")
-    device = args.device if gpus > 0 and args.device else ("cuda" if gpus > 0 else "cpu")
+    device = "cuda" if gpus > 0 else "cpu"  # a task sees only the GPUs Ray gave it, as cuda:0...
     return gpus, args.cpus_per_task, device
 
 
