@@ -48,18 +48,23 @@ OUT_DIR/run_summary.json (or --summary FILE): frames, written, skipped, failures
 names, s/frame and per-stage times of the last run.
 """
 
-_TMP_RE = re.compile(r"^\..+\.npz\.\d+\.tmp$")
+_TMP_RE = re.compile(r"^\.(?P<name>.+\.npz)\.\d+\.tmp$")
 
 
 class OutputError(ValueError):
     """A run output cannot be read (the message names the file)."""
 
 
-def cleanup_temps(out: Path) -> int:
-    """Remove the temporary files an interrupted run left in ``out``; returns how many."""
+def cleanup_temps(out: Path, names=None) -> int:
+    """Remove the temporary files an interrupted run left in ``out``; returns how many.
+
+    ``names``: only the temporaries of these output files (``NAME.npz``), so that a run over some
+    frames leaves alone those of another run writing other frames of the same directory (Ray
+    tasks of one sequence)."""
     n = 0
     for p in out.iterdir():
-        if _TMP_RE.match(p.name):
+        m = _TMP_RE.match(p.name)
+        if m and (names is None or m.group("name") in names):
             p.unlink(missing_ok=True)
             n += 1
     return n

@@ -46,6 +46,8 @@ def add_parser(sub) -> None:
     import argparse
     import textwrap
 
+    from .dataset_run import add_dataset_arguments
+
     p = sub.add_parser(
         "run", help="estimate scene flow for a whole lidar sequence (resumable)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -89,6 +91,7 @@ def add_parser(sub) -> None:
                    help="coordinates of the stored points: each scan's sensor frame, or one world frame "
                         "(.npz with the sensor 'pose', as 'floxels simulate' writes); auto: world for a "
                         "'floxels simulate' directory (sequence.json present), else sensor")
+<<<<<<< HEAD
     p.add_argument("--chunk", type=int, default=None, help="targets per method call (one re-centred world frame, "
                    "shared distance transforms); default: 8, 16, 32, then 64 (the device starts early)")
     p.add_argument("--force", action="store_true", help="recompute frames already written (also those written "
@@ -108,6 +111,12 @@ def add_parser(sub) -> None:
     p.add_argument("--preprocess-device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where cropping/ground removal run: numpy on the CPU, or torch on the GPU (same masks; "
                         "worker threads); auto: cpu (with worker processes, faster on a 16-core host)")
+=======
+    p.add_argument("--chunk", type=int, default=16, help="targets estimated together (shared distance "
+                   "transforms; default 16)")
+    p.add_argument("--force", action="store_true", help="recompute frames already written")
+    add_dataset_arguments(p)
+>>>>>>> wt-ray
     p.set_defaults(func=run)
 
 
@@ -294,6 +303,11 @@ def _check_resume(out_path: dict, selected: list[int], settings: dict, force: bo
 
 
 def run(args) -> int:
+    from .dataset_run import maybe_run_dataset
+
+    rc = maybe_run_dataset(args)
+    if rc is not None:
+        return rc
     import torch
 
     from .cli import CLIError
@@ -329,7 +343,7 @@ def run(args) -> int:
     _check_out_dir(out, seq)
     selected = _parse_frames(args.frames, len(seq))
     out.mkdir(parents=True, exist_ok=True)
-    stale = cleanup_temps(out)
+    stale = cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
     bar: Progress | None = None
 
     def report(msg: str) -> None:  # errors and warnings: shown at every verbosity
