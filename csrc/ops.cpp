@@ -68,6 +68,12 @@ TORCH_LIBRARY(floxels, m) {
         "int num_clusters) -> Tensor");
   m.def("cluster_consistency_fwd_bwd(Tensor flow, Tensor labels, int num_clusters) -> (Tensor, Tensor)");
 
+  // --- exact nearest neighbours (csrc/kernels/nearest.h) ---
+  // idx (N,) int64: index into y (M, 3) of the nearest row of each row of x (N, 3), by
+  // squared Euclidean distance computed directly (no |x|^2 + |y|^2 - 2xy cancellation); ties
+  // go to the lowest index; NaN distances count as +inf. M must be >= 1. (NSFP's Chamfer loss.)
+  m.def("nearest_neighbor(Tensor x, Tensor y) -> Tensor");
+
   // --- exact DBSCAN (csrc/kernels/dbscan.h) ---
   // labels (N,) int64 identical to sklearn.cluster.DBSCAN(eps, min_samples).fit(points).labels_
   // (Euclidean, neighbourhood includes the point, -1 = noise).

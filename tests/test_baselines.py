@@ -291,6 +291,43 @@ def test_max_points_subsampling_still_predicts_every_point():
     np.testing.assert_array_equal(a, b)
 
 
+# ----------------------------------------------------------------------------- nearest_neighbor op
+def test_nearest_neighbor_op_matches_reference_cpu():
+    from floxels_ext.ops import nearest_neighbor
+
+    rng = np.random.default_rng(5)
+    x = torch.tensor(rng.uniform(-30, 30, (257, 3)), dtype=torch.float32)
+    y = torch.tensor(rng.uniform(-30, 30, (190, 3)), dtype=torch.float32)
+    y[7] = y[3]  # an exact tie: the lowest index wins, like argmin
+    x[0] = y[3]
+    got = nearest_neighbor(x, y)
+    assert torch.equal(got, reference.nearest_neighbor(x, y))
+    assert got[0].item() == 3
+    assert torch.equal(got, nearest_neighbors(x, y))  # the chunked cdist path agrees
+    assert torch.equal(nearest_neighbor(x.double(), y.double()), reference.nearest_neighbor(x.double(), y.double()))
+    assert nearest_neighbor(torch.zeros(0, 3), y).shape == (0,)
+    with pytest.raises(ValueError, match="empty"):
+        nearest_neighbor(x, torch.zeros(0, 3))
+    # the raw op maps NaN distances to +inf (a diverged query still gets a valid index)
+    xn = x.clone()
+    xn[1, 0] = float("nan")
+    got = ops_ns.nearest_neighbor(xn, y)
+    assert 0 <= got[1].item() < y.shape[0]
+
+
+def test_optimise_device_bookkeeping_matches_early_stopping_replay():
+    """The device-side stop/best tracking gives what EarlyStopping gives on the same losses."""
+    from floxels_ext.early_stopping import EarlyStopping
+
+    src = cloud(200)
+    cfg = NSFPConfig(max_iters=400, patience=15, min_delta=1e-3)
+    res = fit_nsfp(src, src + SHIFT, cfg)
+    stopper = EarlyStopping(cfg.patience, cfg.min_delta)
+    stops = [stopper.update(v, i)[1] for i, v in enumerate(res.losses)]
+    assert res.best_iter == stopper.best_iter
+    assert not any(stops[:-1]) and (stops[-1] or len(res.losses) == cfg.max_iters)
+
+
 # ----------------------------------------------------------------------------- CUDA
 @pytest.mark.cuda
 def test_cuda_matches_cpu():
@@ -325,3 +362,21 @@ def test_compare_bench_smoke(tmp_path):
     assert [r["name"] for r in d["methods"]] == ["zero", "floxels", "nsfp", "fastnsf"]
     assert len(d["ablations"]) == len(mod.ABLATIONS)
     assert {"dynamic_epe", "static_acc10"} <= set(d["methods"][1]["metrics"])
+
+
+@pytest.mark.cuda
+def test_nearest_neighbor_cuda_matches_reference():
+    from floxels_ext.ops import nearest_neighbor
+
+    rng = np.random.default_rng(12)
+    for n, m in ((5, 7), (300, 20000), (9000, 3000)):  # one segment; many segments (atomic keys)
+        x = torch.tensor(rng.uniform(-40, 40, (n, 3)), dtype=torch.float32)
+        y = torch.tensor(rng.uniform(-40, 40, (m, 3)), dtype=torch.float32)
+        y[-1] = y[0]
+        x[0] = y[0]
+        want = torch.cat([reference.nearest_neighbor(x[s:s + 500], y) for s in range(0, n, 500)])
+        got = nearest_neighbor(x.cuda(), y.cuda()).cpu()
+        assert torch.equal(got, want)
+        assert torch.equal(nearest_neighbor(x.cuda().double(), y.cuda().double()).cpu(),
+                           nearest_neighbor(x.double(), y.double()))
+    assert torch.equal(nearest_neighbors(x.cuda(), y.cuda()).cpu(), want)
