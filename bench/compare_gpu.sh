@@ -8,6 +8,8 @@ cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/cmp_out}; mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0
 T0=$SECONDS; LIMIT=${LIMIT:-570}
+# a _C*.so carried in python/floxels_ext (from an earlier build call) is used without a build
+if ls python/floxels_ext/_C*.so >/dev/null 2>&1; then export PYTHONPATH=$PWD/python; fi
 left() { echo $((LIMIT - (SECONDS - T0))); }
 cmp() {  # name, args...
   local name=$1; shift
@@ -20,7 +22,7 @@ for stage in "$@"; do
     build)
       OUT=$OUT scripts/gpu_run.sh build || exit 1
       so=$(python3 -c 'import floxels_ext,os,glob;print(glob.glob(os.path.dirname(floxels_ext.__file__)+"/_C*.so")[0])')
-      cp "$so" "$OUT/" && rm -f "$OUT/build.log"
+      cp "$so" "$OUT/" && cp "$so" python/floxels_ext/ && export PYTHONPATH=$PWD/python && rm -f "$OUT/build.log"
       timeout 150 python3 -m pytest -q tests/test_baselines.py tests/test_solver.py > "$OUT/tests.log" 2>&1
       echo "tests rc=$?"; grep -E "passed|failed|^FAILED|^ERROR" "$OUT/tests.log" | tail -n 12
       (cd bench && timeout 90 python3 bench_baselines.py --device cuda --iters 200 --cdist-iters 10 \
@@ -30,7 +32,7 @@ for stage in "$@"; do
     ablations) cmp simC --methods --ablations loss scans voxel port ;;
     es) cmp simD --methods --ablations es ;;
     av2) cmp av2 --dataset av2 --av2 ../av2_pair.npz --methods floxels nsfp fastnsf --ablations loss port voxel ;;
-    simnew) (export PYTHONPATH=$PWD/pynew; cp python/floxels_ext/_C*.so pynew/floxels_ext/ 2>/dev/null
+    simnew) (cp python/floxels_ext/_C*.so pynew/floxels_ext/ && export PYTHONPATH=$PWD/pynew
              cmp simnew --methods floxels nsfp fastnsf --ablations none) ;;
     *) echo "unknown stage $stage"; exit 2 ;;
   esac
