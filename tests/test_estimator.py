@@ -115,7 +115,8 @@ def test_readings_match_reference_implementation(scene, reading):
     np.testing.assert_allclose(res.losses[0], info["losses"][0], rtol=1e-5)
     np.testing.assert_allclose(res.losses[1], info["losses"][1], rtol=1e-4)
     default = Floxels(FloxelsConfig(max_iters=2, truncation=cfg.truncation)).fit(scans, target=2)
-    assert default.losses[0] != pytest.approx(res.losses[0], rel=1e-4)
+    # (at the zero initialisation the cluster term is 0: compare after the first step)
+    assert default.losses[:2] != pytest.approx(res.losses[:2], rel=1e-6)
 
 
 @pytest.mark.parametrize("change", [dict(cluster_loss=False), dict(flow_norm_loss=False),
