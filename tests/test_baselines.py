@@ -205,7 +205,9 @@ def test_config_defaults_follow_the_paper():
     n, f = NSFPConfig(), FastNSFConfig()
     for c in (n, f):
         assert (c.num_layers, c.hidden_units, c.activation) == (8, 128, "relu")
-        assert (c.patience, c.min_delta, c.max_iters, c.weight_decay) == (100, 1e-4, 5000, 0.0)
+        assert (c.patience, c.min_delta, c.max_iters) == (100, 1e-4, 5000)
+    # NSFP's code: weight decay 1e-4 in both parameter groups (they override the optimiser's 0)
+    assert n.weight_decay == 1e-4 and f.weight_decay == 0.0
     assert n.lr == 0.008 and f.lr == 0.001 and f.dt_cell == 0.1 and n.backward_flow
     assert n.replace(lr=0.0008).lr == 0.0008
     with pytest.raises(ValueError):
