@@ -61,6 +61,8 @@ METHODS = [
     ("nsfp_wd", "NSFP-8, weight decay 1e-4", "nsfp", {**NSFP_PAPER, "weight_decay": 1e-4}),
     ("nsfp_lr8e-3", "NSFP-8, authors' code defaults (lr 0.008, weight decay 1e-4)", "nsfp", {}),
     ("fastnsf_noes", "FastNSF-8* (5000 iterations)", "fastnsf", {"early_stopping": False}),
+    # two scans: the window [frame - 1, frame] (support t = -1) inside a sequence
+    ("floxels2", "Floxels (2 scans)", "floxels", {"num_scans": 2}),
 ]
 # The peer port's readings (issue 20), one at a time and together.
 PORT = {"lr_milestones": (10, 20), "lr_gamma": 0.5, "patience": 20, "min_delta": 1e-4,
@@ -206,6 +208,7 @@ def parse_args(argv=None):
                     help="main-table rows (default: floxels nsfp fastnsf)")
     ap.add_argument("--ablations", nargs="*", default=None, help=f"ablation groups: none, all or of {GROUPS}")
     ap.add_argument("--iters-scale", type=float, default=1.0, help="scale every iteration limit (smoke runs)")
+    ap.add_argument("--no-npz", action="store_true", help="skip the NPZ of predictions (merge then uses the JSON metrics)")
     ap.add_argument("--part", default=None, help="name of this part (file names, merge provenance)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--merge", nargs="+", default=None, metavar="PART.json", help="merge part JSONs and print tables")
@@ -321,7 +324,8 @@ def main(argv=None) -> int:
     for (sc, f), t in truth_of.items():
         for name, v in t.items():
             npz[f"truth|{sc}|{f}|{name}"] = np.asarray(v)
-    np.savez_compressed(jpath[:-5] + ".npz" if jpath.endswith(".json") else jpath + ".npz", **npz)
+    if not args.no_npz:
+        np.savez_compressed(jpath[:-5] + ".npz" if jpath.endswith(".json") else jpath + ".npz", **npz)
     gpu = torch.cuda.get_device_name() if dev.startswith("cuda") else None
     meta = {"device": dev, "gpu": gpu, "host": platform.node(), "torch": torch.__version__,
             "threads": torch.get_num_threads(), "args": vars(args), "title": title, "part": part,

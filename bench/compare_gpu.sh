@@ -28,7 +28,8 @@ for stage in "$@"; do
       (cd bench && timeout 90 python3 bench_baselines.py --device cuda --iters 200 --cdist-iters 10 \
          --json "$OUT/baselines.json" 2>&1 | tail -n 6) ;;
     main) cmp simA --methods floxels nsfp fastnsf --ablations none ;;
-    readings) cmp simB --methods nsfp_wd nsfp_lr8e-3 fastnsf_noes --ablations none ;;
+    readings) cmp simB --methods floxels2 nsfp_wd nsfp_lr8e-3 fastnsf_noes --ablations none --no-npz ;;
+    av2b) cmp av2b --dataset av2 --av2 ../av2_pair.npz --methods nsfp_wd nsfp_lr8e-3 fastnsf_noes --ablations none --no-npz ;;
     ablations) cmp simC --methods --ablations loss scans voxel port ;;
     es) cmp simD --methods --ablations es ;;
     av2) cmp av2 --dataset av2 --av2 ../av2_pair.npz --methods floxels nsfp fastnsf --ablations loss port voxel ;;

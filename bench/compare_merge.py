@@ -19,12 +19,13 @@ def merge(paths, out_json=None, out_md=None) -> int:
     for p in paths:
         with open(p) as fh:
             part = json.load(fh)
-        npz = np.load(p[:-5] + ".npz" if p.endswith(".json") else p + ".npz")
+        npath = p[:-5] + ".npz" if p.endswith(".json") else p + ".npz"
+        npz = np.load(npath) if os.path.exists(npath) else None  # absent: the JSON metrics stand
         dataset = part["args"].get("dataset", "sim")
         sim = part["args"].get("sim") or {}
         tag = dataset + ("" if not sim else "[" + ",".join(f"{k}={v}" for k, v in sorted(sim.items())) + "]")
         parts.append({k: part.get(k) for k in ("part", "command", "device", "gpu", "title", "total_seconds")})
-        for k in npz.files:
+        for k in (npz.files if npz is not None else []):
             kind, *rest = k.split("|")
             if kind == "pred":
                 key, scene, f = rest
@@ -36,11 +37,14 @@ def merge(paths, out_json=None, out_md=None) -> int:
             rid = (tag, r["key"])
             cur = rows.setdefault(rid, {**r, "key": r["key"], "dataset": tag, "frames": {}, "seconds": {},
                                         "gpu": part.get("gpu")})
+            cur["parts"] = cur.get("parts", 0) + 1
             cur["frames"].update(r["frames"])
             cur["seconds"].update(r["seconds"])
     records = list(rows.values())
     for r in records:
         tag = r["dataset"]
+        if r["parts"] == 1 and not any((tag, r["key"], sc, int(f)) in preds for sc, fr in r["frames"].items() for f in fr):
+            continue  # one part without its NPZ: its own metrics stand
         evaluate_rows([r], lambda k, sc, f, t=tag: preds[(t, k, sc, int(f))], lambda sc, f, t=tag: truth[(t, sc, int(f))])
     md = []
     for tag in sorted({r["dataset"] for r in records}):
