@@ -357,13 +357,22 @@ def test_compare_bench_smoke(tmp_path):
     spec = importlib.util.spec_from_file_location("bench_compare", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    out = tmp_path / "c.json"
-    assert mod.main(["--quick", "--frames", "1", "--max-points", "150", "--baseline-iters", "3",
-                     "--floxels-iters", "3", "--json", str(out), "--png", str(tmp_path / "c.png")]) == 0
-    d = json.loads(out.read_text())
-    assert [r["name"] for r in d["methods"]] == ["zero", "floxels", "nsfp", "fastnsf"]
-    assert len(d["ablations"]) == len(mod.ABLATIONS)
-    assert {"dynamic_epe", "static_acc10"} <= set(d["methods"][1]["metrics"])
+    parts = []
+    for scene in ("crossing", "urban"):  # one row split over two parts, then merged
+        out = tmp_path / f"c_{scene}.json"
+        assert mod.main(["--quick", "--frames", "1", "--max-points", "150", "--iters-scale", "0.0001",
+                         "--scenes", scene, "--methods", "floxels", "nsfp", "fastnsf", "--ablations", "loss",
+                         "--json", str(out)]) == 0
+        parts.append(str(out))
+    d = json.loads(Path(parts[0]).read_text())
+    assert [r["key"] for r in d["rows"]][:3] == ["floxels", "nsfp", "fastnsf"]
+    assert sum(r["group"] == "loss" for r in d["rows"]) == 4
+    assert {"dynamic_epe", "static_acc10", "mean_dynamic_normalized_epe"} <= set(d["rows"][0]["metrics"])
+    merged = tmp_path / "m.json"
+    assert mod.main(["--merge", *parts, "--json", str(merged), "--md", str(tmp_path / "m.md")]) == 0
+    rows = json.loads(merged.read_text())["rows"]
+    assert len(rows) == 7 and all(set(r["frames"]) == {"crossing", "urban"} for r in rows)
+    assert "| Floxels (5 scans) |" in (tmp_path / "m.md").read_text()
 
 
 @pytest.mark.cuda
