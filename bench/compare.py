@@ -287,6 +287,8 @@ def main(argv=None) -> int:
     for key, label, name, opts in METHODS:
         if key in args.methods:
             o = {**opts, "num_scans": 2} if two_scan and name == "floxels" else opts
+            if two_scan:
+                label = label.replace("(5 scans)", "(2 scans)")
             rows.append((key, label, name, scaled(o, name, args.iters_scale, args.iter_caps), "main"))
     for group, label, opts in ABLATIONS:
         if group in args.ablations:

@@ -23,7 +23,7 @@ def main_table(rows) -> str:
     lines = [f"| method | {_HEAD} |", "|" + " --- |" * 10]
     for r in rows:
         lines.append(f"| {r['label']} | " + " | ".join(_cells(r["metrics"]))
-                     + f" | {fmt(r['seconds_per_frame'], 2)} |")
+                     + f" | {fmt(r['seconds_per_frame'], 3)} |")
     return "\n".join(lines)
 
 
@@ -31,5 +31,5 @@ def ablation_table(rows) -> str:
     lines = [f"| group | setting | {_HEAD} |", "|" + " --- |" * 11]
     for r in rows:
         lines.append(f"| {r['group']} | {r['label']} | " + " | ".join(_cells(r["metrics"]))
-                     + f" | {fmt(r['seconds_per_frame'], 2)} |")
+                     + f" | {fmt(r['seconds_per_frame'], 3)} |")
     return "\n".join(lines)
