@@ -1,25 +1,32 @@
-"""Floxels vs NSFP vs FastNSF on the same simulated sequences, plus the paper's Floxels ablations.
+"""Floxels vs NSFP vs FastNSF on the same scans, plus the paper's Floxels ablations and the
+faithfulness readings; runs split into parts (each GPU call < 10 min) and merged.
 
-    python bench/compare.py [--device cpu|cuda] [--quick] [--scenes urban crossing] [--frames 3]
-                            [--skip-ablations] [--json PATH] [--png PATH]
+    python bench/compare.py [--device cpu|cuda] [--quick] [--dataset sim|av2]
+                            [--scenes urban crossing highway] [--frames 3] [--lidar full|small]
+                            [--methods floxels nsfp fastnsf ...] [--ablations none|all|GROUP...]
+                            [--sim KEY=VALUE ...] [--part NAME] [--json PATH]
+    python bench/compare.py --merge PART.json ... [--json merged.json] [--md tables.md]
 
-Every method runs through the method registry (``floxels_ext.methods``, as ``floxels run
---method``) on the same scans: simulated lidar (``floxels_ext.sim``), cropped by the paper's
-protocol (3 m to ``--max-range``, below 4 m, ground removed), optionally subsampled to
-``--max-points`` per scan. Evaluated frames sit in the middle of each sequence so every window
-(up to 11 scans) is centred on its frame. Metrics are point-weighted over all evaluated frames
-(``floxels_ext.metrics.evaluate_sequence``); time per frame is wall time of the method's whole
-sequence run divided by the number of evaluated frames, after a warm-up on a tiny problem.
+Rows. ``--methods`` picks rows of the main table (``METHODS``: the three methods at the
+paper's settings, plus NSFP's weight-decay / learning-rate readings); ``--ablations`` picks
+Floxels ablation groups (``ABLATIONS``: loss, scans, voxel, es, port). Every row runs through
+the method registry (``floxels_ext.methods``, as ``floxels run --method``).
 
-Prints the paper-style table (dynamic EPE/Acc5/Acc10/angle, static EPE/Acc5/Acc10, s/frame) and
-the ablation table (cluster loss off, flow norm off, 3-11 scans, voxel 0.3-2.0 m), writes JSON
-(default ``bench/results/compare_<device>.json``) and a PNG plot (needs matplotlib; skipped
-with a message otherwise).
+Data. ``sim``: simulated lidar (``floxels_ext.sim``; ``--lidar full`` = 64 x 1024, the
+default), cropped by the paper's protocol (3 m to ``--max-range``, below 4 m, ground removed);
+evaluated frames sit in the middle of each sequence so every window (up to 11 scans) is
+centred on its frame. ``av2``: the real Argoverse 2 pair in ``../shared/data/av2_pair`` (or
+``--av2 PATH``), all methods as two-scan estimators: scan 1 is moved into scan 0's frame
+(``ego1_T_ego0``) and the label's ego flow is subtracted (object motion); non-ground points
+with |x|, |y| < 35 m are evaluated (the AV2 protocol; AV2 category ids mapped to the 2024
+meta-classes below), the estimators see non-ground points within 40 m (scan 1's ground: points
+within 0.15 m of a labelled ground point of scan 0).
 
-Sizes: the default (full) run uses the 32-beam lidar, two scenes x 3 frames, all points in
-range, 5000 baseline iterations at most (early stopping as in the paper) and is meant for a
-GPU (a few minutes on an H100). ``--quick`` is a CPU smoke run (under a minute on 2 cores): one
-scene, 2 frames, 30 m range, 1000 points per scan, 250 iterations at most.
+Metrics are point-weighted over all evaluated frames (``floxels_ext.metrics.evaluate_sequence``).
+Time per frame is the wall time of the method's sequence runs divided by the number of
+evaluated frames, after a warm-up (3 iterations) on the first frame. Each part writes its JSON
+and an NPZ of every prediction and ground truth next to it; ``--merge`` recomputes the
+metrics of rows split over parts (e.g. scenes) from the NPZ files and prints the tables.
 """
 
 from __future__ import annotations
@@ -40,70 +47,136 @@ from floxels_ext.metrics import evaluate_sequence
 from floxels_ext.protocol import protocol_mask
 from floxels_ext.sim import simulate_sequence
 
-METHODS = [("floxels", "Floxels (5 scans)"), ("nsfp", "NSFP-8"), ("fastnsf", "FastNSF-8")]
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from compare_tables import ablation_table, fmt, main_table  # noqa: E402
 
-# (group, label, Floxels options) -- the paper's ablations (Tables 2, 3, 4)
+# Paper's baseline settings (appendix "Baseline details"): NSFP lr 0.0008, FastNSF lr 0.001,
+# no weight decay, patience 100, min delta 1e-4, at most 5000 iterations.
+NSFP_PAPER = {"lr": 0.0008, "weight_decay": 0.0}
+# (key, label, method, options) of the main table
+METHODS = [
+    ("floxels", "Floxels (5 scans)", "floxels", {}),
+    ("nsfp", "NSFP-8", "nsfp", NSFP_PAPER),
+    ("fastnsf", "FastNSF-8", "fastnsf", {}),
+    ("nsfp_wd", "NSFP-8, weight decay 1e-4", "nsfp", {**NSFP_PAPER, "weight_decay": 1e-4}),
+    ("nsfp_lr8e-3", "NSFP-8, authors' code defaults (lr 0.008, weight decay 1e-4)", "nsfp", {}),
+    ("fastnsf_noes", "FastNSF-8* (5000 iterations)", "fastnsf", {"early_stopping": False}),
+    # two scans: the window [frame - 1, frame] (support t = -1) inside a sequence
+    ("floxels2", "Floxels (2 scans)", "floxels", {"num_scans": 2}),
+]
+# The peer port's readings (issue 20), one at a time and together.
+PORT = {"lr_milestones": (10, 20), "lr_gamma": 0.5, "patience": 20, "min_delta": 1e-4,
+        "truncation_mode": "clamp", "cluster_loss_mean": "clustered"}
+# (group, label, Floxels options): the paper's ablations (Tables 2-4) and the readings
 ABLATIONS = [
     ("loss", "Floxels", {}),
     ("loss", "- flow norm", {"flow_norm_loss": False}),
     ("loss", "- cluster loss", {"cluster_loss": False}),
     ("loss", "- cluster loss - flow norm", {"cluster_loss": False, "flow_norm_loss": False}),
     *[("scans", f"{n} scans", {"num_scans": n}) for n in (3, 5, 7, 9, 11)],
-    *[("voxel", f"voxel {v} m", {"voxel_size": v}) for v in (0.3, 0.5, 0.7, 2.0)],
+    *[("voxel", f"voxel {v} m", {"voxel_size": v}) for v in (0.3, 0.5, 0.7, 1.0, 2.0)],
+    ("es", "baseline early stopping (5000 it, patience 100, 1e-4)",
+     {"max_iters": 5000, "patience": 100, "min_delta": 1e-4}),
+    ("port", "lr halved at it 10 and 20", {"lr_milestones": (10, 20), "lr_gamma": 0.5}),
+    ("port", "patience 20, min delta 1e-4", {"patience": 20, "min_delta": 1e-4}),
+    ("port", "truncated DT clamped at 5 m", {"truncation_mode": "clamp"}),
+    ("port", "cluster loss over clustered points", {"cluster_loss_mean": "clustered"}),
+    ("port", "all four port readings", PORT),
+    ("port", "all four, - cluster loss", {**PORT, "cluster_loss": False}),
 ]
+GROUPS = sorted({g for g, _, _ in ABLATIONS})
 MAX_WINDOW = 11
+SCENE_SEED = {"urban": 0, "crossing": 1, "highway": 2, "parking": 3}
+
+# AV2 category id (1 + index in av2's CATEGORY list, 0 = none) -> 2024 meta-class
+# (0 background, 1 car, 2 other vehicle, 3 pedestrian, 4 wheeled VRU)
+_AV2_META = {19: 1, **{i: 2 for i in (2, 6, 7, 11, 18, 20, 25, 26, 27)},
+             **{i: 3 for i in (16, 17, 23, 28)}, **{i: 4 for i in (3, 4, 14, 15, 29, 30)}}
 
 
 def log(msg: str) -> None:
     print(msg, flush=True)
 
 
-def load_scene(scene: str, seed: int, num_frames: int, lidar: str, max_range: float, max_points: int):
+def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_options):
     """Protocol-cropped scans and ground truth of one simulated sequence."""
-    seq = simulate_sequence(scene, num_frames=num_frames, seed=seed, small=(lidar == "small"))
+    seq = simulate_sequence(scene, num_frames=num_frames, seed=seed, small=(lidar == "small"), **sim_options)
     rng = np.random.default_rng([seed, 7])
     scans, truth = [], []
     for fr in seq.frames:
         idx = np.flatnonzero(protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=max_range))
         if max_points and idx.size > max_points:
             idx = np.sort(rng.choice(idx, max_points, replace=False))
-        scans.append(np.ascontiguousarray(fr.points[idx]))
-        truth.append({"flow": fr.flow[idx], "classes": fr.classes[idx], "dynamic": fr.dynamic[idx]})
+        scans.append(np.ascontiguousarray(fr.points[idx], dtype=np.float32))
+        truth.append({"flow": fr.flow[idx].astype(np.float32), "classes": fr.classes[idx].astype(np.int64),
+                      "dynamic": fr.dynamic[idx].astype(bool)})
     return scans, truth
 
 
-def run_method(name: str, data, device: str, options: dict, progress: bool = False):
-    """Run one method on every scene; returns (metrics over all evaluated frames, s/frame)."""
-    method = methods.get_method(name)
-    preds, gts, seconds, nframes = [], [], 0.0, 0
-    for k, (scans, truth, frames) in enumerate(data):
-        out = {}
-        t0 = time.perf_counter()
+def load_av2_pair(path, max_points=0):
+    """(scans [pc0, pc1 in pc0's frame], truth of pc0 (object motion), evaluation mask)."""
+    from scipy.spatial import cKDTree
 
-        def done(f, flow):
-            out[f] = flow
-            if progress:
-                log(f"    {name}: scene {k + 1}/{len(data)} frame {f} done ({time.perf_counter() - t0:.1f} s)")
+    d = np.load(path)
+    p0, p1 = d["pc0"].astype(np.float64), d["pc1"].astype(np.float64)
+    T = np.linalg.inv(d["ego1_T_ego0"])  # ego1 -> ego0
+    p1 = p1 @ T[:3, :3].T + T[:3, 3]
+    g0 = d["is_ground0"].astype(bool)
+    g1 = cKDTree(p0[g0]).query(p1, distance_upper_bound=0.15)[0] < 0.15
+    box = lambda p, r: (np.abs(p[:, 0]) < r) & (np.abs(p[:, 1]) < r)  # noqa: E731
+    k0 = box(p0, 40.0) & ~g0 & d["flow_valid"].astype(bool)
+    k1 = box(p1, 40.0) & ~g1
+    flow = (d["flow"] - d["ego_flow"]).astype(np.float32)[k0]
+    classes = np.array([_AV2_META.get(int(c), 0) for c in d["classes0"][k0]], np.int64)
+    truth = {"flow": flow, "classes": classes, "dynamic": d["dynamic0"].astype(bool)[k0],
+             "ground": ~box(p0[k0], 35.0)}  # "ground" = excluded from the metrics
+    s0, s1 = p0[k0].astype(np.float32), p1[k1].astype(np.float32)
+    if max_points:
+        rng = np.random.default_rng(3)
+        i0 = np.sort(rng.choice(len(s0), min(max_points, len(s0)), replace=False))
+        s0, truth = s0[i0], {k: v[i0] for k, v in truth.items()}
+        s1 = s1[np.sort(rng.choice(len(s1), min(max_points, len(s1)), replace=False))]
+    return [np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None]
 
-        method.estimate_sequence(scans, frames, device, options, done)
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        seconds += time.perf_counter() - t0
-        nframes += len(frames)
-        for f in frames:
-            preds.append(out[f])
-            gts.append(truth[f])
-    metrics = evaluate_sequence(preds, gts)
-    return metrics, seconds / nframes
+
+def run_rows(rows, data, dev, progress=True):
+    """Run every row on every scene; returns {row key: {scene: (seconds, {frame: flow})}}."""
+    out = {}
+    warmed = set()
+    for key, label, name, opts, _group in rows:
+        method = methods.get_method(name)
+        if (name, tuple(sorted(opts.items()))) not in warmed:
+            scans, _, frames, _ = data[0]
+            w = {**opts, "max_iters": 3}
+            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow: None)
+            warmed.add((name, tuple(sorted(opts.items()))))
+        out[key] = {}
+        t_row = time.perf_counter()
+        for scans, _truth, frames, scene in data:
+            preds = {}
+            t0 = time.perf_counter()
+            method.estimate_sequence(scans, frames, dev, opts, lambda f, flow: preds.__setitem__(f, flow))
+            if dev.startswith("cuda"):
+                torch.cuda.synchronize()
+            out[key][scene] = (time.perf_counter() - t0, preds)
+        secs = sum(s for s, _ in out[key].values())
+        nfr = sum(len(p) for _, p in out[key].values())
+        log(f"  {label}: {secs / max(nfr, 1):.2f} s/frame ({time.perf_counter() - t_row:.1f} s)")
+    return out
 
 
-def warm_up(name: str, data, device: str, options: dict) -> None:
-    """First-call costs (imports such as torch.optim, CUDA context, kernel loads, allocator
-    growth) on the first evaluated frame, with 3 iterations."""
-    scans, _, frames = data[0]
-    opts = dict(options)
-    opts["max_iters"] = 3
-    methods.get_method(name).estimate_sequence(scans, frames[:1], device, opts, lambda f, flow: None)
+def evaluate_rows(records, preds_of, truth_of):
+    """Metrics of each row record over every (scene, frame) it has predictions for."""
+    for r in records:
+        P, G = [], []
+        for scene, frames in r["frames"].items():
+            for f in frames:
+                P.append(preds_of(r["key"], scene, f))
+                G.append(truth_of(scene, f))
+        r["metrics"] = evaluate_sequence(P, G)
+        n = sum(len(v) for v in r["frames"].values())
+        r["seconds_per_frame"] = sum(r["seconds"].values()) / max(n, 1)
+    return records
 
 
 def clean(o):
@@ -117,101 +190,57 @@ def clean(o):
     return o
 
 
-def fmt(v, digits=3) -> str:
-    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
-def main_table(rows) -> str:
-    lines = ["| method | dyn EPE | dyn Acc5 | dyn Acc10 | dyn angle | static EPE | static Acc5 | static Acc10 | s/frame |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for r in rows:
-        m = r["metrics"]
-        lines.append(f"| {r['label']} | {fmt(m['dynamic_epe'])} | {fmt(m['dynamic_acc5'])} | {fmt(m['dynamic_acc10'])} "
-                     f"| {fmt(m['dynamic_angle'])} | {fmt(m['static_epe'])} | {fmt(m['static_acc5'])} "
-                     f"| {fmt(m['static_acc10'])} | {fmt(r['seconds_per_frame'], 2)} |")
-    return "\n".join(lines)
-
-
-def ablation_table(rows) -> str:
-    lines = ["| group | setting | dyn EPE | dyn Acc5 | dyn Acc10 | dyn angle | static EPE | s/frame |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for r in rows:
-        m = r["metrics"]
-        lines.append(f"| {r['group']} | {r['label']} | {fmt(m['dynamic_epe'])} | {fmt(m['dynamic_acc5'])} "
-                     f"| {fmt(m['dynamic_acc10'])} | {fmt(m['dynamic_angle'])} | {fmt(m['static_epe'])} "
-                     f"| {fmt(r['seconds_per_frame'], 2)} |")
-    return "\n".join(lines)
-
-
-def plot(path: str, rows, abl_rows, title: str) -> bool:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        log("matplotlib is not installed: skipping the PNG plot")
-        return False
-    ncols = 2 if abl_rows else 1
-    fig, axes = plt.subplots(1, ncols, figsize=(6 * ncols + (3 if abl_rows else 0), 4.5), squeeze=False)
-    ax = axes[0][0]
-    for r in rows:
-        if r["name"] == "zero":
-            continue
-        t, e = r["seconds_per_frame"], r["metrics"]["dynamic_epe"]
-        ax.scatter([t], [e], s=60)
-        ax.annotate(r["label"], (t, e), textcoords="offset points", xytext=(5, 5))
-    ax.set_xscale("log")
-    ax.set_xlabel("time per frame (s, log)")
-    ax.set_ylabel("dynamic EPE (m)")
-    ax.set_title("accuracy vs time")
-    ax.grid(True, alpha=0.3)
-    if abl_rows:
-        ax = axes[0][1]
-        labels = [r["label"] for r in abl_rows]
-        x = np.arange(len(labels))
-        dyn = [r["metrics"]["dynamic_epe"] for r in abl_rows]
-        sta = [r["metrics"]["static_epe"] for r in abl_rows]
-        ax.bar(x - 0.2, dyn, 0.4, label="dynamic EPE")
-        ax.bar(x + 0.2, sta, 0.4, label="static EPE")
-        ax.set_xticks(x)
-        ax.set_xticklabels(labels, rotation=60, ha="right", fontsize=8)
-        ax.set_ylabel("EPE (m)")
-        ax.set_title("Floxels ablations")
-        ax.legend()
-        ax.grid(True, axis="y", alpha=0.3)
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return True
-
-
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
-    ap.add_argument("--quick", action="store_true", help="tiny CPU smoke run (under a minute on 2 idle cores)")
-    ap.add_argument("--scenes", nargs="+", default=None, help="simulated scenes (default: urban crossing; quick: crossing)")
+    ap.add_argument("--quick", action="store_true", help="tiny CPU smoke run")
+    ap.add_argument("--dataset", choices=("sim", "av2"), default="sim")
+    ap.add_argument("--av2", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
+                                                  "shared", "data", "av2_pair", "av2_7fab2350_pair.npz"))
+    ap.add_argument("--scenes", nargs="+", default=None, help="simulated scenes (default urban crossing highway)")
     ap.add_argument("--frames", type=int, default=None, help="evaluated frames per scene (default 3; quick 2)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--lidar", choices=("small", "full"), default="small",
-                    help="32 x 512 (small, default) or 64 x 1024 simulated lidar")
+    ap.add_argument("--lidar", choices=("small", "full"), default=None, help="64 x 1024 (full, default) or 32 x 512")
     ap.add_argument("--max-range", type=float, default=None, help="protocol max range in m (default 50; quick 30)")
-    ap.add_argument("--max-points", type=int, default=None, help="subsample each scan to at most N points (0 = all; quick 1000)")
-    ap.add_argument("--baseline-iters", type=int, default=None, help="max iterations of NSFP/FastNSF (default 5000; quick 250)")
-    ap.add_argument("--floxels-iters", type=int, default=None, help="max iterations of Floxels (default 500; quick 250)")
-    ap.add_argument("--methods", nargs="+", default=[m for m, _ in METHODS], choices=[m for m, _ in METHODS])
-    ap.add_argument("--skip-ablations", action="store_true")
+    ap.add_argument("--max-points", type=int, default=None, help="subsample each scan (0 = all; quick 1000)")
+    ap.add_argument("--sim", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="extra simulate_sequence options, e.g. vehicle_detail=False range_noise=0.015")
+    ap.add_argument("--methods", nargs="*", default=None, choices=[k for k, *_ in METHODS],
+                    help="main-table rows (default: floxels nsfp fastnsf)")
+    ap.add_argument("--ablations", nargs="*", default=None, help=f"ablation groups: none, all or of {GROUPS}")
+    ap.add_argument("--iters-scale", type=float, default=1.0, help="scale every iteration limit (smoke runs)")
+    ap.add_argument("--no-npz", action="store_true", help="skip the NPZ of predictions (merge then uses the JSON metrics)")
+    ap.add_argument("--part", default=None, help="name of this part (file names, merge provenance)")
     ap.add_argument("--json", default=None)
-    ap.add_argument("--png", default=None)
+    ap.add_argument("--merge", nargs="+", default=None, metavar="PART.json", help="merge part JSONs and print tables")
+    ap.add_argument("--md", default=None, help="with --merge: also write the tables (markdown) here")
     args = ap.parse_args(argv)
+    if args.merge:
+        return args
     q = args.quick
-    args.scenes = args.scenes or (["crossing"] if q else ["urban", "crossing"])
+    args.scenes = args.scenes or (["crossing"] if q else ["urban", "crossing", "highway"])
     args.frames = args.frames or (2 if q else 3)
+    args.lidar = args.lidar or ("small" if q else "full")
     args.max_range = args.max_range or (30.0 if q else 50.0)
     args.max_points = args.max_points if args.max_points is not None else (1000 if q else 0)
-    args.baseline_iters = args.baseline_iters or (250 if q else 5000)
-    args.floxels_iters = args.floxels_iters or (250 if q else 500)
+    args.iter_caps = {"floxels": 250, "nsfp": 250, "fastnsf": 250} if q else {}
+    args.methods = ["floxels", "nsfp", "fastnsf"] if args.methods is None else args.methods
+    abl = ["all"] if args.ablations is None else args.ablations
+    bad = [a for a in abl if a not in GROUPS + ["all", "none"]]
+    if bad:
+        ap.error(f"--ablations: unknown group(s) {bad}; choose from none, all, {', '.join(GROUPS)}")
+    args.ablations = [] if "none" in abl else (GROUPS if "all" in abl else abl)
+    sim = {}
+    for kv in args.sim:
+        k, sep, v = kv.partition("=")
+        if not sep:
+            ap.error(f"--sim expects KEY=VALUE, got {kv!r}")
+        sim[k] = {"true": True, "false": False}.get(v.lower(), v)
+        if isinstance(sim[k], str):
+            try:
+                sim[k] = float(v) if any(c in v for c in ".e") else int(v)
+            except ValueError:
+                pass
+    args.sim = sim
     if args.frames < 1:
         ap.error("--frames must be >= 1")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
@@ -219,84 +248,94 @@ def parse_args(argv=None):
     return args
 
 
+def scaled(opts: dict, name: str, scale: float, caps: dict) -> dict:
+    """Options with the iteration limit scaled (``--iters-scale``) and capped (``--quick``)."""
+    base = {"floxels": 500, "nsfp": 5000, "fastnsf": 5000}[name]
+    n = opts.get("max_iters", base)
+    n = min(max(2, int(n * scale)), caps.get(name, n))
+    return dict(opts) if n == opts.get("max_iters", base) else {**opts, "max_iters": n}
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.merge:
+        from compare_merge import merge
+
+        return merge(args.merge, args.json, args.md)
     dev = args.device
     t_all = time.perf_counter()
-    # evaluated frames in the middle: windows of up to MAX_WINDOW scans stay centred on them
-    half = MAX_WINDOW // 2 if not args.skip_ablations else 2
-    num_frames = args.frames + 2 * half
-    frames = list(range(half, half + args.frames))
-    data = []
-    for scene in args.scenes:
-        scans, truth = load_scene(scene, args.seed, num_frames, args.lidar, args.max_range, args.max_points)
-        data.append((scans, truth, frames))
-        npts = [len(scans[f]) for f in frames]
-        ndyn = [int(truth[f]["dynamic"].sum()) for f in frames]
-        log(f"scene {scene}: {num_frames} scans simulated; evaluated frames {frames}: "
-            f"{npts} points ({ndyn} dynamic)")
+    data = []  # (scans, truth, evaluated frames, scene name)
+    if args.dataset == "av2":
+        scans, truth = load_av2_pair(args.av2, args.max_points)
+        data.append((scans, truth, [0], "av2_pair"))
+        log(f"av2 pair: {len(scans[0])} / {len(scans[1])} points, {int(truth[0]['dynamic'].sum())} dynamic")
+    else:
+        need = max([MAX_WINDOW if "scans" in args.ablations else 5] +
+                   [o.get("num_scans", 5) for k, _, n, o in METHODS if k in args.methods and n == "floxels"])
+        half = need // 2
+        num_frames = args.frames + 2 * half
+        frames = list(range(half, half + args.frames))
+        for scene in args.scenes:
+            seed = SCENE_SEED.get(scene, 0)
+            scans, truth = load_sim_scene(scene, seed, num_frames, args.lidar, args.max_range, args.max_points, args.sim)
+            data.append((scans, truth, frames, scene))
+            log(f"scene {scene}: {num_frames} scans; frames {frames}: {[len(scans[f]) for f in frames]} points "
+                f"({[int(truth[f]['dynamic'].sum()) for f in frames]} dynamic) [{time.perf_counter() - t_all:.1f} s]")
 
-    base = {"floxels": {"max_iters": args.floxels_iters},
-            "nsfp": {"max_iters": args.baseline_iters},
-            "fastnsf": {"max_iters": args.baseline_iters}}
-    rows = []
-    zero = evaluate_sequence([np.zeros_like(t[f]["flow"]) for _, t, fr in data for f in fr],
-                             [t[f] for _, t, fr in data for f in fr])
-    rows.append({"name": "zero", "label": "zero flow", "metrics": zero, "seconds_per_frame": 0.0, "options": {}})
-    label_of = dict(METHODS)
-    for name in args.methods:
-        warm_up(name, data, dev, base[name])
-        t0 = time.perf_counter()
-        m, spf = run_method(name, data, dev, base[name], progress=True)
-        rows.append({"name": name, "label": label_of[name], "metrics": m, "seconds_per_frame": spf,
-                     "options": base[name]})
-        log(f"[{time.perf_counter() - t_all:6.1f} s] {label_of[name]}: dyn EPE {fmt(m['dynamic_epe'])}, "
-            f"static EPE {fmt(m['static_epe'])}, {spf:.2f} s/frame ({time.perf_counter() - t0:.1f} s)")
+    two_scan = args.dataset == "av2"
+    rows = []  # (key, label, method, options, group)
+    for key, label, name, opts in METHODS:
+        if key in args.methods:
+            o = {**opts, "num_scans": 2} if two_scan and name == "floxels" else opts
+            if two_scan:
+                label = label.replace("(5 scans)", "(2 scans)")
+            rows.append((key, label, name, scaled(o, name, args.iters_scale, args.iter_caps), "main"))
+    for group, label, opts in ABLATIONS:
+        if group in args.ablations:
+            if two_scan and group == "scans":
+                continue
+            o = {"num_scans": 2, **opts} if two_scan else opts
+            rows.append((f"abl:{group}:{label}", label, "floxels", scaled(o, "floxels", args.iters_scale, args.iter_caps), group))
 
-    abl_rows = []
-    if not args.skip_ablations:
-        done = {}
-        floxels_row = next((r for r in rows if r["name"] == "floxels"), None)
-        if floxels_row is not None:  # the default configuration is the main table's Floxels row
-            done[()] = (floxels_row["metrics"], floxels_row["seconds_per_frame"])
-        else:
-            warm_up("floxels", data, dev, base["floxels"])
-        for group, label, opts in ABLATIONS:
-            full = {**base["floxels"], **opts}
-            # 5 scans / 0.5 m are the defaults: reuse that run
-            key = tuple(sorted((k, v) for k, v in opts.items() if (k, v) not in (("num_scans", 5), ("voxel_size", 0.5))))
-            if key not in done:
-                done[key] = run_method("floxels", data, dev, full)
-                log(f"[{time.perf_counter() - t_all:6.1f} s] ablation {label}: dyn EPE {fmt(done[key][0]['dynamic_epe'])}, "
-                    f"{done[key][1]:.2f} s/frame")
-            m, spf = done[key]
-            abl_rows.append({"group": group, "label": label, "options": full, "metrics": m, "seconds_per_frame": spf})
+    results = run_rows(rows, data, dev)
+    truth_of = {(scene, f): truth[f] for _s, truth, frames, scene in data for f in frames}
+    records = [{"key": k, "label": lab, "method": n, "options": o, "group": g,
+                "frames": {sc: sorted(results[k][sc][1]) for sc in results[k]},
+                "seconds": {sc: results[k][sc][0] for sc in results[k]}} for k, lab, n, o, g in rows]
+    evaluate_rows(records, lambda k, sc, f: results[k][sc][1][f], lambda sc, f: truth_of[(sc, f)])
 
-    total_points = sum(len(s[f]) for s, _, fr in data for f in fr)
-    title = (f"{len(args.scenes)} scene(s) x {args.frames} frame(s), {args.lidar} lidar, <= {args.max_range:g} m, "
-             f"{total_points / (len(data) * args.frames):.0f} points/frame, device {dev}")
-    log(f"\n## Comparison ({title})\n")
-    log(main_table(rows))
+    pts = [len(s[f]) for s, _, fr, _ in data for f in fr]
+    title = (f"{args.dataset}: {len(data)} scene(s) x {len(pts) // max(len(data), 1)} frame(s), "
+             f"{'' if two_scan else args.lidar + ' lidar, '}{np.mean(pts):.0f} points/frame, device {dev}")
+    main_rows = [r for r in records if r["group"] == "main"]
+    abl_rows = [r for r in records if r["group"] != "main"]
+    if main_rows:
+        log(f"\n## Comparison ({title})\n\n{main_table(main_rows)}")
     if abl_rows:
-        log(f"\n## Floxels ablations ({title})\n")
-        log(ablation_table(abl_rows))
+        log(f"\n## Floxels ablations ({title})\n\n{ablation_table(abl_rows)}")
 
-    dev_tag = dev.split(":")[0]
     here = os.path.dirname(os.path.abspath(__file__))
-    jpath = args.json or os.path.join(here, "results", f"compare_{dev_tag}.json")
-    ppath = args.png or os.path.join(here, "results", f"compare_{dev_tag}.png")
-    for p in (jpath, ppath):
-        os.makedirs(os.path.dirname(os.path.abspath(p)), exist_ok=True)
+    part = args.part or f"{args.dataset}_{dev.split(':')[0]}"
+    jpath = args.json or os.path.join(here, "results", f"compare_{part}.json")
+    os.makedirs(os.path.dirname(os.path.abspath(jpath)), exist_ok=True)
+    npz = {}
+    for k, *_ in rows:
+        for sc, (_, preds) in results[k].items():
+            for f, flow in preds.items():
+                npz[f"pred|{k}|{sc}|{f}"] = np.asarray(flow, np.float32)
+    for (sc, f), t in truth_of.items():
+        for name, v in t.items():
+            npz[f"truth|{sc}|{f}|{name}"] = np.asarray(v)
+    if not args.no_npz:
+        np.savez_compressed(jpath[:-5] + ".npz" if jpath.endswith(".json") else jpath + ".npz", **npz)
     gpu = torch.cuda.get_device_name() if dev.startswith("cuda") else None
+    meta = {"device": dev, "gpu": gpu, "host": platform.node(), "torch": torch.__version__,
+            "threads": torch.get_num_threads(), "args": vars(args), "title": title, "part": part,
+            "command": "python bench/compare.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "total_seconds": time.perf_counter() - t_all}
     with open(jpath, "w") as fh:
-        json.dump(clean({"device": dev, "gpu": gpu, "host": platform.node(), "torch": torch.__version__,
-                   "threads": torch.get_num_threads(), "args": vars(args), "title": title,
-                   "frames": frames, "num_frames": num_frames, "methods": rows, "ablations": abl_rows,
-                   "total_seconds": time.perf_counter() - t_all}), fh, indent=1, default=str)
-    log(f"\nwrote {jpath}")
-    if plot(ppath, rows, abl_rows, title):
-        log(f"wrote {ppath}")
-    log(f"total {time.perf_counter() - t_all:.1f} s")
+        json.dump(clean({**meta, "rows": records}), fh, indent=1, default=str)
+    log(f"\nwrote {jpath} (+ .npz); total {time.perf_counter() - t_all:.1f} s")
     return 0
 
 

@@ -71,6 +71,12 @@ TORCH_LIBRARY(floxels, m) {
         "int num_clusters) -> Tensor");
   m.def("cluster_consistency_fwd_bwd(Tensor flow, Tensor labels, int num_clusters) -> (Tensor, Tensor)");
 
+  // --- exact nearest neighbours (csrc/kernels/nearest.h) ---
+  // idx (N,) int64: index into y (M, 3) of the nearest row of each row of x (N, 3), by
+  // squared Euclidean distance computed directly (no |x|^2 + |y|^2 - 2xy cancellation); ties
+  // go to the lowest index; NaN distances count as +inf. M must be >= 1. (NSFP's Chamfer loss.)
+  m.def("nearest_neighbor(Tensor x, Tensor y) -> Tensor");
+
   // --- exact DBSCAN (csrc/kernels/dbscan.h) ---
   // labels (N,) int64 identical to sklearn.cluster.DBSCAN(eps, min_samples).fit(points).labels_
   // (Euclidean, neighbourhood includes the point, -1 = noise).
@@ -84,7 +90,10 @@ TORCH_LIBRARY(floxels, m) {
   // support_dt / support_t / support_w: per support scan of each problem, the index into
   // dts, the time offset and lambda_d * w(t); reg_scale: B multipliers of the regularisers.
   // hyper = [dt_cell, truncation, lr, beta1, beta2, eps, lambda_c, lambda_g_start,
-  // lambda_g_end, lambda_g_decay_iters, patience, max_iters, min_delta].
+  // lambda_g_end, lambda_g_decay_iters, patience, max_iters, min_delta, truncation_mode
+  // (0 zero / 1 clamp), lr_gamma, number of lr milestones (<= 4), 4 milestones,
+  // cluster_n_given]; with cluster_n_given = 1, reg_scale holds 2B values, the second B
+  // being each problem's cluster-term normaliser (its clustered points).
   // seg_ptr (S + 1): segments = runs of points with equal corner_idx rows and labels inside
   // one problem; vtx_ptr / vtx_entry: per vertex, its (segment * 8 + corner) entries
   // (python/floxels_ext/ops/solver.py builds all of this). No host synchronisation: the

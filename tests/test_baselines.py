@@ -205,7 +205,9 @@ def test_config_defaults_follow_the_paper():
     n, f = NSFPConfig(), FastNSFConfig()
     for c in (n, f):
         assert (c.num_layers, c.hidden_units, c.activation) == (8, 128, "relu")
-        assert (c.patience, c.min_delta, c.max_iters, c.weight_decay) == (100, 1e-4, 5000, 0.0)
+        assert (c.patience, c.min_delta, c.max_iters) == (100, 1e-4, 5000)
+    # NSFP's code: weight decay 1e-4 in both parameter groups (they override the optimiser's 0)
+    assert n.weight_decay == 1e-4 and f.weight_decay == 0.0
     assert n.lr == 0.008 and f.lr == 0.001 and f.dt_cell == 0.1 and n.backward_flow
     assert n.replace(lr=0.0008).lr == 0.0008
     with pytest.raises(ValueError):
@@ -291,6 +293,43 @@ def test_max_points_subsampling_still_predicts_every_point():
     np.testing.assert_array_equal(a, b)
 
 
+# ----------------------------------------------------------------------------- nearest_neighbor op
+def test_nearest_neighbor_op_matches_reference_cpu():
+    from floxels_ext.ops import nearest_neighbor
+
+    rng = np.random.default_rng(5)
+    x = torch.tensor(rng.uniform(-30, 30, (257, 3)), dtype=torch.float32)
+    y = torch.tensor(rng.uniform(-30, 30, (190, 3)), dtype=torch.float32)
+    y[7] = y[3]  # an exact tie: the lowest index wins, like argmin
+    x[0] = y[3]
+    got = nearest_neighbor(x, y)
+    assert torch.equal(got, reference.nearest_neighbor(x, y))
+    assert got[0].item() == 3
+    assert torch.equal(got, nearest_neighbors(x, y))  # the chunked cdist path agrees
+    assert torch.equal(nearest_neighbor(x.double(), y.double()), reference.nearest_neighbor(x.double(), y.double()))
+    assert nearest_neighbor(torch.zeros(0, 3), y).shape == (0,)
+    with pytest.raises(ValueError, match="empty"):
+        nearest_neighbor(x, torch.zeros(0, 3))
+    # the raw op maps NaN distances to +inf (a diverged query still gets a valid index)
+    xn = x.clone()
+    xn[1, 0] = float("nan")
+    got = ops_ns.nearest_neighbor(xn, y)
+    assert 0 <= got[1].item() < y.shape[0]
+
+
+def test_optimise_device_bookkeeping_matches_early_stopping_replay():
+    """The device-side stop/best tracking gives what EarlyStopping gives on the same losses."""
+    from floxels_ext.early_stopping import EarlyStopping
+
+    src = cloud(200)
+    cfg = NSFPConfig(max_iters=400, patience=15, min_delta=1e-3)
+    res = fit_nsfp(src, src + SHIFT, cfg)
+    stopper = EarlyStopping(cfg.patience, cfg.min_delta)
+    stops = [stopper.update(v, i)[1] for i, v in enumerate(res.losses)]
+    assert res.best_iter == stopper.best_iter
+    assert not any(stops[:-1]) and (stops[-1] or len(res.losses) == cfg.max_iters)
+
+
 # ----------------------------------------------------------------------------- CUDA
 @pytest.mark.cuda
 def test_cuda_matches_cpu():
@@ -318,10 +357,37 @@ def test_compare_bench_smoke(tmp_path):
     spec = importlib.util.spec_from_file_location("bench_compare", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    out = tmp_path / "c.json"
-    assert mod.main(["--quick", "--frames", "1", "--max-points", "150", "--baseline-iters", "3",
-                     "--floxels-iters", "3", "--json", str(out), "--png", str(tmp_path / "c.png")]) == 0
-    d = json.loads(out.read_text())
-    assert [r["name"] for r in d["methods"]] == ["zero", "floxels", "nsfp", "fastnsf"]
-    assert len(d["ablations"]) == len(mod.ABLATIONS)
-    assert {"dynamic_epe", "static_acc10"} <= set(d["methods"][1]["metrics"])
+    parts = []
+    for scene in ("crossing", "urban"):  # one row split over two parts, then merged
+        out = tmp_path / f"c_{scene}.json"
+        assert mod.main(["--quick", "--frames", "1", "--max-points", "150", "--iters-scale", "0.0001",
+                         "--scenes", scene, "--methods", "floxels", "nsfp", "fastnsf", "--ablations", "loss",
+                         "--json", str(out)]) == 0
+        parts.append(str(out))
+    d = json.loads(Path(parts[0]).read_text())
+    assert [r["key"] for r in d["rows"]][:3] == ["floxels", "nsfp", "fastnsf"]
+    assert sum(r["group"] == "loss" for r in d["rows"]) == 4
+    assert {"dynamic_epe", "static_acc10", "mean_dynamic_normalized_epe"} <= set(d["rows"][0]["metrics"])
+    merged = tmp_path / "m.json"
+    assert mod.main(["--merge", *parts, "--json", str(merged), "--md", str(tmp_path / "m.md")]) == 0
+    rows = json.loads(merged.read_text())["rows"]
+    assert len(rows) == 7 and all(set(r["frames"]) == {"crossing", "urban"} for r in rows)
+    assert "| Floxels (5 scans) |" in (tmp_path / "m.md").read_text()
+
+
+@pytest.mark.cuda
+def test_nearest_neighbor_cuda_matches_reference():
+    from floxels_ext.ops import nearest_neighbor
+
+    rng = np.random.default_rng(12)
+    for n, m in ((5, 7), (300, 20000), (9000, 3000)):  # one segment; many segments (atomic keys)
+        x = torch.tensor(rng.uniform(-40, 40, (n, 3)), dtype=torch.float32)
+        y = torch.tensor(rng.uniform(-40, 40, (m, 3)), dtype=torch.float32)
+        y[-1] = y[0]
+        x[0] = y[0]
+        want = torch.cat([reference.nearest_neighbor(x[s:s + 500], y) for s in range(0, n, 500)])
+        got = nearest_neighbor(x.cuda(), y.cuda()).cpu()
+        assert torch.equal(got, want)
+        assert torch.equal(nearest_neighbor(x.cuda().double(), y.cuda().double()).cpu(),
+                           nearest_neighbor(x.double(), y.double()))
+    assert torch.equal(nearest_neighbors(x.cuda(), y.cuda()).cpu(), want)

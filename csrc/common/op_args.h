@@ -87,4 +87,14 @@ inline void dbscan(const at::Tensor& points, double eps, int64_t min_samples) {
             points.size(0));
 }
 
+inline void nearest(const at::Tensor& x, const at::Tensor& y) {
+  check_points(x, "x");
+  check_points(y, "y");
+  check_same_dtype(x, y, "x", "y");
+  check_same_device(x, y, "x", "y");
+  FLX_CHECK(y.size(0) >= 1, "floxels: nearest_neighbor: the reference cloud y is empty");
+  FLX_CHECK(y.size(0) < (int64_t(1) << 31), "floxels: nearest_neighbor supports < 2^31 reference points, got ",
+            y.size(0));
+}
+
 }  // namespace floxels::args

@@ -38,7 +38,7 @@ inline void check_offsets(c10::ArrayRef<int64_t> r, int64_t B, int64_t total, co
 }
 
 // Number of doubles in hyper (see ops.cpp).
-constexpr int kHyperValues = 13;
+constexpr int kHyperValues = 21;
 
 inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, const at::Tensor& corner_w,
                       const at::Tensor& seg_ptr, const at::Tensor& vtx_ptr, const at::Tensor& vtx_entry,
@@ -57,7 +57,11 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
   const int64_t N = points.size(0), M = theta.dim() == 2 ? theta.size(0) : -1;
   constexpr int64_t kMaxInt = std::numeric_limits<int32_t>::max();
   FLX_CHECK(8 * N <= kMaxInt && M <= kMaxInt, "floxels: solver_run: at most 2^28 points / 2^31 vertices");
-  const int64_t B = int64_t(reg_scale.size());
+  FLX_CHECK(int64_t(hyper.size()) == kHyperValues, "floxels: solver_run: hyper needs ", kHyperValues,
+            " values, got ", hyper.size());
+  // hyper[20] = 1: reg_scale carries B more values, each problem's cluster normaliser
+  const bool cluster_n_given = hyper[20] != 0.0;
+  const int64_t B = int64_t(reg_scale.size()) / (cluster_n_given ? 2 : 1);
   FLX_CHECK(B >= 1 && B <= kMaxProblems, "floxels: solver_run: 1 to ", kMaxProblems,
             " problems per call, got ", B);
   FLX_CHECK(int64_t(hyper.size()) == kHyperValues, "floxels: solver_run: hyper needs ", kHyperValues,
@@ -115,6 +119,7 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
     p.vertex_begin = vertex_ranges[b];
     p.vertex_end = vertex_ranges[b + 1];
     p.reg_scale = reg_scale[b];
+    p.cluster_n = cluster_n_given ? reg_scale[B + b] : -1.0;
     const int64_t s0 = support_ranges[b], s1 = support_ranges[b + 1];
     FLX_CHECK(s1 - s0 <= kMaxSupport, "floxels: solver_run: at most ", kMaxSupport,
               " support scans per problem, got ", s1 - s0);
@@ -142,6 +147,14 @@ inline Args make_args(const at::Tensor& points, const at::Tensor& corner_idx, co
   a.hyper = Hyper{float(hyper[2]), float(hyper[3]), float(hyper[4]), float(hyper[5]), float(hyper[6]),
                   float(hyper[7]), float(hyper[8]), int(hyper[9]), int(hyper[10]), int(max_iters),
                   hyper[12], float(hyper[1]), float(1.0 / hyper[0])};
+  // readings: hyper[13] truncation mode (1 = clamp), [14] lr_gamma, [15] number of
+  // milestones, [16..19] milestones
+  FLX_CHECK(hyper[15] >= 0 && hyper[15] <= kMaxMilestones, "floxels: solver_run: 0 to ", kMaxMilestones,
+            " learning-rate milestones, got ", hyper[15]);
+  a.hyper.trunc_above = hyper[13] != 0.0 ? float(hyper[1]) : 0.0f;
+  a.hyper.lr_gamma = float(hyper[14]);
+  a.hyper.num_milestones = int(hyper[15]);
+  for (int k = 0; k < kMaxMilestones; ++k) a.hyper.milestones[k] = int(hyper[16 + k]);
   a.theta = theta.data_ptr<float>();
   a.adam_m = adam_m.data_ptr<float>();
   a.adam_v = adam_v.data_ptr<float>();

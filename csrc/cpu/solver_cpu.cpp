@@ -80,7 +80,9 @@ class CpuSolver {
       const int64_t n = pr.point_end - pr.point_begin;
       const double inv_n = n > 0 ? 1.0 / double(n) : 0.0;
       flow_coef_[p] = float(pr.reg_scale * inv_n);
-      cluster_coef_[p] = float(pr.reg_scale * a.hyper.lambda_c * inv_n);
+      // the cluster term averages over all points, or over pr.cluster_n (clustered points)
+      const double inv_c = pr.cluster_n < 0 ? inv_n : (pr.cluster_n > 0 ? 1.0 / pr.cluster_n : 0.0);
+      cluster_coef_[p] = float(pr.reg_scale * a.hyper.lambda_c * inv_c);
       for (int k = 0; k < pr.num_support; ++k) {
         const Support& s = pr.support[k];
         const DtDesc& d = a.dts[s.dt];
@@ -149,7 +151,8 @@ class CpuSolver {
           float g[3];
           float l = dt_loss::point_loss<true, float, int64_t>(scans_[ch.problem], a_.problems[ch.problem].num_support,
                                                               p[0], p[1], p[2], f[0], f[1], f[2],
-                                                              a_.hyper.inv_dt_cell, a_.hyper.truncation, g);
+                                                              a_.hyper.inv_dt_cell, a_.hyper.truncation, g,
+                                                              a_.hyper.trunc_above);
           float unit[3];
           l += lam * norm_and_unit(f, unit);
           for (int k = 0; k < 3; ++k) g_[3 * i + k] = g[k] + lam * unit[k];

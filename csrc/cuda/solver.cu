@@ -413,7 +413,8 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
     float u[3] = {0.0f, 0.0f, 0.0f};
     if (valid && !(skip & 1))
       loss = dt_loss::point_loss<true, float, int>(P.scans + p * kMaxSupport, P.num_support[p], pt.x, pt.y, pt.z, f[0], f[1], f[2],
-                                                   P.hyper.inv_dt_cell, P.hyper.truncation, g);
+                                                   P.hyper.inv_dt_cell, P.hyper.truncation, g,
+                                                   P.hyper.trunc_above);
     if (valid) {
       const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
       float unit[3];
@@ -880,7 +881,9 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
     P.vertex_end[p] = int(pr.vertex_end);
     const double inv_n = n > 0 ? 1.0 / double(n) : 0.0;
     P.flow_coef[p] = float(pr.reg_scale * inv_n);
-    P.cluster_coef[p] = float(pr.reg_scale * a.hyper.lambda_c * inv_n);
+    // the cluster term averages over all points, or over pr.cluster_n (clustered points)
+    const double inv_c = pr.cluster_n < 0 ? inv_n : (pr.cluster_n > 0 ? 1.0 / pr.cluster_n : 0.0);
+    P.cluster_coef[p] = float(pr.reg_scale * a.hyper.lambda_c * inv_c);
     if (pr.num_support < 0 || pr.num_support > kMaxSupport) return cudaErrorInvalidValue;
     P.num_support[p] = pr.num_support;
     for (int k = 0; k < pr.num_support; ++k) {

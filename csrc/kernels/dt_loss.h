@@ -95,11 +95,12 @@ FLX_HD T trilinear_value_grad(const float* __restrict__ g, Index nx, Index ny, I
 }
 
 // Contribution of one point to the loss (sum_k coef_k * trunc(v_k)) and, if kGrad, to
-// d loss / d flow_i (written to gf[0..2]). Values >= truncation (or NaN) count as 0 with
-// zero gradient.
+// d loss / d flow_i (written to gf[0..2]). Values >= truncation (or NaN) count as `above`
+// (0 by default; the truncation itself for FloxelsConfig.truncation_mode="clamp") with zero
+// gradient.
 template <bool kGrad, typename T, typename Index>
 FLX_HD T point_loss(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T fx, T fy, T fz,
-                    T inv_spacing, T truncation, T* gf) {
+                    T inv_spacing, T truncation, T* gf, T above = T(0)) {
   T loss = T(0);
   T gfx = T(0), gfy = T(0), gfz = T(0);
 #if defined(__CUDA_ARCH__)
@@ -117,7 +118,7 @@ FLX_HD T point_loss(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, 
     // Branch-free selects (the test is unpredictable on real data); unlike a multiplication
     // by 0, a select also drops the NaN/inf values and slopes of truncated samples.
     const bool keep = v < truncation;
-    loss += keep ? s.coef * v : T(0);
+    loss += keep ? s.coef * v : s.coef * above;
     if constexpr (kGrad) {
       // chain rule: d u / d flow = t / spacing
       const T c = s.coef * s.t * inv_spacing;

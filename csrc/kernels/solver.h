@@ -26,6 +26,7 @@ namespace floxels::solver {
 constexpr int kMaxProblems = 16;  // problems per call (metadata travels in kernel parameters)
 constexpr int kMaxSupport = 12;   // support scans per problem (13-scan windows)
 constexpr int kMaxDts = 32;       // distinct distance transforms per call
+constexpr int kMaxMilestones = 4; // learning-rate milestones (FloxelsConfig.lr_milestones)
 
 // Columns of the (B, kStateCols) float64 state table, one row per problem.
 enum StateCol : int {
@@ -51,7 +52,23 @@ struct Hyper {
   int patience, max_iters;
   double min_delta;
   float truncation, inv_dt_cell;
+  // Readings of the paper (FloxelsConfig, "faithfulness readings"): the DT value a truncated
+  // sample counts as (0, or the truncation itself = clamped), and a step learning-rate
+  // schedule: lr * lr_gamma^(number of milestones m <= it) at (0-based) iteration it.
+  float trunc_above = 0.0f;
+  float lr_gamma = 1.0f;
+  int num_milestones = 0;
+  int milestones[kMaxMilestones] = {0, 0, 0, 0};
 };
+
+// Learning rate of Adam step t (1-based; the step of iteration t - 1), like
+// torch.optim.lr_scheduler.MultiStepLR stepped once per iteration.
+FLX_HD double lr_at(const Hyper& h, double t) {
+  double lr = h.lr;
+  for (int k = 0; k < h.num_milestones; ++k)
+    if (h.milestones[k] <= t - 1) lr *= h.lr_gamma;
+  return lr;
+}
 
 // FloxelsConfig.lambda_g: linear decay over the first decay_iters iterations, then constant.
 FLX_HD double lambda_g(const Hyper& h, double it) {
@@ -64,7 +81,7 @@ FLX_HD double lambda_g(const Hyper& h, double it) {
 // step_size = lr / (1 - beta1^t) and sqrt(1 - beta2^t). The CUDA solver tabulates them once
 // per call with this same function (pow in double is slow on the device's critical path).
 FLX_HD void bias_corrections(const Hyper& h, double t, double* step_size, double* bc2_sqrt) {
-  *step_size = h.lr / (1.0 - pow(double(h.beta1), t));
+  *step_size = lr_at(h, t) / (1.0 - pow(double(h.beta1), t));
   *bc2_sqrt = sqrt(1.0 - pow(double(h.beta2), t));
 }
 

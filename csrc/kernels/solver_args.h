@@ -24,6 +24,7 @@ struct Problem {
   int64_t vertex_begin, vertex_end;  // rows of theta / adam state / vtx_ptr
   int num_support;
   Support support[kMaxSupport];
+  double cluster_n;  // points the cluster term averages over (< 0: all points of the problem)
   double reg_scale;  // multiplies the cluster and flow-norm terms (number of support scans)
 };
 

@@ -57,6 +57,16 @@ class FloxelsConfig:
     # safety
     max_dt_cells: int = DEFAULT_MAX_CELLS  # memory cap for one distance transform (samples)
 
+    # ---- faithfulness readings (issue 20; bench/compare.py --ablations port) -------------
+    # Where the paper's text leaves room, a peer's public port reads it differently; these
+    # switch each reading on (defaults = this project's reading, measured in bench/RESULTS.md).
+    lr_milestones: tuple = ()        # iterations where lr is multiplied by lr_gamma (port: (10, 20))
+    lr_gamma: float = 0.5            # (MultiStepLR stepped once per iteration)
+    truncation_mode: str = "zero"    # DT samples >= truncation count as 0 ("zero") or as the
+                                     # truncation itself ("clamp", port); zero gradient in both
+    cluster_loss_mean: str = "all"   # cluster term averaged over all points ("all", the paper's
+                                     # 1/N) or over the clustered (non-noise) points ("clustered")
+
     def __post_init__(self) -> None:
         # types first, generically from the field annotations (fields added later are covered)
         check_field_types(self)
@@ -87,6 +97,7 @@ class FloxelsConfig:
             raise ValueError(f"FloxelsConfig.num_scans must be in [2, 13], got {self.num_scans}")
         if self.reg_scale not in ("support", "paper"):
             raise ValueError(f"FloxelsConfig.reg_scale must be 'support' or 'paper', got {self.reg_scale!r}")
+        self._check_readings()
         b1, b2 = self.adam_betas
         if not (0 <= b1 < 1 and 0 <= b2 < 1):
             raise ValueError(f"FloxelsConfig.adam_betas must lie in [0, 1), got {self.adam_betas}")
@@ -102,6 +113,25 @@ class FloxelsConfig:
         raise ``ValueError`` naming them."""
         values = {k: _parse_field(cls, k, v) for k, v in options.items()}
         return dataclasses.replace(base, **values) if base is not None else cls(**values)
+
+    def _check_readings(self) -> None:
+        ms = self.lr_milestones
+        if (not isinstance(ms, (tuple, list)) or len(ms) > 4
+                or not all(isinstance(m, int) and not isinstance(m, bool) and m >= 1 for m in ms)
+                or list(ms) != sorted(ms)):
+            raise ValueError(f"FloxelsConfig.lr_milestones must be up to 4 increasing integers >= 1, got {ms!r}")
+        g = self.lr_gamma
+        if not (isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g > 0):
+            raise ValueError(f"FloxelsConfig.lr_gamma must be a positive finite number, got {g!r}")
+        if self.truncation_mode not in ("zero", "clamp"):
+            raise ValueError(f"FloxelsConfig.truncation_mode must be 'zero' or 'clamp', got {self.truncation_mode!r}")
+        if self.cluster_loss_mean not in ("all", "clustered"):
+            raise ValueError(f"FloxelsConfig.cluster_loss_mean must be 'all' or 'clustered', "
+                             f"got {self.cluster_loss_mean!r}")
+
+    def lr_at(self, it: int) -> float:
+        """Learning rate of the Adam step of iteration ``it`` (0-based)."""
+        return self.lr * self.lr_gamma ** sum(1 for m in self.lr_milestones if m <= it)
 
     def replace(self, **changes) -> "FloxelsConfig":
         """A copy with some fields changed (validated again)."""

@@ -316,3 +316,11 @@ def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Seq
     ncl = int(lab.max()) + 1 if lab is not None and n else 0
     return (order, ps, lab if lab is not None else order.new_empty(0), cc.corner_idx, cc.corner_w, cc.vertices,
             seg_ptr, vtx_ptr, vtx_entry, max(ncl, 0))
+
+
+def nearest_neighbor(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Index into ``y`` of the nearest row of each row of ``x``: squared distances from the
+    coordinate differences, NaN as +inf, first index among ties (the op's rule)."""
+    d = (x[:, None, :] - y[None, :, :]).square().sum(dim=2)
+    d = torch.where(torch.isnan(d), torch.full_like(d, float("inf")), d)
+    return d.argmin(dim=1)

@@ -102,20 +102,24 @@ def reference_estimate_flow(scans: Sequence, target: int | None = None, config: 
     stopper = EarlyStopping(cfg.patience, cfg.min_delta)
     best_flow = torch.zeros_like(P)
     losses = []
+    trunc_above = cfg.truncation if cfg.truncation_mode == "clamp" else 0.0
     for it in range(cfg.max_iters):
+        for group in opt.param_groups:  # lr schedule (FloxelsConfig.lr_milestones)
+            group["lr"] = cfg.lr_at(it)
         opt.zero_grad(set_to_none=True)
         flow = _sample(grid, P, g_origin, cfg.voxel_size)
         loss = flow.new_zeros(())
         for dt, origin, t, w in dts:
             v = _sample(dt, P + t * flow, origin, cfg.dt_cell)[:, 0]
-            loss = loss + cfg.lambda_d * w * torch.where(v < cfg.truncation, v, torch.zeros_like(v)).mean()
+            loss = loss + cfg.lambda_d * w * torch.where(v < cfg.truncation, v, torch.full_like(v, trunc_above)).mean()
         if labels is not None and ncl > 0:
             means = flow.new_zeros(ncl, 3).index_add(0, lab, flow[keep]) / counts
             d = flow[keep] - means[lab]
             sq = (d * d).sum(1)
             nz = sq > 0
             norms = torch.where(nz, torch.sqrt(torch.where(nz, sq, torch.ones_like(sq))), torch.zeros_like(sq))
-            loss = loss + scale * cfg.lambda_c * norms.sum() / n
+            n_c = n if cfg.cluster_loss_mean == "all" else max(int(keep.sum()), 1)
+            loss = loss + scale * cfg.lambda_c * norms.sum() / n_c
         if cfg.flow_norm_loss:
             sq = (flow * flow).sum(1)
             nz = sq > 0

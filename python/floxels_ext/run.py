@@ -91,7 +91,6 @@ def add_parser(sub) -> None:
                    help="coordinates of the stored points: each scan's sensor frame, or one world frame "
                         "(.npz with the sensor 'pose', as 'floxels simulate' writes); auto: world for a "
                         "'floxels simulate' directory (sequence.json present), else sensor")
-<<<<<<< HEAD
     p.add_argument("--chunk", type=int, default=None, help="targets per method call (one re-centred world frame, "
                    "shared distance transforms); default: 8, 16, 32, then 64 (the device starts early)")
     p.add_argument("--force", action="store_true", help="recompute frames already written (also those written "
@@ -111,12 +110,7 @@ def add_parser(sub) -> None:
     p.add_argument("--preprocess-device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where cropping/ground removal run: numpy on the CPU, or torch on the GPU (same masks; "
                         "worker threads); auto: cpu (with worker processes, faster on a 16-core host)")
-=======
-    p.add_argument("--chunk", type=int, default=16, help="targets estimated together (shared distance "
-                   "transforms; default 16)")
-    p.add_argument("--force", action="store_true", help="recompute frames already written")
     add_dataset_arguments(p)
->>>>>>> wt-ray
     p.set_defaults(func=run)
 
 

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..early_stopping import EarlyStopping
 from ..scans import PreparedScans, prepare_scans, restore_output
 
 
@@ -65,40 +64,82 @@ def trivial_result(prep: PreparedScans, method: str) -> BaselineResult | None:
     return BaselineResult(restore_output(flow, prep), flow)
 
 
+#: Iterations between two host read-backs of the device-side stopping flag (the only host
+#: synchronisation of the loop). Up to this many iterations run after the stop; they change
+#: neither the recorded losses nor the kept (best) parameters.
+CHECK_EVERY = 64
+
+
+def _masked_copy(dst: list[torch.Tensor], src: list[torch.Tensor], w: torch.Tensor) -> None:
+    """dst <- src where the 0-dim ``w`` is 1, unchanged where 0 (lerp with weight 1 returns the
+    end point exactly), without reading ``w`` on the host."""
+    src = [p.detach() for p in src]
+    try:
+        torch._foreach_lerp_(dst, src, w)
+    except (TypeError, RuntimeError, NotImplementedError):  # older builds: no tensor-weight overload
+        for d, s in zip(dst, src):
+            d.lerp_(s, w)
+
+
 def optimise(params: list[torch.Tensor], loss_fn: Callable[[], torch.Tensor], cfg, method: str):
     """Adam on ``params`` minimising ``loss_fn()``; returns (losses, best_iter) and leaves the
     parameters of the lowest loss seen in ``params``.
 
     Early stopping as in NSFP/FastNSF (and :class:`floxels_ext.early_stopping.EarlyStopping`):
-    stop after ``patience`` iterations without an improvement of more than ``min_delta``.
+    stop after ``patience`` iterations without an improvement of more than ``min_delta``; a
+    non-finite loss stops too (not recorded). The bookkeeping runs on the device (0-dim
+    tensors, the lowest-loss parameters copied by a masked lerp), so iterations do not wait for
+    the host; the host reads the stop flag every :data:`CHECK_EVERY` iterations. Iterations run
+    after the stop are masked out of the record and the best copy, so the result is the same
+    as stopping at once.
     """
+    dev = params[0].device
+    fused = dev.type == "cuda"  # one kernel for the whole Adam step
     opt = torch.optim.Adam(params, lr=cfg.lr, betas=tuple(cfg.adam_betas), eps=cfg.adam_eps,
-                           weight_decay=cfg.weight_decay)
-    stopper = EarlyStopping(cfg.patience, cfg.min_delta)
-    best = [p.detach().clone() for p in params]
-    losses: list[float] = []
+                           weight_decay=cfg.weight_decay, **({"fused": True} if fused else {}))
+    best_params = [p.detach().clone() for p in params]
+    f64 = dict(dtype=torch.float64, device=dev)
+    history = torch.zeros(cfg.max_iters, **f64)
+    best = torch.tensor(math.inf, **f64)        # lowest loss seen
+    ref = torch.tensor(math.inf, **f64)         # last loss that improved by min_delta
+    stale = torch.zeros((), **f64)
+    best_iter = torch.full((), -1.0, **f64)
+    recorded = torch.zeros((), **f64)           # losses recorded (= iterations before the stop)
+    stopped = torch.zeros((), dtype=torch.bool, device=dev)
+    nonfinite = torch.zeros((), dtype=torch.bool, device=dev)
+    patience = float(cfg.patience) if cfg.early_stopping else math.inf
     for it in range(cfg.max_iters):
         opt.zero_grad(set_to_none=True)
         loss = loss_fn()
-        value = loss.item()
-        if not math.isfinite(value):
-            warnings.warn(f"{method}: non-finite loss at iteration {it}; keeping the best flow so far",
-                          UserWarning, stacklevel=3)
-            break
-        losses.append(value)
-        is_best, stop = stopper.update(value, it)
-        if is_best:
-            with torch.no_grad():
-                for b, p in zip(best, params):
-                    b.copy_(p)
-        if (cfg.early_stopping and stop) or it == cfg.max_iters - 1:
+        with torch.no_grad():
+            lv = loss.detach().to(torch.float64)
+            live = ~stopped
+            finite = torch.isfinite(lv)
+            rec = live & finite
+            history[it] = torch.where(rec, lv, history[it])
+            is_best = rec & (lv < best)
+            best.copy_(torch.where(is_best, lv, best))
+            best_iter.copy_(torch.where(is_best, float(it), best_iter))
+            improved = rec & (lv < ref - cfg.min_delta)
+            ref.copy_(torch.where(improved, lv, ref))
+            stale.copy_(torch.where(improved, 0.0, stale + rec.to(stale.dtype)))
+            recorded.add_(rec.to(recorded.dtype))
+            nonfinite.logical_or_(live & ~finite)
+            stopped.logical_or_((live & ~finite) | (rec & (stale >= patience)))
+            # best <- params where is_best (lerp weight 1 gives p exactly, weight 0 keeps best)
+            _masked_copy(best_params, params, is_best.to(params[0].dtype))
+        if it == cfg.max_iters - 1 or ((it + 1) % CHECK_EVERY == 0 and bool(stopped)):
             break
         loss.backward()
         opt.step()
     with torch.no_grad():
-        for p, b in zip(params, best):
+        for p, b in zip(params, best_params):
             p.copy_(b)
-    return losses, stopper.best_iter
+    n = int(recorded.item())
+    if bool(nonfinite):
+        warnings.warn(f"{method}: non-finite loss at iteration {n}; keeping the best flow so far",
+                      UserWarning, stacklevel=3)
+    return history[:n].tolist(), int(best_iter.item())
 
 
 def finish(net, src: torch.Tensor, prep: PreparedScans, losses, best_iter, timings, t_start) -> BaselineResult:

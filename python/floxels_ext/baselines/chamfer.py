@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from ..ops import ops_ns
+
 #: Default cap on one chunk of the distance matrix (float32 entries): 2^24 (64 MiB) on the CPU,
 #: 2^27 (512 MiB) on a GPU, where fewer, larger chunks save kernel launches.
 DEFAULT_CHUNK_ELEMS = 1 << 24
@@ -30,7 +32,8 @@ def nearest_neighbors(x: torch.Tensor, y: torch.Tensor, chunk_elems: int = 0) ->
     """Index into ``y`` of the nearest neighbour of every row of ``x`` (exact brute force).
 
     The (N, M) distance matrix is built ``chunk_elems`` entries at a time (0: a per-device
-    default), so memory stays bounded for any N. Distances are computed directly (not through the ``|x|^2 + |y|^2 -
+    default), so memory stays bounded for any N. On CUDA with ``chunk_elems=0`` the fused
+    ``floxels::nearest_neighbor`` kernel runs instead (no distance matrix). Distances are computed directly (not through the ``|x|^2 + |y|^2 -
     2 x.y`` matrix product, whose cancellation on coordinates of tens of metres can pick the
     wrong neighbour among near-ties); on the CPU that is also the faster kernel.
     """
@@ -41,6 +44,10 @@ def nearest_neighbors(x: torch.Tensor, y: torch.Tensor, chunk_elems: int = 0) ->
     if x.device != y.device:
         raise ValueError(f"x is on {x.device} but y on {y.device}")
     x, y = x.detach(), y.detach().to(x.dtype)
+    if x.is_cuda and not chunk_elems:
+        # the fused kernel (floxels::nearest_neighbor): no (N, M) matrix in memory, no host
+        # synchronisation; same distance rule as the chunks below (ties: lowest index)
+        return ops_ns.nearest_neighbor(x.contiguous(), y.contiguous())
     chunk_elems = int(chunk_elems) or default_chunk_elems(x.device)
     rows = max(1, chunk_elems // y.shape[0])
     out = torch.empty(x.shape[0], dtype=torch.long, device=x.device)

@@ -11,6 +11,7 @@ from .dbscan import dbscan
 from .dt_loss import dt_loss, dt_loss_fwd_bwd
 from .edt import distance_transform, edt, points_to_occupancy
 from .grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
+from .nearest import nearest_neighbor
 from .setup import ProblemSetup, problem_setup, stage_points
 from .trilinear import trilinear_gather, trilinear_scatter
 
@@ -24,4 +25,5 @@ __all__ = [
     "corner_gather", "corner_scatter", "compact_corners", "CompactCorners",
     "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",
     "problem_setup", "ProblemSetup", "stage_points",
+    "nearest_neighbor",
 ]

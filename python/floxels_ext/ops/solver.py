@@ -56,9 +56,15 @@ class SolverProblem:
 def solver_hyper(cfg) -> list[float]:
     """``hyper`` of the op from a FloxelsConfig (layout documented in csrc/ops.cpp)."""
     lg0, lg1 = (cfg.lambda_g_start, cfg.lambda_g_end) if cfg.flow_norm_loss else (0.0, 0.0)
+    ms = tuple(cfg.lr_milestones)
     return [cfg.dt_cell, cfg.truncation, cfg.lr, cfg.adam_betas[0], cfg.adam_betas[1], cfg.adam_eps,
             cfg.lambda_c if cfg.cluster_loss else 0.0, lg0, lg1, float(cfg.lambda_g_decay_iters),
-            float(cfg.patience), float(cfg.max_iters), cfg.min_delta]
+            float(cfg.patience), float(cfg.max_iters), cfg.min_delta,
+            # faithfulness readings (FloxelsConfig): truncation mode, lr schedule, and whether
+            # reg_scale carries per-problem cluster normalisers
+            1.0 if cfg.truncation_mode == "clamp" else 0.0, float(cfg.lr_gamma), float(len(ms)),
+            *[float(m) for m in ms], *[0.0] * (4 - len(ms)),
+            1.0 if cfg.cluster_loss_mean == "clustered" else 0.0]
 
 
 class PackedProblems:
@@ -108,6 +114,11 @@ class PackedProblems:
         if len(self.dts) > MAX_DTS:
             raise ValueError(f"solver: at most {MAX_DTS} distinct distance transforms per call, got {len(self.dts)}")
         self.reg_scale = [float(p.reg_scale) for p in problems]
+        if cfg.cluster_loss_mean == "clustered":
+            # the cluster term's normaliser: each problem's clustered points (a host sync;
+            # only for this non-default reading)
+            self.reg_scale += [float(int((p.labels >= 0).sum())) if p.labels is not None else 0.0
+                               for p in problems]
         one = len(problems) == 1  # (no concatenation: fewer kernels and host calls per frame)
         self.points = (pts[0] if one else torch.cat(pts)).contiguous()
         N = self.points.shape[0]
