@@ -351,8 +351,8 @@ def test_show_refuses_non_outputs(tmp_path, capsys):
     np.savez(tmp_path / "r.npz", a=np.zeros(3))
     (tmp_path / "z.npz").write_bytes(b"not a zip")
     np.savez(tmp_path / "s.npz", points=np.zeros((4, 3)), flow=np.zeros((5, 3)))
-    for name, words in (("x.bin", "this is a .bin file"), ("r.npz", "it has ['a']"),
-                        ("z.npz", "not a .npz (zip) archive"), ("s.npz", "must both be (N, 3)")):
+    for name, words in (("x.bin", "this is a .bin file"), ("r.npz", "no 'flow'"),
+                        ("z.npz", "not a .npz (zip) archive"), ("s.npz", "but 'flow' has 5 rows")):
         rc, _, err = _run(["show", str(tmp_path / name), "--png", str(tmp_path / "o.png")], capsys)
         assert rc == 2 and f"floxels: error: {tmp_path / name}: not a floxels flow output" in err, err
         assert words in err, err

@@ -60,7 +60,7 @@ class FloxelsConfig:
     # ---- faithfulness readings (issue 20; bench/compare.py --ablations port) -------------
     # Where the paper's text leaves room, a peer's public port reads it differently; these
     # switch each reading on (defaults = this project's reading, measured in bench/RESULTS.md).
-    lr_milestones: tuple = ()        # iterations where lr is multiplied by lr_gamma (port: (10, 20))
+    lr_milestones: tuple[int, ...] = ()  # iterations where lr is multiplied by lr_gamma (port: (10, 20))
     lr_gamma: float = 0.5            # (MultiStepLR stepped once per iteration)
     truncation_mode: str = "zero"    # DT samples >= truncation count as 0 ("zero") or as the
                                      # truncation itself ("clamp", port); zero gradient in both

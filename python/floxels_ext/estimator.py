@@ -13,6 +13,7 @@ One frame:
 
 from __future__ import annotations
 
+import collections.abc
 import contextlib
 import math
 import os
@@ -570,7 +571,10 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     cfg = config or FloxelsConfig()
     if getattr(scans, "ndim", None) == 2:
         raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
-    scans = list(scans)
+    if not isinstance(scans, collections.abc.Sequence):
+        scans = list(scans)  # an iterator or a stacked array: materialise it
+    # a Sequence is read lazily, window by window (``floxels run`` passes scans that are still
+    # being read and preprocessed; the first batch starts as soon as its windows are ready)
     n = len(scans)
     if n < 2:
         raise ValueError(f"a sequence needs at least 2 scans, got {n}")

@@ -12,6 +12,9 @@ A method is a :class:`Method`: a name, a one-line description, and
   The flow is always per frame period (the median step of ``times`` when given), so
   unequally spaced scans (a dropped frame) give flows comparable with the others.
 
+``config`` (optional) is the dataclass whose fields the options are; the CLI then parses
+``--option KEY=VALUE`` text by each field's type (``cluster_loss=no`` is False).
+
 Modules register their methods lazily: list the module in ``METHOD_MODULES``; it must call
 :func:`register` at import time. Keeping heavy imports inside the functions keeps
 ``floxels --help`` fast.
@@ -34,6 +37,7 @@ class Method:
     name: str
     description: str
     estimate_sequence: Callable[[list, Sequence[int], object, dict, Callable], None]
+    config: type | None = None
 
 
 _REGISTRY: dict[str, Method] = {}
@@ -76,4 +80,11 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None) -> N
                       callback=lambda f, res: callback(f, res.flow))
 
 
-register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence))
+def _register_floxels() -> None:
+    from .config import FloxelsConfig
+
+    register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence,
+                    FloxelsConfig))
+
+
+_register_floxels()

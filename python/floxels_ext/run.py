@@ -114,20 +114,31 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _parse_options(items: list[str], max_iters: int | None) -> dict:
+def _parse_options(items: list[str], max_iters: int | None, config: type | None) -> dict:
+    """``--option KEY=VALUE`` items as typed values: parsed for the field's type of the method's
+    ``config`` dataclass (bools from true/false/yes/no/on/off/1/0, tuples from a,b); JSON for
+    a method without one."""
     from .cli import CLIError
+    from .config_fields import parse_option_value
 
     opts: dict = {}
     for item in items:
         key, sep, val = item.partition("=")
-        if not sep or not key.strip():
+        key = key.strip()
+        if not sep or not key:
             raise CLIError(f"--option expects KEY=VALUE, got {item!r}")
+        if config is not None:
+            try:
+                opts[key] = parse_option_value(config, key, val)
+            except (TypeError, ValueError) as e:
+                raise CLIError(f"bad --option {item!r}: {e}") from None
+            continue
         try:
-            opts[key.strip()] = json.loads(val)
+            opts[key] = json.loads(val)
         except json.JSONDecodeError:
-            opts[key.strip()] = val  # a bare string such as reg_scale=paper
-        if isinstance(opts[key.strip()], list):
-            opts[key.strip()] = tuple(opts[key.strip()])
+            opts[key] = val  # a bare string such as reg_scale=paper
+        if isinstance(opts[key], list):
+            opts[key] = tuple(opts[key])
     if max_iters is not None:
         opts["max_iters"] = max_iters
     return opts
@@ -220,7 +231,7 @@ def _odometry(seq, out: Path, report, verbosity: int = 0) -> np.ndarray:
 def _check_args(args, torch):
     """Validate the plain arguments; returns (device, options). Raises CLIError."""
     from .cli import CLIError
-    from .methods import available_methods
+    from .methods import available_methods, get_method
 
     if not args.input or not args.out:
         raise CLIError("floxels run needs INPUT and --out OUT_DIR")
@@ -243,7 +254,7 @@ def _check_args(args, torch):
         raise CLIError("--device cuda requested but no CUDA device is available")
     if args.preprocess_device == "cuda" and not torch.cuda.is_available():
         raise CLIError("--preprocess-device cuda requested but no CUDA device is available")
-    options = _parse_options(args.option, args.max_iters)
+    options = _parse_options(args.option, args.max_iters, get_method(args.method).config)
     if "num_scans" in options and options["num_scans"] != args.scans:
         raise CLIError(f"--option num_scans={options['num_scans']} contradicts --scans {args.scans}; "
                        f"give the window size once, with --scans")

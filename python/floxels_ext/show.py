@@ -135,11 +135,11 @@ def write_rerun(path: Path, data: dict, name: str) -> None:
 
 
 def load_flow_output(path: Path) -> dict:
-    """One ``floxels run`` output as a dict with at least ``points`` and ``flow`` (N, 3) and
-    ``mask``; anything else is a CLIError saying the file is not a floxels flow output.
-    (The one place that knows the output format: ``floxels_ext.outputs`` will provide the
-    reader.)"""
+    """One ``floxels run`` output (:func:`floxels_ext.outputs.read_flow_output`: ``points``,
+    ``flow``, ``mask``, ``dynamic``, ...); anything else is a CLIError saying the file is not a
+    floxels flow output and why."""
     from .cli import CLIError
+    from .outputs import OutputError, read_flow_output
 
     path = Path(path)
     not_output = f"{path}: not a floxels flow output (expected a .npz written by 'floxels run'"
@@ -150,22 +150,9 @@ def load_flow_output(path: Path) -> dict:
     if magic[:2] != b"PK":
         raise CLIError(f"{not_output}; this file is not a .npz (zip) archive)")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-    except Exception as e:  # corrupt zip, pickled members, ...
-        raise CLIError(f"{not_output}; it cannot be read: {e})") from None
-    missing = [k for k in ("points", "flow") if k not in d]
-    if missing:
-        raise CLIError(f"{not_output} with 'points' and 'flow'; it has {sorted(d) or 'no arrays'})")
-    if d["points"].ndim != 2 or d["points"].shape[1:] != (3,) or d["flow"].shape != d["points"].shape:
-        raise CLIError(f"{not_output}; 'points' {d['points'].shape} and 'flow' {d['flow'].shape} must both be "
-                       f"(N, 3))")
-    ok = np.isfinite(d["points"]).all(1)
-    mask = d.get("mask")
-    if mask is None or mask.shape != ok.shape:
-        mask = ok
-    d["mask"] = np.asarray(mask, bool)
-    return d
+        return read_flow_output(path)
+    except OutputError as e:
+        raise CLIError(f"{not_output}): {e}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -189,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     png = Path(args.png) if args.png else Path(f"{path.stem}.png")
     if not png.parent.is_dir():
         raise CLIError(f"--png {png}: directory {png.parent} does not exist")
-    n_mov = int((np.linalg.norm(np.nan_to_num(data["flow"]), axis=1) > 0.05).sum())
+    n_mov = int(data["dynamic"].sum())
     try:
         from .flow_plot import plot_flow_bev
 

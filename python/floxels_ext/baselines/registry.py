@@ -85,7 +85,8 @@ def _fastnsf_sequence(scans, frames, device, options, callback, times=None) -> N
 
 
 methods.register(methods.Method(
-    "nsfp", "Neural Scene Flow Prior (8x128 MLP, truncated Chamfer, forward + backward flow)", _nsfp_sequence))
+    "nsfp", "Neural Scene Flow Prior (8x128 MLP, truncated Chamfer, forward + backward flow)", _nsfp_sequence,
+    NSFPConfig))
 methods.register(methods.Method(
     "fastnsf", "Fast Neural Scene Flow (8x128 MLP, distance-transform loss on our EDT/dt_loss ops)",
-    _fastnsf_sequence))
+    _fastnsf_sequence, FastNSFConfig))
