@@ -119,6 +119,9 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--max-iters", type=int, help="optimiser iterations (default: the config's)")
     ap.add_argument("--run-args", default="", help="extra floxels run arguments (quoted)")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL=ARGS",
+                    help="also time floxels run with these extra arguments (repeatable), e.g. "
+                         "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
     args = ap.parse_args()
@@ -137,30 +140,41 @@ def main() -> None:
         run_cli(["run", str(kitti / "velodyne"), "--out", str(tmp / "warm"), "--poses", str(kitti / "poses.txt"),
                  "--frames", "0:6", "--force", *common])
         rows = {}
-        for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
-                           ("av2", [str(av2)])):
-            wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{name}"), *common])
-            rows[name] = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ}
+        variants = [("", [])] + [(v.partition("=")[0], v.partition("=")[2].split()) for v in args.variant]
+        for label, extra in variants:
+            for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
+                               ("av2", [str(av2)])):
+                key = f"{name}+{label}" if label else name
+                wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{key}"), *common, *extra])
+                rows[key] = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ,
+                             "run_args": " ".join(common[4:] + extra)}
+                print(f"  {key}: {rows[key]['frames_per_s']:.1f} frames/s", flush=True)
         ceil = ceiling(kitti, args.scans, args.device, options)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
     n = args.frames
-    print(f"\nfloxels run end to end on {args.device} ({n} frames, {args.scans} scans, "
-          f"workers {rows['kitti']['summary']['workers']}, preprocessing on {rows['kitti']['summary']['preprocess_device']})")
-    hdr = ("input", "frames/s", "ms/frame", "read", "preproc", "transform", "estimate", "compute", "write",
+    print(f"\nfloxels run end to end on {args.device} ({n} frames, {args.scans} scans; input+LABEL: with that "
+          f"--variant's arguments)")
+    hdr = ("input", "workers", "frames/s", "ms/frame", "read", "preproc", "transform", "estimate", "compute", "write",
            "wait in", "idle dev", "host %", "vs ceiling")
     print(" | ".join(f"{h:>9}" for h in hdr))
+    # workers: N, t(hread)/p(rocess), where preprocessing ran
     for name, r in rows.items():
         st = r["summary"]["stages_s"]
         host_pct = 100 * (r["wall_s"] - st["compute"]) / r["wall_s"]  # everything but the method computing
         r["host_pct"] = host_pct
         r["ratio_to_ceiling"] = ceil["frames_per_s"] / r["frames_per_s"]
-        vals = [name, f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
+        sm = r["summary"]
+        vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}", f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
             [f"{1e3 * st[k] / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute", "write",
                                                  "wait_input")] + \
             [f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
         print(" | ".join(f"{v:>9}" for v in vals))
+    for name, r in rows.items():
+        base = rows[name.split("+")[0]]
+        if r is not base:
+            print(f"{name}: {r['frames_per_s'] / base['frames_per_s']:.2f}x the default run of the same input")
     print("(stage columns: ms per frame; read/preproc/transform/write are summed over worker threads and overlap "
           "the estimate; 'idle dev' = wall - compute: time the method was not computing)")
     print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "

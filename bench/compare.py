@@ -18,8 +18,9 @@ evaluated frames sit in the middle of each sequence so every window (up to 11 sc
 centred on its frame. ``av2``: the real Argoverse 2 pair in ``../shared/data/av2_pair`` (or
 ``--av2 PATH``), all methods as two-scan estimators: scan 1 is moved into scan 0's frame
 (``ego1_T_ego0``) and the label's ego flow is subtracted (object motion); non-ground points
-with |x|, |y| < 35 m are evaluated (the AV2 protocol; AV2 category ids mapped to the 2024
-meta-classes below), the estimators see non-ground points within 40 m (scan 1's ground: points
+with |x|, |y| < 35 m are evaluated (the AV2 protocol; AV2 categories mapped to the 2024
+meta-classes by ``floxels_ext.protocol.AV2_CATEGORY_MAP``, the official evaluation's ignored
+categories left out), the estimators see non-ground points within 40 m (scan 1's ground: points
 within 0.15 m of a labelled ground point of scan 0).
 
 Metrics are point-weighted over all evaluated frames (``floxels_ext.metrics.evaluate_sequence``).
@@ -44,7 +45,7 @@ import torch
 
 from floxels_ext import methods
 from floxels_ext.metrics import evaluate_sequence
-from floxels_ext.protocol import protocol_mask
+from floxels_ext.protocol import AV2_CATEGORY_MAP, map_categories, protocol_mask
 from floxels_ext.sim import simulate_sequence
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -88,12 +89,6 @@ GROUPS = sorted({g for g, _, _ in ABLATIONS})
 MAX_WINDOW = 11
 SCENE_SEED = {"urban": 0, "crossing": 1, "highway": 2, "parking": 3}
 
-# AV2 category id (1 + index in av2's CATEGORY list, 0 = none) -> 2024 meta-class
-# (0 background, 1 car, 2 other vehicle, 3 pedestrian, 4 wheeled VRU)
-_AV2_META = {19: 1, **{i: 2 for i in (2, 6, 7, 11, 18, 20, 25, 26, 27)},
-             **{i: 3 for i in (16, 17, 23, 28)}, **{i: 4 for i in (3, 4, 14, 15, 29, 30)}}
-
-
 def log(msg: str) -> None:
     print(msg, flush=True)
 
@@ -127,7 +122,8 @@ def load_av2_pair(path, max_points=0):
     k0 = box(p0, 40.0) & ~g0 & d["flow_valid"].astype(bool)
     k1 = box(p1, 40.0) & ~g1
     flow = (d["flow"] - d["ego_flow"]).astype(np.float32)[k0]
-    classes = np.array([_AV2_META.get(int(c), 0) for c in d["classes0"][k0]], np.int64)
+    # the official evaluation's meta-classes; its ignored categories (-1) count in no metric
+    classes = map_categories(d["classes0"][k0], AV2_CATEGORY_MAP, "classes0")
     truth = {"flow": flow, "classes": classes, "dynamic": d["dynamic0"].astype(bool)[k0],
              "ground": ~box(p0[k0], 35.0)}  # "ground" = excluded from the metrics
     s0, s1 = p0[k0].astype(np.float32), p1[k1].astype(np.float32)

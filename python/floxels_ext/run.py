@@ -102,14 +102,14 @@ def add_parser(sub) -> None:
                    "(default: read back from the recorded source file)")
     p.add_argument("--compress", action="store_true", help="zip-compress the outputs (smaller, slower)")
     p.add_argument("--summary", metavar="FILE", help="JSON summary of the run (default OUT_DIR/run_summary.json)")
-    p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: the CPU "
-                   "cores, at most 16)")
+    p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: 4 with GPU "
+                   "preprocessing, else the CPU cores, at most 16)")
     p.add_argument("--worker-kind", choices=["auto", "thread", "process"], default="auto",
-                   help="readers/preprocessors as threads or processes (processes keep the GIL free for the "
-                        "optimiser's host work); auto: processes on hosts with 8+ cores, else threads")
+                   help="readers/preprocessors as threads or processes (numpy preprocessing only); auto: threads "
+                        "(faster than processes on the hosts measured)")
     p.add_argument("--preprocess-device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="where cropping/ground removal run: numpy on the CPU, or torch on the GPU (same masks; "
-                        "worker threads); auto: cpu (with worker processes, faster on a 16-core host)")
+                        "worker threads); auto: the GPU when --device is one, else the CPU")
     add_dataset_arguments(p)
     p.set_defaults(func=run)
 
@@ -375,11 +375,15 @@ def run(args) -> int:
          f"{len(todo)} to estimate with {args.method} on {device} "
          f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})")
 
-    workers = args.workers or max(1, min(16, os.cpu_count() or 1))
-    pre_dev = "cuda" if args.preprocess_device == "cuda" else None
-    kind = args.worker_kind
-    if kind == "auto":
-        kind = "process" if (os.cpu_count() or 1) >= 8 and pre_dev is None and workers > 1 else "thread"
+    # measured on a 16-core H100 host (bench/bench_run.py, bench/RESULTS.md): cropping and ground
+    # removal on the GPU from 4 reader threads beat numpy on 16 threads or processes by ~1.3-2x
+    # (more threads contend for the GIL with the optimiser's host work)
+    pre = args.preprocess_device
+    if pre == "auto":  # worker processes preprocess with numpy (CUDA does not survive a fork)
+        pre = "cuda" if device.startswith("cuda") and args.worker_kind != "process" else "cpu"
+    pre_dev = device if pre == "cuda" and device.startswith("cuda") else ("cuda" if pre == "cuda" else None)
+    workers = args.workers or (min(4, os.cpu_count() or 1) if pre_dev else max(1, min(16, os.cpu_count() or 1)))
+    kind = "thread" if args.worker_kind == "auto" else args.worker_kind
     if kind == "process" and pre_dev is not None:
         raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
     stages = Stages()
@@ -401,10 +405,10 @@ def run(args) -> int:
         full = np.zeros((p.n, 3), np.float32)
         full[p.nonfinite] = np.nan
         # world-axes flow -> the frame's native axes: R^T f (row vectors: f @ R)
-        full[p.mask] = (flow_kept.astype(np.float64) @ p.to_world[:3, :3]).astype(np.float32)
-        speed = np.linalg.norm(full[p.mask], axis=1)
+        native = (flow_kept.astype(np.float64) @ p.to_world[:3, :3]).astype(np.float32)
+        full[p.mask] = native
         dynamic = np.zeros(len(full), bool)
-        dynamic[p.mask] = speed > args.dynamic_threshold
+        dynamic[p.mask] = np.linalg.norm(native, axis=1) > args.dynamic_threshold
         extra = {}
         if next_to_world is not None:
             extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)

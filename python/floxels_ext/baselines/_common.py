@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
 
-from ..scans import PreparedScans, prepare_scans, restore_output
+from ..scans import PreparedScans, prepare_scans, restore_output, warn_user
 
 
 @dataclass
@@ -56,8 +55,7 @@ def trivial_result(prep: PreparedScans, method: str) -> BaselineResult | None:
     if src.shape[0] == 0:
         flow = src.new_zeros(0, 3)
     elif tgt.shape[0] == 0:
-        warnings.warn(f"{method}: the target scan has no (finite) points; returning zero flow",
-                      UserWarning, stacklevel=3)
+        warn_user(f"{method}: the target scan has no (finite) points; returning zero flow")
         flow = torch.zeros_like(src)
     else:
         return None
@@ -137,8 +135,7 @@ def optimise(params: list[torch.Tensor], loss_fn: Callable[[], torch.Tensor], cf
             p.copy_(b)
     n = int(recorded.item())
     if bool(nonfinite):
-        warnings.warn(f"{method}: non-finite loss at iteration {n}; keeping the best flow so far",
-                      UserWarning, stacklevel=3)
+        warn_user(f"{method}: non-finite loss at iteration {n}; keeping the best flow so far")
     return history[:n].tolist(), int(best_iter.item())
 
 
