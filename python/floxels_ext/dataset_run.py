@@ -105,10 +105,7 @@ def floxels_task(job: dict, quiet: bool = True) -> dict:
     for k, v in job["options"].items():
         setattr(ns, k, v)
     ns.ray = None  # the task itself runs here
-    if job.get("threads") and ns.workers is None:  # readers within the CPUs Ray gave the task
-        ns.workers = max(1, int(job["threads"]))
-        if ns.worker_kind == "auto":
-            ns.worker_kind = "thread"
+    ns.cpu_limit = job.get("threads")  # the default reader count stays within the task's CPUs
     if hasattr(ns, "verbosity") and quiet:
         ns.verbosity = -1
     out_dir = Path(job["out"])

@@ -307,6 +307,26 @@ def _check_resume(out_path: dict, selected: list[int], settings: dict, force: bo
     return todo
 
 
+def _reader_plan(args, device: str) -> tuple[str | None, int, str]:
+    """(preprocessing device or None for numpy, reader workers, "thread"/"process").
+
+    Measured on a 16-core H100 host (bench/bench_run.py, bench/RESULTS.md): cropping and ground
+    removal on the GPU from 4 reader threads beat numpy on 16 threads or processes by ~1.3-2x
+    (more threads contend for the GIL with the optimiser's host work). ``args.cpu_limit`` (set
+    by a Ray task: the CPUs it was given) caps the default worker count."""
+    cores = os.cpu_count() or 1
+    limit = getattr(args, "cpu_limit", None)
+    if limit:
+        cores = min(cores, max(1, int(limit)))
+    pre = args.preprocess_device
+    if pre == "auto":  # worker processes preprocess with numpy (CUDA does not survive a fork)
+        pre = "cuda" if device.startswith("cuda") and args.worker_kind != "process" else "cpu"
+    pre_dev = (device if device.startswith("cuda") else "cuda") if pre == "cuda" else None
+    workers = args.workers or (min(4, cores) if pre_dev else max(1, min(16, cores)))
+    kind = "thread" if args.worker_kind == "auto" else args.worker_kind
+    return pre_dev, workers, kind
+
+
 def run(args) -> int:
     from .dataset_run import maybe_run_dataset
 
@@ -375,15 +395,7 @@ def run(args) -> int:
          f"{len(todo)} to estimate with {args.method} on {device} "
          f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})")
 
-    # measured on a 16-core H100 host (bench/bench_run.py, bench/RESULTS.md): cropping and ground
-    # removal on the GPU from 4 reader threads beat numpy on 16 threads or processes by ~1.3-2x
-    # (more threads contend for the GIL with the optimiser's host work)
-    pre = args.preprocess_device
-    if pre == "auto":  # worker processes preprocess with numpy (CUDA does not survive a fork)
-        pre = "cuda" if device.startswith("cuda") and args.worker_kind != "process" else "cpu"
-    pre_dev = device if pre == "cuda" and device.startswith("cuda") else ("cuda" if pre == "cuda" else None)
-    workers = args.workers or (min(4, os.cpu_count() or 1) if pre_dev else max(1, min(16, os.cpu_count() or 1)))
-    kind = "thread" if args.worker_kind == "auto" else args.worker_kind
+    pre_dev, workers, kind = _reader_plan(args, device)
     if kind == "process" and pre_dev is not None:
         raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
     stages = Stages()
