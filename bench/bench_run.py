@@ -123,9 +123,16 @@ def main() -> None:
                     help="also time floxels run with these extra arguments (repeatable), e.g. "
                          "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--gil-switch-interval", type=float, default=None, metavar="S",
+                    help="floxels_ext.pipeline.GIL_SWITCH_INTERVAL for the runs (0 = Python's default, "
+                         "to compare with the pipeline's setting)")
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
     args = ap.parse_args()
 
+    if args.gil_switch_interval is not None:
+        import floxels_ext.pipeline as pipeline
+
+        pipeline.GIL_SWITCH_INTERVAL = args.gil_switch_interval or None
     tmp = Path(tempfile.mkdtemp(prefix="bench_run_"))
     try:
         t0 = time.perf_counter()
@@ -181,7 +188,7 @@ def main() -> None:
           f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
           f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (numpy, one thread)")
     res = {"device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
-           "frames": n, "beams": args.beams, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
+           "frames": n, "beams": args.beams, "gil_switch_interval": args.gil_switch_interval, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
            "runs": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()}, "ceiling": ceil}
     path = Path(args.json or Path(__file__).parent / "results" / f"bench_run_{args.device.split(':')[0]}.json")
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -280,3 +280,17 @@ def test_show_rerun_missing_and_fake(tmp_path, capsys, monkeypatch):
     rc = cli.main(["show", str(tmp_path / "f.npz"), "--png", str(tmp_path / "a.png"), "--rerun", str(tmp_path / "r.rrd")])
     assert rc == 0
     assert logged["f/points"] == ("points", 50) and logged["f/flow"] == ("arrows", 10)
+
+
+@pytest.mark.parametrize("module", ["floxels_ext", "floxels_ext.cli"])
+def test_python_dash_m_reports_user_errors_without_traceback(tmp_path, module):
+    """``python -m floxels_ext[.cli]`` is the ``floxels`` command (the CLI's errors are one
+    class however the module is started)."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    r = subprocess.run([sys.executable, "-m", module, "run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.startswith("floxels: error:") and "Traceback" not in r.stderr

@@ -1,7 +1,7 @@
-"""``python -m floxels_ext ...`` runs the ``floxels`` command line."""
+"""``python -m floxels_ext ...``: the ``floxels`` command."""
 
 import sys
 
-from .cli import main
+from floxels_ext.cli import main
 
 sys.exit(main())

@@ -175,5 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if rc is None else int(rc)
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # python -m floxels_ext.cli: run the imported module's main, so that its
+    # CLIError is the class the subcommands raise (this file as __main__ would define a second one)
+    from floxels_ext.cli import main as _main
+
+    sys.exit(_main())

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import inspect
 import queue
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -24,6 +25,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+# Python hands the GIL to a waiting thread only every "switch interval" (5 ms by default): with
+# reader and writer threads holding it for numpy work, the thread driving the GPU waited that
+# long each time it gave it up around a device call. A shorter interval during the run lets it
+# back sooner (bench/RESULTS.md, floxels run section); None leaves Python's setting alone.
+GIL_SWITCH_INTERVAL: float | None = 0.0005
 
 __all__ = ["PreparedFrame", "FrameLoader", "ChunkScans", "Stages", "plan_chunks", "run_pipeline"]
 
@@ -421,6 +428,9 @@ def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_sc
     elapsed: list[float] = []
     delivered = 0
     t_start = time.perf_counter()
+    old_interval = sys.getswitchinterval()
+    if GIL_SWITCH_INTERVAL is not None:
+        sys.setswitchinterval(min(old_interval, GIL_SWITCH_INTERVAL))
 
     def window(c):
         return max(0, c[0] - pad), min(n, c[-1] + pad + 1)
@@ -487,6 +497,7 @@ def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_sc
     finally:
         writer.close()  # results already computed are written, also on Ctrl-C
         loader.close()
+        sys.setswitchinterval(old_interval)
         stages.add("wall", time.perf_counter() - t_start)
     for i, msg in writer.failures.items():
         failed[i] = msg
