@@ -225,3 +225,23 @@ def test_reader_errors_name_the_file_and_chunk_plan(tmp_path):
         read_flow_output(tmp_path / "b.npz")
     assert [len(c) for c in plan_chunks(list(range(150)), None)] == [8, 16, 32, 64, 30]
     assert [len(c) for c in plan_chunks(list(range(5)), 2)] == [2, 2, 1]
+
+
+def test_dropped_frames_and_times_txt_reach_methods(seq, fake, tmp_path, capsys):
+    """Evenly spaced frames pass no times; a gap in the frame numbers (a dropped scan) and a
+    KITTI times.txt do, as offsets the windows follow."""
+    d = _bin_dir(seq, tmp_path / "in")
+    assert _run(_base(tmp_path, d), capsys)[0] == 0
+    assert fake[-1]["times"] is None
+    (d / "000003.bin").rename(d / "000009.bin")  # frames 0 1 2 4 5 9: two gaps
+    np.savetxt(tmp_path / "poses.txt", np.stack([seq.frames[i].pose[:3] for i in (0, 1, 2, 4, 5, 3)]).reshape(-1, 12))
+    rc, cap = _run(_base(tmp_path, d) + ["--force"], capsys)
+    assert rc == 0 and "frame times from gaps in the frame numbers" in cap.err
+    assert fake[-1]["times"] == [0.0, 1.0, 2.0, 4.0, 5.0, 9.0]
+    (d.parent / "times.txt").write_text("\n".join(f"{0.1 * k:.1f}" for k in (0, 1, 2, 3, 5, 6)) + "\n")
+    rc, cap = _run(_base(tmp_path, d) + ["--force"], capsys)
+    assert rc == 0 and "times.txt" in cap.err
+    assert np.allclose(fake[-1]["times"], [0.0, 0.1, 0.2, 0.3, 0.5, 0.6])
+    (d.parent / "times.txt").write_text("0.0\n0.1\n")
+    rc, cap = _run(_base(tmp_path, d) + ["--force"], capsys)
+    assert rc == 0 and "holds 2 values for 6 frames" in cap.err and fake[-1]["times"] is None

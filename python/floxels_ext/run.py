@@ -327,6 +327,38 @@ def _reader_plan(args, device: str) -> tuple[str | None, int, str]:
     return pre_dev, workers, kind
 
 
+def _frame_times(seq, stamps: list, report) -> tuple[list[float] | None, str | None]:
+    """Per-frame times for methods that take them (unequally spaced scans), and where they came
+    from: the frames' own timestamps (AV2 sweeps), a KITTI ``times.txt`` (seconds, one line per
+    scan) next to the frames, or gaps in numbered frame names (000004 missing between 000003
+    and 000005: a dropped scan; offsets in frame steps). None when frames are evenly spaced or
+    nothing says otherwise."""
+    if all(t is not None for t in stamps):
+        return [(t - stamps[0]) * 1e-9 for t in stamps], None
+    n = len(seq.frames)
+    parent = seq.frames[0].path.parent
+    for cand in dict.fromkeys((parent / "times.txt", parent.parent / "times.txt")):
+        if not cand.is_file():
+            continue
+        try:
+            t = np.loadtxt(cand, ndmin=1, dtype=np.float64)
+        except ValueError as e:
+            report(f"floxels: warning: {cand} is not one time (s) per line ({e}); frames taken as evenly spaced")
+            return None, None
+        if t.ndim != 1 or len(t) != n or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
+            report(f"floxels: warning: {cand} holds {t.size} values for {n} frames (or not increasing); "
+                   f"frames taken as evenly spaced")
+            return None, None
+        return [float(v - t[0]) for v in t], str(cand)
+    names = [f.path.stem for f in seq.frames]
+    if all(s.isdigit() for s in names):
+        num = np.array([int(s) for s in names], np.int64)
+        steps = np.diff(num)
+        if len(steps) and np.all(steps > 0) and len(set(steps.tolist())) > 1:
+            return [float(v - num[0]) for v in num], "gaps in the frame numbers"
+    return None, None
+
+
 def run(args) -> int:
     from .dataset_run import maybe_run_dataset
 
@@ -405,7 +437,9 @@ def run(args) -> int:
     # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
     # pipeline passes them to methods whose estimate_sequence takes ``times``
     stamps = [f.timestamp_ns for f in seq.frames]
-    times_s = [(t - stamps[0]) * 1e-9 for t in stamps] if all(t is not None for t in stamps) else None
+    times_s, times_source = _frame_times(seq, stamps, report)
+    if times_source is not None:
+        info(f"frame times from {times_source}: window offsets follow them, flow stays per frame step")
     meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
             "options": np.str_(json.dumps(options, default=str)),
             "settings": np.str_(json.dumps(run_settings, default=str)),
