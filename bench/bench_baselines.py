@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from floxels_ext.baselines import FastNSFConfig, NSFPConfig, fit_fastnsf, fit_nsfp
-from floxels_ext.protocol import protocol_mask
-from floxels_ext.sim import simulate_sequence
+from floxels_ext.evaluation.protocol import protocol_mask
+from floxels_ext.evaluation.sim import simulate_sequence
 
 
 def frame_pair(scene="urban"):

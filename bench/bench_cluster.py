@@ -1,4 +1,4 @@
-"""Benchmark: floxels cluster ops vs the pure-PyTorch reference (floxels_ext.reference).
+"""Benchmark: floxels cluster ops vs the pure-PyTorch reference (floxels_ext.reference.ops).
 
 Rows: cluster_mean, and the cluster-consistency loss forward + backward (ours: the fused
 cluster_consistency_fwd_bwd; reference: loss + autograd backward).
@@ -14,7 +14,7 @@ import torch
 
 import floxels_ext  # noqa: F401
 from _timing import timeit  # noqa: E402
-from floxels_ext import reference as R
+from floxels_ext.reference import ops as R
 
 OPS = torch.ops.floxels
 
@@ -46,7 +46,7 @@ def main():
         for name, ours, ref in cases:
             t_ours, t_ref = timeit(ours, dev, reps), timeit(ref, dev, reps)
             rows.append(dict(op=name, n=n, clusters=k, ours_ms=t_ours, baseline_ms=t_ref, speedup=t_ref / t_ours,
-                             baseline="floxels_ext.reference (PyTorch)"))
+                             baseline="floxels_ext.reference.ops (PyTorch)"))
     print(f"device={dev} threads={torch.get_num_threads()} torch={torch.__version__}")
     print(f"{'op':<22}{'size':>16}{'ours ms':>10}{'baseline ms':>13}{'speedup':>9}")
     for r in rows:

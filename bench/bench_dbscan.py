@@ -23,7 +23,7 @@ import torch
 
 import floxels_ext  # noqa: E402,F401  (registers torch.ops.floxels.*)
 from _timing import timeit  # noqa: E402
-from floxels_ext.sim import simulate_sequence  # noqa: E402
+from floxels_ext.evaluation.sim import simulate_sequence  # noqa: E402
 
 try:
     from sklearn.cluster import DBSCAN  # noqa: E402

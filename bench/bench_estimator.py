@@ -17,9 +17,9 @@ import time
 import torch
 
 from floxels_ext import Floxels, FloxelsConfig
-from floxels_ext.demo import prepare_demo_scans
-from floxels_ext.metrics import flow_metrics
-from floxels_ext.reference_estimator import reference_estimate_flow
+from floxels_ext.evaluation.demo import prepare_demo_scans
+from floxels_ext.evaluation.metrics import flow_metrics
+from floxels_ext.reference.estimator import reference_estimate_flow
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ def one(scans: int, points: int, iters: int) -> dict:
     import torch
 
     from floxels_ext import Floxels, FloxelsConfig
-    from floxels_ext.sim import simulate_sequence
+    from floxels_ext.evaluation.sim import simulate_sequence
 
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     seq = simulate_sequence("urban", num_frames=scans, seed=0)

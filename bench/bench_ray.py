@@ -37,8 +37,8 @@ SCENES = ("urban", "crossing", "highway", "parking")
 
 
 def _simulate_one(job):
-    from floxels_ext.seqio import save_sequence
-    from floxels_ext.sim import simulate_sequence
+    from floxels_ext.evaluation.seqio import save_sequence
+    from floxels_ext.evaluation.sim import simulate_sequence
 
     d, scene, frames, seed, beams, az = job
     save_sequence(d, simulate_sequence(scene, frames, seed, beams=beams, azimuth_steps=az))

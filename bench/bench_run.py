@@ -30,15 +30,15 @@ import numpy as np
 import torch
 
 from floxels_ext import cli
-from floxels_ext.pipeline import single_threaded_blas
-from floxels_ext.preprocess import Preprocess, preprocess_mask, transform_points
+from floxels_ext.lidar.frame_loader import single_threaded_blas
+from floxels_ext.lidar.preprocess import Preprocess, preprocess_mask, transform_points
 
 
 def build(root: Path, frames: int, beams: int, azimuth: int, seed: int) -> tuple[Path, Path, int]:
     import pyarrow as pa
     import pyarrow.feather as feather
 
-    from floxels_ext.sim import simulate_sequence
+    from floxels_ext.evaluation.sim import simulate_sequence
 
     seq = simulate_sequence("urban", frames, seed, beams=beams, azimuth_steps=azimuth)
     kitti, av2 = root / "kitti", root / "av2"
@@ -75,9 +75,9 @@ def run_cli(args_list: list[str]) -> tuple[float, dict]:
 
 def ceiling(kitti: Path, scans_n: int, device: str, options: dict) -> dict:
     """Serial host work per frame, then estimate_sequence on the prepared scans (one call)."""
-    from floxels_ext.config import FloxelsConfig
-    from floxels_ext.estimator import estimate_sequence
-    from floxels_ext.io import read_points, read_poses
+    from floxels_ext.estimator.config import FloxelsConfig
+    from floxels_ext.estimator.api import estimate_sequence
+    from floxels_ext.lidar.io import read_points, read_poses
 
     files = sorted((kitti / "velodyne").glob("*.bin"))
     poses = read_poses(kitti / "poses.txt")
@@ -124,13 +124,13 @@ def main() -> None:
                          "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gil-switch-interval", type=float, default=None, metavar="S",
-                    help="floxels_ext.pipeline.GIL_SWITCH_INTERVAL for the runs (0 = Python's default, "
+                    help="floxels_ext.lidar.pipeline.GIL_SWITCH_INTERVAL for the runs (0 = Python's default, "
                          "to compare with the pipeline's setting)")
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
     args = ap.parse_args()
 
     if args.gil_switch_interval is not None:
-        import floxels_ext.pipeline as pipeline
+        import floxels_ext.lidar.pipeline as pipeline
 
         pipeline.GIL_SWITCH_INTERVAL = args.gil_switch_interval or None
     tmp = Path(tempfile.mkdtemp(prefix="bench_run_"))

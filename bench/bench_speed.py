@@ -9,7 +9,7 @@ Frame: 5 scans of a simulated 128-beam urban sequence cropped by the paper's pro
 the same work). Stages are timed with a device synchronisation between them. Sequence: a
 longer sequence through ``estimate_sequence`` (distance transforms reused across windows,
 ``--batch`` targets optimised together). The CPU path runs on the same frame to show the
-same accuracy; the reference (``floxels_ext.reference_estimator``) gives the ratio.
+same accuracy; the reference (``floxels_ext.reference.estimator``) gives the ratio.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ import numpy as np
 import torch
 
 from floxels_ext import Floxels, FloxelsConfig, estimate_sequence
-from floxels_ext.metrics import flow_metrics
-from floxels_ext.protocol import protocol_mask
-from floxels_ext.reference_estimator import reference_estimate_flow
-from floxels_ext.sim import simulate_sequence
+from floxels_ext.evaluation.metrics import flow_metrics
+from floxels_ext.evaluation.protocol import protocol_mask
+from floxels_ext.reference.estimator import reference_estimate_flow
+from floxels_ext.evaluation.sim import simulate_sequence
 
 
 def _frames(scene, seed, n, beams, az):

@@ -12,18 +12,18 @@ paper's settings, plus NSFP's weight-decay / learning-rate readings); ``--ablati
 Floxels ablation groups (``ABLATIONS``: loss, scans, voxel, es, port). Every row runs through
 the method registry (``floxels_ext.methods``, as ``floxels run --method``).
 
-Data. ``sim``: simulated lidar (``floxels_ext.sim``; ``--lidar full`` = 64 x 1024, the
+Data. ``sim``: simulated lidar (``floxels_ext.evaluation.sim``; ``--lidar full`` = 64 x 1024, the
 default), cropped by the paper's protocol (3 m to ``--max-range``, below 4 m, ground removed);
 evaluated frames sit in the middle of each sequence so every window (up to 11 scans) is
 centred on its frame. ``av2``: the real Argoverse 2 pair in ``../shared/data/av2_pair`` (or
 ``--av2 PATH``), all methods as two-scan estimators: scan 1 is moved into scan 0's frame
 (``ego1_T_ego0``) and the label's ego flow is subtracted (object motion); non-ground points
 with |x|, |y| < 35 m are evaluated (the AV2 protocol; AV2 categories mapped to the 2024
-meta-classes by ``floxels_ext.protocol.AV2_CATEGORY_MAP``, the official evaluation's ignored
+meta-classes by ``floxels_ext.evaluation.protocol.AV2_CATEGORY_MAP``, the official evaluation's ignored
 categories left out), the estimators see non-ground points within 40 m (scan 1's ground: points
 within 0.15 m of a labelled ground point of scan 0).
 
-Metrics are point-weighted over all evaluated frames (``floxels_ext.metrics.evaluate_sequence``).
+Metrics are point-weighted over all evaluated frames (``floxels_ext.evaluation.metrics.evaluate_sequence``).
 Time per frame is the wall time of the method's sequence runs divided by the number of
 evaluated frames, after a warm-up (3 iterations) on the first frame. Each part writes its JSON
 and an NPZ of every prediction and ground truth next to it; ``--merge`` recomputes the
@@ -44,9 +44,9 @@ import numpy as np
 import torch
 
 from floxels_ext import methods
-from floxels_ext.metrics import evaluate_sequence
-from floxels_ext.protocol import AV2_CATEGORY_MAP, map_categories, protocol_mask
-from floxels_ext.sim import simulate_sequence
+from floxels_ext.evaluation.metrics import evaluate_sequence
+from floxels_ext.evaluation.protocol import AV2_CATEGORY_MAP, map_categories, protocol_mask
+from floxels_ext.evaluation.sim import simulate_sequence
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from compare_tables import ablation_table, fmt, main_table  # noqa: E402

@@ -23,7 +23,7 @@ for stage in "$@"; do
       OUT=$OUT scripts/gpu_run.sh build || exit 1
       so=$(python3 -c 'import floxels_ext,os,glob;print(glob.glob(os.path.dirname(floxels_ext.__file__)+"/_C*.so")[0])')
       cp "$so" "$OUT/" && cp "$so" python/floxels_ext/ && export PYTHONPATH=$PWD/python && rm -f "$OUT/build.log"
-      timeout 150 python3 -m pytest -q tests/test_baselines.py tests/test_solver.py > "$OUT/tests.log" 2>&1
+      timeout 150 python3 -m pytest -q tests/baselines/test_baselines.py tests/ops/test_solver.py > "$OUT/tests.log" 2>&1
       echo "tests rc=$?"; grep -E "passed|failed|^FAILED|^ERROR" "$OUT/tests.log" | tail -n 12
       (cd bench && timeout 90 python3 bench_baselines.py --device cuda --iters 200 --cdist-iters 10 \
          --json "$OUT/baselines.json" 2>&1 | tail -n 6) ;;

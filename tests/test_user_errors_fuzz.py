@@ -1,5 +1,5 @@
 """Property-style fuzzing (plain random generation, fixed seeds) of the two user entry points
-``estimate_flow`` and ``floxels_ext.io.read_points``: random bad inputs give a clear
+``estimate_flow`` and ``floxels_ext.lidar.io.read_points``: random bad inputs give a clear
 exception of the documented kinds, or a finite, documented result; never another exception
 or a crash."""
 
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from floxels_ext import FloxelsConfig, estimate_flow
-from floxels_ext.io import LidarFormatError, MissingDependencyError, read_points
+from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError, read_points
 
 CFG = FloxelsConfig(max_iters=3, patience=3)
 MESSAGES: list = []

@@ -1,5 +1,8 @@
 """``floxels`` command line: ``floxels simulate ...``, ``floxels eval ...`` and more.
 
+This module only dispatches: each subcommand lives with its concern (``floxels run`` in
+``lidar.run``, ``floxels eval`` in ``evaluation.eval_cli``, ...).
+
 Subcommands come from a registry so other modules can add theirs without touching this
 file's logic: list the module in ``SUBCOMMAND_MODULES`` (or call ``register``). A subcommand
 module exposes ``add_parser(subparsers)``, which creates its parser with
@@ -16,14 +19,15 @@ import argparse
 import importlib
 import os
 import sys
-import time
-from pathlib import Path
 from typing import Callable
 
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 
 # Modules with an ``add_parser(subparsers)`` function, added after the built-in commands.
-SUBCOMMAND_MODULES: list[str] = ["floxels_ext.eval_cli", "floxels_ext.demo", "floxels_ext.run", "floxels_ext.accumulate", "floxels_ext.show"]
+# The order is the order of ``floxels --help``.
+SUBCOMMAND_MODULES: list[str] = ["floxels_ext.evaluation.simulate_cli", "floxels_ext.evaluation.eval_cli",
+                                 "floxels_ext.evaluation.demo", "floxels_ext.lidar.run",
+                                 "floxels_ext.lidar.accumulate", "floxels_ext.lidar.show"]
 _EXTRA: list[Callable] = []
 
 
@@ -38,61 +42,6 @@ def register(add_parser: Callable | str) -> None:
             SUBCOMMAND_MODULES.append(add_parser)
     elif add_parser not in _EXTRA:
         _EXTRA.append(add_parser)
-
-
-# ----------------------------------------------------------------------------- simulate
-def _add_simulate(sub) -> None:
-    from .sim.scenes import SCENES  # light: numpy only
-
-    p = sub.add_parser("simulate", help="write a synthetic lidar sequence with ground-truth flow",
-                       description="Simulate a spinning lidar in a synthetic scene and write one .npz per frame "
-                                   "(points, pose, flow, classes, instance, ground, dynamic).")
-    p.add_argument("out_dir", metavar="OUT_DIR", help="output sequence directory")
-    p.add_argument("--scene", choices=sorted(SCENES), default="urban")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--frames", type=int, default=13, help="number of frames (default 13)")
-    p.add_argument("--small", action="store_true", help="32 beams x 512 azimuth steps (fast)")
-    p.add_argument("--beams", type=int, help="number of lidar beams (default 64)")
-    p.add_argument("--azimuth-steps", type=int, help="firings per revolution (default 2048)")
-    p.add_argument("--max-range", type=float, help="metres (default 70)")
-    p.add_argument("--range-noise", type=float, help="range noise std-dev in metres (default 0.02; 0.015 with --boxes)")
-    p.add_argument("--dropout", type=float, help="probability of losing a return (default 0.05)")
-    p.add_argument("--boxes", "--no-vehicle-detail", dest="vehicle_detail", action="store_false",
-                   help="vehicles as plain boxes, as the simulator made them before vehicle detail "
-                        "(reproduces earlier output)")
-    p.add_argument("--force", action="store_true", help="replace frames already in OUT_DIR")
-    p.set_defaults(func=_run_simulate)
-
-
-def _run_simulate(args) -> int:
-    from . import seqio
-    from .sim import simulate_sequence
-
-    if args.frames < 1:
-        raise CLIError("--frames must be >= 1")
-    out = Path(args.out_dir)
-    if out.exists() and not out.is_dir():
-        raise CLIError(f"{out} exists and is not a directory")
-    old = sorted(out.glob("[0-9][0-9][0-9][0-9][0-9][0-9].npz")) if out.is_dir() else []
-    if old and not args.force:
-        raise CLIError(f"{out} already holds {len(old)} frame file(s); use --force to replace them")
-    opts = {k: v for k, v in (("beams", args.beams), ("azimuth_steps", args.azimuth_steps),
-                              ("max_range", args.max_range), ("range_noise", args.range_noise),
-                              ("dropout", args.dropout)) if v is not None}
-    t0 = time.perf_counter()
-    try:
-        seq = simulate_sequence(args.scene, args.frames, args.seed, small=args.small,
-                                vehicle_detail=args.vehicle_detail, **opts)
-    except ValueError as e:  # invalid lidar settings
-        raise CLIError(str(e)) from None
-    for p in old:
-        p.unlink()
-    seqio.save_sequence(out, seq)
-    n = [len(f) for f in seq.frames]
-    dyn = sum(int(f.dynamic.sum()) for f in seq.frames)
-    print(f"wrote {len(n)} frames of scene '{args.scene}' (seed {args.seed}) to {out}: "
-          f"{min(n)}-{max(n)} points/frame, {dyn} dynamic points, {time.perf_counter() - t0:.1f} s")
-    return 0
 
 
 # ----------------------------------------------------------------------------- main
@@ -115,9 +64,6 @@ def _with_verbosity(add_parser):
 
 
 
-_BUILTIN = [_add_simulate]
-
-
 class _Parser(argparse.ArgumentParser):
     """argparse with every usage error reported as ``floxels: error: ...`` (exit 2), also
     those of subcommands (argparse would say ``floxels demo: error: ...``)."""
@@ -133,7 +79,7 @@ def _version() -> str:
 
         return version("floxels_ext")
     except (ImportError, PackageNotFoundError):  # running from a source tree
-        from . import __version__
+        from floxels_ext import __version__
 
         return __version__
 
@@ -147,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_verbosity(parser, 0)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
     sub.add_parser = _with_verbosity(sub.add_parser)
-    for add in _BUILTIN + _EXTRA:
+    for add in _EXTRA:
         add(sub)
     for mod in SUBCOMMAND_MODULES:
         importlib.import_module(mod).add_parser(sub)
@@ -155,8 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .io import LidarFormatError, MissingDependencyError
-    from .seqio import SequenceFormatError
+    from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
+    from floxels_ext.evaluation.seqio import SequenceFormatError
 
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage

@@ -68,8 +68,8 @@ def get_method(name: str) -> Method:
 
 # ----------------------------------------------------------------------------- floxels
 def _floxels_sequence(scans, frames, device, options, callback, times=None) -> None:
-    from .config import FloxelsConfig
-    from .estimator import estimate_sequence
+    from floxels_ext.estimator.config import FloxelsConfig
+    from floxels_ext.estimator.api import estimate_sequence
 
     options = dict(options or {})
     try:
@@ -81,7 +81,7 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None) -> N
 
 
 def _register_floxels() -> None:
-    from .config import FloxelsConfig
+    from floxels_ext.estimator.config import FloxelsConfig
 
     register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence,
                     FloxelsConfig))

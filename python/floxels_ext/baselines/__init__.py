@@ -6,13 +6,13 @@ Flow (Li et al., ICCV 2023), for side-by-side comparisons (``bench/compare.py``)
 >>> flow = estimate_flow_fastnsf(scan_t, scan_t1)
 """
 
-from . import registry  # noqa: F401  (registers "nsfp" and "fastnsf" in floxels_ext.methods)
-from ._common import BaselineResult
-from .chamfer import nearest_neighbors, nn_distances, truncated_chamfer
-from .config import FastNSFConfig, NSFPConfig
-from .fastnsf import estimate_flow_fastnsf, fit_fastnsf
-from .mlp import CoordinateMLP
-from .nsfp import estimate_flow_nsfp, fit_nsfp
+from floxels_ext.baselines import registry  # noqa: F401  (registers "nsfp" and "fastnsf" in floxels_ext.methods)
+from floxels_ext.baselines._common import BaselineResult
+from floxels_ext.baselines.chamfer import nearest_neighbors, nn_distances, truncated_chamfer
+from floxels_ext.baselines.config import FastNSFConfig, NSFPConfig
+from floxels_ext.baselines.fastnsf import estimate_flow_fastnsf, fit_fastnsf
+from floxels_ext.baselines.mlp import CoordinateMLP
+from floxels_ext.baselines.nsfp import estimate_flow_nsfp, fit_nsfp
 
 __all__ = [
     "NSFPConfig", "FastNSFConfig", "BaselineResult", "CoordinateMLP",

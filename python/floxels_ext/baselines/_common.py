@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..scans import PreparedScans, prepare_scans, restore_output, warn_user
+from floxels_ext.estimator.scans import PreparedScans, prepare_scans, restore_output, warn_user
 
 
 @dataclass
@@ -83,7 +83,7 @@ def optimise(params: list[torch.Tensor], loss_fn: Callable[[], torch.Tensor], cf
     """Adam on ``params`` minimising ``loss_fn()``; returns (losses, best_iter) and leaves the
     parameters of the lowest loss seen in ``params``.
 
-    Early stopping as in NSFP/FastNSF (and :class:`floxels_ext.early_stopping.EarlyStopping`):
+    Early stopping as in NSFP/FastNSF (and :class:`floxels_ext.estimator.early_stopping.EarlyStopping`):
     stop after ``patience`` iterations without an improvement of more than ``min_delta``; a
     non-finite loss stops too (not recorded). The bookkeeping runs on the device (0-dim
     tensors, the lowest-loss parameters copied by a masked lerp), so iterations do not wait for

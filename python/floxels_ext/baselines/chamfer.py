@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..ops import ops_ns
+from floxels_ext.ops import ops_ns
 
 #: Default cap on one chunk of the distance matrix (float32 entries): 2^24 (64 MiB) on the CPU,
 #: 2^27 (512 MiB) on a GPU, where fewer, larger chunks save kernel launches.

@@ -16,8 +16,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from ..ops.grid import DEFAULT_MAX_CELLS
-from .mlp import ACTIVATIONS, INITS
+from floxels_ext.ops.grid import DEFAULT_MAX_CELLS
+from floxels_ext.baselines.mlp import ACTIVATIONS, INITS
 
 
 @dataclass(frozen=True)

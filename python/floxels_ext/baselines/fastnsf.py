@@ -12,10 +12,10 @@ import time
 
 import torch
 
-from ..ops import distance_transform, grid_for_points, ops_ns
-from .config import FastNSFConfig
-from .mlp import CoordinateMLP
-from ._common import BaselineResult, finish, optimise, prepare_pair, subsample, sync, trivial_result
+from floxels_ext.ops import distance_transform, grid_for_points, ops_ns
+from floxels_ext.baselines.config import FastNSFConfig
+from floxels_ext.baselines.mlp import CoordinateMLP
+from floxels_ext.baselines._common import BaselineResult, finish, optimise, prepare_pair, subsample, sync, trivial_result
 
 
 def target_distance_transform(source: torch.Tensor, target: torch.Tensor, cfg: FastNSFConfig):

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import time
 
-from .chamfer import truncated_chamfer
-from .config import NSFPConfig
-from .mlp import CoordinateMLP
-from ._common import BaselineResult, finish, optimise, prepare_pair, subsample, sync, trivial_result
+from floxels_ext.baselines.chamfer import truncated_chamfer
+from floxels_ext.baselines.config import NSFPConfig
+from floxels_ext.baselines.mlp import CoordinateMLP
+from floxels_ext.baselines._common import BaselineResult, finish, optimise, prepare_pair, subsample, sync, trivial_result
 
 
 def _net(cfg: NSFPConfig, seed: int, device):

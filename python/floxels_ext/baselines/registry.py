@@ -15,8 +15,8 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from .. import methods
-from .config import FastNSFConfig, NSFPConfig
+from floxels_ext import methods
+from floxels_ext.baselines.config import FastNSFConfig, NSFPConfig
 
 
 def _config(cls, name: str, options):
@@ -43,7 +43,7 @@ def run_sequence(fit, cfg, scans, frames, device, callback=None, timings=None, t
     """Flow of each frame in ``frames`` (default all) with the two-scan method ``fit``;
     ``callback(frame, flow)`` after each. ``timings`` (a list), when given, receives the
     seconds spent per frame. ``times``: scan timestamps (s); flows are scaled to per period."""
-    from ..scans import check_times, frame_period_of
+    from floxels_ext.estimator.scans import check_times, frame_period_of
 
     scans = list(scans)
     if times is not None:
@@ -72,13 +72,13 @@ def run_sequence(fit, cfg, scans, frames, device, callback=None, timings=None, t
 
 
 def _nsfp_sequence(scans, frames, device, options, callback, times=None) -> None:
-    from .nsfp import fit_nsfp
+    from floxels_ext.baselines.nsfp import fit_nsfp
 
     run_sequence(fit_nsfp, _config(NSFPConfig, "nsfp", options), scans, frames, device, callback, times=times)
 
 
 def _fastnsf_sequence(scans, frames, device, options, callback, times=None) -> None:
-    from .fastnsf import fit_fastnsf
+    from floxels_ext.baselines.fastnsf import fit_fastnsf
 
     run_sequence(fit_fastnsf, _config(FastNSFConfig, "fastnsf", options), scans, frames, device, callback,
                  times=times)

@@ -4,16 +4,16 @@ Importing this module loads the compiled library and registers the fake (meta) a
 autograd implementations, so the raw ops also work under ``torch.compile``/``opcheck``.
 """
 
-from ._lib import has_cuda_kernels, ops_ns
-from .corners import CompactCorners, compact_corners, corner_gather, corner_scatter
-from .cluster import cluster_consistency_fwd_bwd, cluster_consistency_loss, cluster_mean
-from .dbscan import dbscan
-from .dt_loss import dt_loss, dt_loss_fwd_bwd
-from .edt import distance_transform, edt, points_to_occupancy
-from .grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
-from .nearest import nearest_neighbor
-from .setup import ProblemSetup, problem_setup, stage_points
-from .trilinear import trilinear_gather, trilinear_scatter
+from floxels_ext.ops._lib import has_cuda_kernels, ops_ns
+from floxels_ext.ops.corners import CompactCorners, compact_corners, corner_gather, corner_scatter
+from floxels_ext.ops.cluster import cluster_consistency_fwd_bwd, cluster_consistency_loss, cluster_mean
+from floxels_ext.ops.dbscan import dbscan
+from floxels_ext.ops.dt_loss import dt_loss, dt_loss_fwd_bwd
+from floxels_ext.ops.edt import distance_transform, edt, points_to_occupancy
+from floxels_ext.ops.grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
+from floxels_ext.ops.nearest import nearest_neighbor
+from floxels_ext.ops.setup import ProblemSetup, problem_setup, stage_points
+from floxels_ext.ops.trilinear import trilinear_gather, trilinear_scatter
 
 __all__ = [
     "ops_ns", "has_cuda_kernels",

@@ -4,7 +4,7 @@ The wrappers refuse NaN/inf points with a ValueError. That check costs a reducti
 host sync on CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly
 on already-validated tensors, must not pay every iteration; the raw ops instead follow the
 non-finite contract of README "Op reference" (NaN gather rows, scatters ignore the point,
-losses become NaN), tested in tests/test_ops_nonfinite.py.
+losses become NaN), tested in tests/ops/test_ops_nonfinite.py.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch  # noqa: F401  (torch must be imported before _C: _C links libtorch)
 
 try:
-    from .. import _C  # noqa: F401  (registers torch.ops.floxels.* on import)
+    from floxels_ext import _C  # noqa: F401  (registers torch.ops.floxels.* on import)
 except ImportError as exc:  # pragma: no cover - only hit on broken installs
     raise ImportError(
         "floxels_ext: the compiled extension floxels_ext._C could not be loaded "

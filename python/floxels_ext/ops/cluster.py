@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import require_tensors, same_device
-from ._lib import ops_ns
+from floxels_ext.ops._checks import require_tensors, same_device
+from floxels_ext.ops._lib import ops_ns
 
 
 @torch.library.register_fake("floxels::cluster_mean")

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ._checks import require_tensors
-from ._lib import ops_ns
+from floxels_ext.ops._checks import require_tensors
+from floxels_ext.ops._lib import ops_ns
 
 
 @torch.library.register_fake("floxels::corner_gather")

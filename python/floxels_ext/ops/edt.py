@@ -6,9 +6,9 @@ from collections.abc import Sequence
 
 import torch
 
-from ._checks import as_origin, as_points, as_spacing
-from ._lib import ops_ns
-from .grid import DEFAULT_MAX_CELLS, grid_for_points
+from floxels_ext.ops._checks import as_origin, as_points, as_spacing
+from floxels_ext.ops._lib import ops_ns
+from floxels_ext.ops.grid import DEFAULT_MAX_CELLS, grid_for_points
 
 
 @torch.library.register_fake("floxels::edt")

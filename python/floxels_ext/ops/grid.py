@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ._checks import as_points, as_spacing
+from floxels_ext.ops._checks import as_points, as_spacing
 
 #: Default cap on the number of samples of one grid (float32: 4 bytes each -> 2 GiB).
 DEFAULT_MAX_CELLS = 512 * 1024 * 1024

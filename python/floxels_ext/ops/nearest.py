@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import as_points
-from ._lib import ops_ns
+from floxels_ext.ops._checks import as_points
+from floxels_ext.ops._lib import ops_ns
 
 
 @torch.library.register_fake("floxels::nearest_neighbor")

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ._checks import as_origin, as_spacing, require_tensors
-from ._lib import ops_ns
-from .corners import CompactCorners
+from floxels_ext.ops._checks import as_origin, as_spacing, require_tensors
+from floxels_ext.ops._lib import ops_ns
+from floxels_ext.ops.corners import CompactCorners
 
 
 @torch.library.register_fake("floxels::problem_setup")

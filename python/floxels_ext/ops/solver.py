@@ -4,7 +4,7 @@
 cluster labels, support scans); :func:`pack_problems` concatenates several of them into the
 op's flat arguments once per call group; :meth:`PackedProblems.run` enqueues iterations.
 The op mutates its state tensors in place and never synchronises with the host, so the
-CUDA path can capture it into a CUDA graph (``floxels_ext.solver``).
+CUDA path can capture it into a CUDA graph (``floxels_ext.estimator.solver_run``).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ._lib import ops_ns
-from .corners import CompactCorners
+from floxels_ext.ops._lib import ops_ns
+from floxels_ext.ops.corners import CompactCorners
 
 MAX_PROBLEMS = 16  # csrc/kernels/solver.h kMaxProblems
 MAX_SUPPORT = 12   # kMaxSupport

@@ -6,8 +6,8 @@ from collections.abc import Sequence
 
 import torch
 
-from ._checks import as_origin, as_points, as_spacing, require_tensors, same_device
-from ._lib import ops_ns
+from floxels_ext.ops._checks import as_origin, as_points, as_spacing, require_tensors, same_device
+from floxels_ext.ops._lib import ops_ns
 
 
 @torch.library.register_fake("floxels::trilinear_gather")

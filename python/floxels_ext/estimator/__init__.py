@@ -1,0 +1,14 @@
+"""The estimator: configuration, scan staging, the optimisation of one frame or a batch of
+frames on top of ``torch.ops.floxels``, and sliding windows over a sequence.
+
+``api`` is the public surface (re-exported by ``floxels_ext``); ``group`` prepares and solves
+a group of target frames together; ``streams`` holds the CUDA stream scheduling; ``scans``
+validates and stages the input scans; ``solver_run`` drives the device-resident solver op.
+"""
+
+from floxels_ext.estimator.api import (DistanceTransform, Floxels, FloxelsResult, estimate_flow,
+                                       estimate_sequence, window_for)
+from floxels_ext.estimator.config import FloxelsConfig
+
+__all__ = ["FloxelsConfig", "Floxels", "FloxelsResult", "DistanceTransform", "estimate_flow",
+           "estimate_sequence", "window_for"]

@@ -1,0 +1,251 @@
+"""The Floxels estimator: public API and the optimisation loop on top of torch.ops.floxels.
+
+One frame:
+1. an exact distance transform (0.1 m samples) of every support scan, cached per scan so
+   sliding windows (:func:`estimate_sequence`) build each one once;
+2. DBSCAN clusters of the target scan (our exact op: labels identical to scikit-learn);
+3. Adam over the flow-grid vertices touched by the target points (see
+   ``floxels_ext.ops.corners``: exactly dense Adam, at a fraction of the cost), each
+   iteration being: compact gather of the point flow, fused multi-scan DT loss +
+   gradient, fused cluster-consistency loss + gradient, flow-norm term, compact scatter;
+4. early stopping; the result is the flow of the lowest loss seen.
+"""
+
+from __future__ import annotations
+
+import collections.abc
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+
+from floxels_ext.estimator.config import FloxelsConfig
+from floxels_ext.estimator.distance import DistanceTransform, DtStreams, WindowCache
+from floxels_ext.estimator.group import fit_group, pack, prepare_group, solve_group
+from floxels_ext.estimator.result import FloxelsResult
+from floxels_ext.estimator.scans import check_times, frame_period_of, prepare_scans, resolve_device
+from floxels_ext.estimator.streams import serial_stages, side_stream
+from floxels_ext.ops.solver import MAX_PROBLEMS
+from floxels_ext.switches import flag
+
+__all__ = ["Floxels", "FloxelsResult", "DistanceTransform", "estimate_flow", "estimate_sequence", "window_for"]
+
+
+class Floxels:
+    """Floxels scene-flow estimator.
+
+    >>> est = Floxels(FloxelsConfig(max_iters=300), device="cpu")
+    >>> res = est.fit(scans, target=2)      # res.flow, res.losses, res.labels, res.grid, res.timings
+    """
+
+    def __init__(self, config: FloxelsConfig | None = None, device=None) -> None:
+        if config is not None and not isinstance(config, FloxelsConfig):
+            raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
+        self.config = config or FloxelsConfig()
+        self.device = device
+
+    # -- public -----------------------------------------------------------------------
+    def fit(self, scans: Sequence, target: int | None = None,
+            dt_cache: dict[int, DistanceTransform | None] | None = None, *,
+            times: Sequence[float] | None = None, frame_period: float | None = None) -> FloxelsResult:
+        """Estimate the flow of ``scans[target]`` (default: the middle scan), per frame period.
+
+        ``dt_cache`` maps scan index -> distance transform and is filled in place, so that
+        callers optimising several targets over the same scans build each DT once.
+        ``times``/``frame_period``: scans not equally spaced, see :func:`estimate_flow`.
+        """
+        cache = dt_cache if dt_cache is not None else {}
+        early = DtStreams(self.config, cache)
+        prep = prepare_scans(scans, target, self.device, on_ready=early, times=times, period=frame_period)
+        return fit_group(self.config, [(prep, cache)], early)[0]
+
+    def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
+        """Estimate several target frames in one optimisation: ``windows`` is a list of
+        ``(scans, target)``. The problems stay independent (each has its own loss, early
+        stopping and lowest-loss flow, as when fitted alone) but share every kernel
+        launch, which keeps a GPU busy. For sliding windows over one sequence use
+        :func:`estimate_sequence`, which also shares the distance transforms."""
+        if isinstance(windows, (str, bytes)) or not isinstance(windows, Sequence):
+            raise TypeError(f"windows must be a list of (scans, target) pairs, got {type(windows).__name__}")
+        if not windows:
+            raise ValueError("fit_many needs at least one (scans, target) window")
+        for k, w in enumerate(windows):
+            # (a list of scans passed as one window has arrays where the scans should be)
+            if not (isinstance(w, (tuple, list)) and len(w) == 2 and hasattr(w[0], "__len__")
+                    and not hasattr(w[0], "shape") and not isinstance(w[0], str)):
+                raise TypeError(f"windows[{k}] must be a (scans, target) pair, e.g. fit_many([(scans, 2)]); "
+                                f"got {type(w).__name__}" + (f" of length {len(w)}" if hasattr(w, "__len__") else ""))
+        preps = [prepare_scans(scans, target, self.device) for scans, target in windows]
+        return fit_group(self.config, [(p, {}) for p in preps])
+
+
+def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None,
+                  *, times: Sequence[float] | None = None, frame_period: float | None = None,
+                  flow_unit: str = "frame"):
+    """Flow of every point of ``scans[target]``.
+
+    ``scans``: 2 to 13 (N_i, 3) float arrays/tensors in one ego-motion-compensated frame;
+    ``target`` defaults to the middle scan (negative indices count from the end). Without
+    ``times`` the scans are taken as consecutive at the sensor rate: support scan ``i`` is at
+    time offset ``i - target``. ``times``: the scans' timestamps in seconds (one per scan,
+    finite, strictly increasing; e.g. a dropped frame leaves a gap): offsets are then
+    ``(t_i - t_target) / period`` with ``period = frame_period`` or, by default, the median
+    step of ``times``. ``flow_unit``: ``"frame"`` (default: metres per frame period) or
+    ``"m/s"`` (needs ``times`` or ``frame_period``). Returns (N_target, 3): numpy float32 for
+    numpy input, else a tensor of the input's dtype on the input's device. Rows with NaN/inf
+    coordinates are dropped (with a warning) and get NaN flow.
+    """
+    if flow_unit not in ("frame", "m/s"):  # argument mistakes before any work
+        raise ValueError(f"flow_unit must be 'frame' or 'm/s', got {flow_unit!r}")
+    if flow_unit == "m/s" and times is None and frame_period is None:
+        raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
+    frame_period_of(None, frame_period)  # checks it
+    flow = Floxels(config, device).fit(scans, target, times=times, frame_period=frame_period).flow
+    to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
+    return flow if to_unit == 1.0 else flow * to_unit
+
+
+def _unit_factor(flow_unit: str, times, frame_period) -> float:
+    """Factor from metres per frame period to ``flow_unit``; ``times`` already checked."""
+    if flow_unit not in ("frame", "m/s"):
+        raise ValueError(f"flow_unit must be 'frame' or 'm/s', got {flow_unit!r}")
+    if flow_unit == "frame":
+        return 1.0
+    if times is None and frame_period is None:
+        raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
+    return 1.0 / frame_period_of(times, frame_period)
+
+
+def _batches(frames: list[int], size: int, ramp: bool) -> list[list[int]]:
+    """Consecutive batches of at most ``size`` frames. ``ramp`` (pipelined sequences): the
+    first batches are smaller (4, 8, ... frames) so the GPU starts optimising after a short
+    first preparation, and each later batch is prepared while a batch about half its size is
+    optimised; results do not depend on the batching."""
+    out, k, cur = [], 0, min(size, 4) if ramp else size
+    while k < len(frames):
+        out.append(frames[k:k + cur])
+        k += cur
+        cur = min(size, 2 * cur)
+    return out
+
+
+def window_for(frame: int, num_frames: int, num_scans: int) -> tuple[int, int]:
+    """[start, stop) of the window of ``num_scans`` scans used for ``frame``: centred on it,
+    shifted inwards at the ends of the sequence (so the target may be the first/last scan)."""
+    w = min(num_scans, num_frames)
+    start = min(max(frame - w // 2, 0), num_frames - w)
+    return start, start + w
+
+
+def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, device=None,
+                      frames: Sequence[int] | None = None,
+                      callback: Callable[[int, FloxelsResult], None] | None = None,
+                      batch_size: int | None = None, *, times: Sequence[float] | None = None,
+                      frame_period: float | None = None, flow_unit: str = "frame") -> list:
+    """Flow of every frame of a sequence (or of ``frames``) with a sliding window of
+    ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
+    every window that needs it (and freed once no later window does).
+
+    ``batch_size`` target frames are optimised together (default: 16 on CUDA, where
+    sharing kernel launches raises throughput, 1 on the CPU); each frame's result is the
+    same as optimising it alone. On CUDA the next batch is prepared (distance transforms,
+    DBSCAN, sorting) while the GPU optimises the current one; the first batches are then
+    smaller (4, 8, ... up to ``batch_size``) so that the GPU starts early.
+
+    ``frames``: indices into ``scans``; negative ones count from the end, like ``target``.
+    ``times``/``frame_period``/``flow_unit``: scans not equally spaced and the unit of the
+    flow, as in :func:`estimate_flow` (the period is the median step of the whole sequence's
+    times; each window's offsets come from its scans' times).
+
+    Returns a list with one flow per requested frame (numpy float32 for numpy input).
+    ``callback(frame, result)`` is called after each frame (e.g. to write it to disk), with
+    ``result.flow`` in ``flow_unit``.
+    """
+    if config is not None and not isinstance(config, FloxelsConfig):
+        raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
+    cfg = config or FloxelsConfig()
+    if getattr(scans, "ndim", None) == 2:
+        raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
+    if not isinstance(scans, collections.abc.Sequence):
+        scans = list(scans)  # an iterator or a stacked array: materialise it
+    # a Sequence is read lazily, window by window (``floxels run`` passes scans that are still
+    # being read and preprocessed; the first batch starts as soon as its windows are ready)
+    n = len(scans)
+    if n < 2:
+        raise ValueError(f"a sequence needs at least 2 scans, got {n}")
+    if times is not None:
+        times = check_times(times, n)
+    period = frame_period_of(times, frame_period)
+    to_unit = _unit_factor(flow_unit, times, frame_period)
+    if frames is None:
+        frames = list(range(n))
+    else:
+        given = list(frames)
+        for f in given:
+            if isinstance(f, bool) or not isinstance(f, (int, np.integer)):
+                raise TypeError(f"frames must hold integer indices, got {f!r}")
+        frames = [int(f) + n if int(f) < 0 else int(f) for f in given]
+        for f, g in zip(frames, given):
+            if not 0 <= f < n:
+                raise IndexError(f"frame {g} is out of range for {n} scans (valid: {-n} .. {n - 1})")
+    dev = resolve_device(device, scans[0])
+    if batch_size is None:
+        batch_size = MAX_PROBLEMS if dev.type == "cuda" else 1
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    cache: dict[int, DistanceTransform | None] = {}
+    converted: dict = {}  # sequence index -> scan on the device (converted and NaN-checked once)
+    # On CUDA, the next batch is prepared (scans, distance transforms, DBSCAN, sorting: mostly
+    # host-bound work) on a side stream while the GPU optimises this one.
+    # FLOXELS_PIPELINE=0 turns this off, FLOXELS_RAMP=0 the smaller first batches (measurements).
+    pipelined = (dev.type == "cuda" and len(frames) > batch_size and not serial_stages(dev)
+                 and flag("FLOXELS_PIPELINE"))
+    batches = _batches(frames, batch_size, ramp=pipelined and flag("FLOXELS_RAMP"))
+    if not batches:
+        return []
+    side = side_stream(dev) if pipelined else None
+
+    def prepare(batch, poll=None):
+        def items():
+            out = []
+            for f in batch:
+                start, stop = window_for(f, n, cfg.num_scans)
+                out.append((prepare_scans(scans[start:stop], f - start, device, converted, start,
+                                          times=None if times is None else times[start:stop], period=period),
+                            WindowCache(cache, start)))
+            return out
+        if side is None:
+            return prepare_group(cfg, items())
+        with torch.cuda.stream(side):
+            prepared = prepare_group(cfg, items(), pipelined=True, poll=poll)
+            prepared.packs = pack(cfg, prepared)  # packing, too, before the current batch ends
+            return prepared
+
+    out = []
+    prepared = prepare(batches[0])
+    for k, batch in enumerate(batches):
+        solving = solve_group(cfg, prepared, wait_for=side)
+        error = None
+        if k + 1 < len(batches):
+            try:
+                prepared = prepare(batches[k + 1], poll=solving.poll)
+            except BaseException as e:  # deliver this batch's flows first, then raise
+                error = e
+        results = solving.finish()
+        del solving
+        # free the DTs and device scans that no later window will use
+        later = [window_for(g, n, cfg.num_scans)[0] for b in batches[k + 1:] for g in b]
+        horizon = min(later) if later else math.inf
+        for d in (cache, converted):
+            for i in [i for i in d if i < horizon]:
+                del d[i]
+        for f, res in zip(batch, results):
+            if to_unit != 1.0:
+                res.flow = res.flow * to_unit
+            out.append(res.flow)
+            if callback is not None:
+                callback(f, res)
+        if error is not None:
+            raise error
+    return out

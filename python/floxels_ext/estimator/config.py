@@ -1,0 +1,165 @@
+"""Hyperparameters of Floxels (paper defaults) with validation on construction."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from floxels_ext.estimator.config_fields import check_field_types
+from floxels_ext.estimator.config_fields import parse_option_value as _parse_field
+from floxels_ext.ops.grid import DEFAULT_MAX_CELLS
+
+__all__ = ["FloxelsConfig", "parse_option_value"]
+
+
+@dataclass(frozen=True)
+class FloxelsConfig:
+    """Every hyperparameter of the method, with the paper's defaults.
+
+    Loss per iteration ``it`` (S = number of support scans, t = time offset of a scan)::
+
+        lambda_d * sum_t w(t) * mean_i DT_t(p_i + t f_i)          (w(t) = 1/t^2, DT >= truncation -> 0)
+        + reg_scale * (lambda_c * cluster_loss + lambda_g(it) * mean_i ||f_i||)
+
+    with ``reg_scale = S`` ("support", as in DEVELOPERS.md) or ``2m - 1`` ("paper", the
+    factor printed in the paper's final-loss equation), and ``lambda_g`` falling linearly
+    from ``lambda_g_start`` to ``lambda_g_end`` over ``lambda_g_decay_iters`` iterations.
+    """
+
+    # representation
+    voxel_size: float = 0.5          # flow grid spacing (m)
+    dt_cell: float = 0.1             # distance-transform sample spacing (m)
+    dt_padding: float = 2.0          # margin (m) around each support scan covered by its DT
+    truncation: float = 5.0          # DT values >= this count as 0 (no gradient)
+    # multi-scan loss
+    num_scans: int = 5               # window length used by estimate_sequence (target + supports)
+    time_weight_power: float = 2.0   # w(t) = 1 / |t|^power  (paper: 1/t^2)
+    lambda_d: float = 1.0
+    # regularisers
+    cluster_loss: bool = True        # ablation switch for the cluster-consistency loss
+    lambda_c: float = 0.6
+    flow_norm_loss: bool = True      # ablation switch for the flow-magnitude regulariser
+    lambda_g_start: float = 0.1
+    lambda_g_end: float = 0.01
+    lambda_g_decay_iters: int = 100
+    reg_scale: str = "support"       # "support" (S) or "paper" (2m - 1)
+    # clustering (DBSCAN on the target scan)
+    dbscan_eps: float = 0.5
+    dbscan_min_samples: int = 4
+    # optimiser (Adam) and early stopping
+    lr: float = 0.05
+    max_iters: int = 500
+    patience: int = 250
+    min_delta: float = 0.01
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    adam_eps: float = 1e-8
+    # safety
+    max_dt_cells: int = DEFAULT_MAX_CELLS  # memory cap for one distance transform (samples)
+
+    # ---- faithfulness readings (issue 20; bench/compare.py --ablations port) -------------
+    # Where the paper's text leaves room, a peer's public port reads it differently; these
+    # switch each reading on (defaults = this project's reading, measured in bench/RESULTS.md).
+    lr_milestones: tuple[int, ...] = ()  # iterations where lr is multiplied by lr_gamma (port: (10, 20))
+    lr_gamma: float = 0.5            # (MultiStepLR stepped once per iteration)
+    truncation_mode: str = "zero"    # DT samples >= truncation count as 0 ("zero") or as the
+                                     # truncation itself ("clamp", port); zero gradient in both
+    cluster_loss_mean: str = "all"   # cluster term averaged over all points ("all", the paper's
+                                     # 1/N) or over the clustered (non-noise) points ("clustered")
+
+    def __post_init__(self) -> None:
+        # types first, generically from the field annotations (fields added later are covered)
+        check_field_types(self)
+
+        def pos(name: str) -> None:
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"FloxelsConfig.{name} must be a positive finite number, got {v!r}")
+
+        def nonneg(name: str) -> None:
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"FloxelsConfig.{name} must be a non-negative finite number, got {v!r}")
+
+        for n in ("voxel_size", "dt_cell", "truncation", "lr", "dbscan_eps", "adam_eps"):
+            pos(n)
+        for n in ("dt_padding", "time_weight_power", "lambda_d", "lambda_c", "lambda_g_start",
+                  "lambda_g_end", "min_delta"):
+            nonneg(n)
+        for n in ("max_iters", "patience", "dbscan_min_samples", "max_dt_cells", "num_scans"):
+            v = getattr(self, n)
+            if v < 1:
+                raise ValueError(f"FloxelsConfig.{n} must be a positive integer, got {v!r}")
+        if self.lambda_g_decay_iters < 0:
+            raise ValueError(f"FloxelsConfig.lambda_g_decay_iters must be an integer >= 0, "
+                             f"got {self.lambda_g_decay_iters!r}")
+        if not 2 <= self.num_scans <= 13:
+            raise ValueError(f"FloxelsConfig.num_scans must be in [2, 13], got {self.num_scans}")
+        if self.reg_scale not in ("support", "paper"):
+            raise ValueError(f"FloxelsConfig.reg_scale must be 'support' or 'paper', got {self.reg_scale!r}")
+        self._check_readings()
+        b1, b2 = self.adam_betas
+        if not (0 <= b1 < 1 and 0 <= b2 < 1):
+            raise ValueError(f"FloxelsConfig.adam_betas must lie in [0, 1), got {self.adam_betas}")
+        if self.dt_cell > self.voxel_size * 4:
+            raise ValueError(f"FloxelsConfig.dt_cell ({self.dt_cell}) should be much finer than "
+                             f"voxel_size ({self.voxel_size})")
+
+    @classmethod
+    def from_strings(cls, options: dict[str, str], base: "FloxelsConfig | None" = None) -> "FloxelsConfig":
+        """A config from ``{field: text}`` (e.g. the CLI's ``--option KEY=VALUE``), each text
+        parsed for its field's type by :func:`parse_option_value`; ``base`` supplies the
+        other fields (default: the paper's defaults). Unknown fields or unparsable values
+        raise ``ValueError`` naming them."""
+        values = {k: _parse_field(cls, k, v) for k, v in options.items()}
+        return dataclasses.replace(base, **values) if base is not None else cls(**values)
+
+    def _check_readings(self) -> None:
+        ms = self.lr_milestones
+        if (not isinstance(ms, (tuple, list)) or len(ms) > 4
+                or not all(isinstance(m, int) and not isinstance(m, bool) and m >= 1 for m in ms)
+                or list(ms) != sorted(ms)):
+            raise ValueError(f"FloxelsConfig.lr_milestones must be up to 4 increasing integers >= 1, got {ms!r}")
+        g = self.lr_gamma
+        if not (isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g > 0):
+            raise ValueError(f"FloxelsConfig.lr_gamma must be a positive finite number, got {g!r}")
+        if self.truncation_mode not in ("zero", "clamp"):
+            raise ValueError(f"FloxelsConfig.truncation_mode must be 'zero' or 'clamp', got {self.truncation_mode!r}")
+        if self.cluster_loss_mean not in ("all", "clustered"):
+            raise ValueError(f"FloxelsConfig.cluster_loss_mean must be 'all' or 'clustered', "
+                             f"got {self.cluster_loss_mean!r}")
+
+    def lr_at(self, it: int) -> float:
+        """Learning rate of the Adam step of iteration ``it`` (0-based)."""
+        return self.lr * self.lr_gamma ** sum(1 for m in self.lr_milestones if m <= it)
+
+    def replace(self, **changes) -> "FloxelsConfig":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def lambda_g(self, it: int) -> float:
+        """Flow-norm weight at iteration ``it`` (linear decay, then constant)."""
+        if self.lambda_g_decay_iters == 0 or it >= self.lambda_g_decay_iters:
+            return self.lambda_g_end
+        a = it / self.lambda_g_decay_iters
+        return self.lambda_g_start + a * (self.lambda_g_end - self.lambda_g_start)
+
+    def time_weight(self, t: float) -> float:
+        """w(t) = 1 / |t|^power for a time offset ``t`` in frame periods (any real t != 0:
+        unequally spaced scans give non-integer offsets)."""
+        return 1.0 / abs(t) ** self.time_weight_power
+
+    def regulariser_scale(self, num_support: int) -> float:
+        if self.reg_scale == "support":
+            return float(num_support)
+        # paper: (2m - 1) with 2m support scans
+        return float(max(num_support - 1, 1))
+
+
+def parse_option_value(field: str, text: str, cls=FloxelsConfig):
+    """The value of config field ``field`` written as ``text`` (the CLI's ``--option
+    field=text``), parsed for the field's annotated type: bools accept true/false, yes/no,
+    on/off, 1/0; tuples ``a,b`` or ``[a,b]``; numbers as Python writes them. ``ValueError``
+    naming the field otherwise (an unknown field lists the known ones). ``cls``: another
+    dataclass config (e.g. a baseline's)."""
+    return _parse_field(cls, field, text)

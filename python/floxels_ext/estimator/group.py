@@ -1,0 +1,289 @@
+"""A group of target frames optimised together: everything before the solver (the distance
+transforms still missing, DBSCAN, points sorted by (cluster, voxel) with their compact corners)
+in :func:`prepare_group`, the solver calls in :func:`solve_group`, and the results in
+:meth:`Solving.finish`. Each frame's result is the same as when it is optimised alone; the
+group shares kernel launches (and, in :func:`~floxels_ext.estimator.api.estimate_sequence`,
+the distance transforms of the scans its windows share)."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from floxels_ext.estimator.config import FloxelsConfig
+from floxels_ext.estimator.distance import DtStreams, build_dt
+from floxels_ext.estimator.result import FloxelsResult
+from floxels_ext.estimator.scans import PreparedScans, restore_outputs
+from floxels_ext.estimator.solver_run import SolverRun
+from floxels_ext.estimator.streams import dt_stream, serial_stages, side_stream, sync_device, used_on
+from floxels_ext.ops.grid import grid_from_bounds, point_bounds
+from floxels_ext.ops.setup import problem_setup
+from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
+
+__all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack"]
+
+F = torch.ops.floxels
+
+
+def fit_group(cfg: FloxelsConfig, items: list, early: DtStreams | None = None) -> list[FloxelsResult]:
+    """Optimise the targets of ``items`` ([(PreparedScans, dt cache)]) together."""
+    return solve_group(cfg, prepare_group(cfg, items, early=early)).finish()
+
+
+def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
+                  poll: Callable[[], object] | None = None, early: DtStreams | None = None) -> Prepared:
+    """Everything before the optimisation: the distance transforms still missing from the
+    caches, DBSCAN of every target, points sorted by (cluster, voxel) and their compact
+    corners. ``pipelined``: all of it is enqueued on the current stream (the caller's
+    side stream, while the GPU still optimises other frames) with no device
+    synchronisation, and ``poll`` is called between targets to keep that work queued.
+    ``early``: the EDTs already started while the scans were uploaded (single frames)."""
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    device = items[0][0].points[0].device
+
+    # Scans were validated by prepare_scans, so the ops are called directly (no
+    # re-checks), and every cloud's bounds come back in one host synchronisation.
+    t0 = time.perf_counter()
+    # DTs still to build, by scan tensor (windows of one sequence share scan tensors,
+    # so each scan is built once)
+    todo: dict[int, list] = {}  # id -> [points, [(cache, index in window)], bounds or None]
+    for prep, cache in items:
+        if prep.points[prep.target].shape[0] > 0:
+            for i in prep.supports:
+                if i not in cache and prep.points[i].shape[0] > 0:
+                    todo.setdefault(id(prep.points[i]), [prep.points[i], [], known_bounds(prep, i)])[1].append(
+                        (cache, i))
+    targets = [(prep.points[prep.target], known_bounds(prep, prep.target)) for prep, _ in items
+               if prep.points[prep.target].shape[0] > 0]
+    # bounds not known from the upload (device scans): all in one host synchronisation
+    found = iter(point_bounds([v[0] for v in todo.values() if v[2] is None] + [p for p, b in targets if b is None]))
+    dt_bounds = [v[2] if v[2] is not None else next(found) for v in todo.values()]
+    target_bounds = iter([b if b is not None else next(found) for _, b in targets])
+    # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
+    # bound) run on others: the host synchronisations of DBSCAN and the sorting then
+    # wait for their own kernels only. Single frames: one stream per EDT (they overlap
+    # each other's tails), the rest on the side stream. Pipelined (the caller's stream is
+    # the side stream): EDTs on a third stream. FLOXELS_SERIAL_STAGES=1 runs the stages
+    # one after the other (stage timings).
+    serial = serial_stages(device)
+    main = torch.cuda.current_stream(device) if device.type == "cuda" else None
+    side = edt_stream = None
+    if not serial:
+        side = None if pipelined else side_stream(device)
+        edt_stream = dt_stream(device) if pipelined else main
+        (side or edt_stream).wait_stream(main)  # the scans are ready
+    # single frames on a GPU: a stream per EDT (those already started while the scans were
+    # uploaded, and any others here)
+    streams = None if serial or pipelined else (early if early is not None else DtStreams(cfg))
+    dt_events = None
+    if streams is None and edt_stream is not None and todo:
+        dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
+        dt_events[0].record(edt_stream)
+    for (pts, users, _), b in zip(todo.values(), dt_bounds):
+        if streams is not None:
+            d = streams.launch(pts, b)
+        else:
+            with torch.cuda.stream(edt_stream) if edt_stream is not None else contextlib.nullcontext():
+                d = build_dt(pts, cfg, b)
+        for cache, i in users:
+            cache[i] = d
+    if streams is not None and streams.start is not None:
+        for st in streams.streams:
+            main.wait_stream(st)
+        dt_events = (streams.start, torch.cuda.Event(enable_timing=True))
+    if dt_events is not None:
+        dt_events[1].record(edt_stream)
+    supports = []  # per item: (dts, origins, offsets, weights)
+    for prep, cache in items:
+        dts, origins, offsets, weights = [], [], [], []
+        if prep.points[prep.target].shape[0] > 0:
+            for i, t in zip(prep.supports, prep.offsets):
+                if i not in cache:  # empty support scan
+                    cache[i] = None
+                d = cache[i]
+                if d is None:  # empty support scan: no evidence from it
+                    continue
+                dts.append(d.values)
+                origins.append(d.origin)
+                offsets.append(float(t))
+                weights.append(cfg.lambda_d * cfg.time_weight(t))
+        supports.append((dts, origins, offsets, weights))
+    if serial:
+        sync_device(device)
+    timings["dt"] = time.perf_counter() - t0  # serial: wall time; else replaced by GPU time (dt_events)
+    stream_ctx = torch.cuda.stream(side) if side is not None else contextlib.nullcontext()
+    with stream_ctx:
+        labels, problems, orders, grids = _targets(cfg, items, supports, target_bounds, timings, poll)
+    work = side if side is not None else (torch.cuda.current_stream(device) if pipelined else None)
+    if pipelined and edt_stream is not None:
+        # the DTs were made on the EDT stream and are used on the preparing stream's
+        # successors: that stream waits for them, and the allocator learns of the use
+        work.wait_stream(edt_stream)
+        for d in {id(t): t for pr in problems if pr is not None for t in pr.dts}.values():
+            d.record_stream(work)
+    if side is not None:
+        used_on(main, items, problems, orders, labels)
+        main.wait_stream(side)
+    return Prepared(items, labels, problems, orders, grids, timings, t_start, dt_events)
+
+
+def solve_group(cfg: FloxelsConfig, prepared: Prepared, wait_for=None) -> Solving:
+    """Pack the prepared problems and start their optimisation on the current stream
+    (after ``wait_for``, the stream the preparation ran on, if any)."""
+    t0 = time.perf_counter()
+    packs = prepared.packs if prepared.packs is not None else pack(cfg, prepared)
+    if wait_for is not None:
+        main = torch.cuda.current_stream()
+        used_on(main, prepared.items, prepared.problems, prepared.orders, prepared.labels)
+        for _, packed in packs:
+            packed.record_stream(main)
+        main.wait_stream(wait_for)
+    runs = []
+    for group, packed in packs:
+        run = SolverRun(packed)
+        run.poll()
+        runs.append((group, packed, run))
+    return Solving(cfg, prepared, runs, t0)
+
+
+def pack(cfg: FloxelsConfig, prepared: Prepared) -> list:
+    """The solver calls of a prepared group: [(indices of its problems, PackedProblems)]."""
+    live = [k for k, p in enumerate(prepared.problems) if p is not None]
+    return [(group, PackedProblems([prepared.problems[k] for k in group], cfg))
+            for group in _groups(live, prepared.problems)]
+
+
+def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=None):
+    """DBSCAN of every target, then its points sorted by (cluster, voxel) with their
+    compact corners: the per-target part of :func:`prepare_group`."""
+    t0 = time.perf_counter()
+    labels = []
+    for prep, _ in items:
+        if poll is not None:
+            poll()
+        labels.append(F.dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
+                      if cfg.cluster_loss and prep.points[prep.target].shape[0] else None)
+    timings["dbscan"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    problems, orders, grids = [], [], []
+    for (prep, _), lab, (dts, origins, offsets, weights) in zip(items, labels, supports):
+        if poll is not None:
+            poll()
+        P = prep.points[prep.target]
+        if P.shape[0] == 0:
+            problems.append(None)
+            orders.append(None)
+            grids.append(None)
+            continue
+        g_origin, g_shape = grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size,
+                                             max_cells=1 << 40)
+        # One op, one host synchronisation: points sorted by (cluster, voxel) (neighbouring
+        # points touch neighbouring memory, a block of points meets few clusters, and the
+        # solver's segments, one cluster inside one cell, are long runs), their compact
+        # corners and the solver's segment tables (built here, while the EDTs run, rather
+        # than when packing), and the number of clusters.
+        st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
+        problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
+                                      cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments))
+        orders.append(st.order)
+        grids.append(g_origin)
+    timings["setup"] = time.perf_counter() - t0
+    return labels, problems, orders, grids
+
+
+@dataclass
+class Prepared:
+    """What :func:`prepare_group` hands to :func:`solve_group`."""
+
+    items: list
+    labels: list
+    problems: list
+    orders: list
+    grids: list
+    timings: dict
+    t_start: float
+    dt_events: tuple | None = None  # CUDA events around the EDT launches (their GPU time)
+    packs: list | None = None       # pack(), if packed during the preparation
+
+
+class Solving:
+    """Optimisations under way for one prepared group: ``poll()`` keeps them queued,
+    ``finish()`` waits for them and builds the results."""
+
+    def __init__(self, cfg: FloxelsConfig, prepared: Prepared, runs: list, t0: float) -> None:
+        self.cfg, self.prepared, self.runs, self.t0 = cfg, prepared, runs, t0
+
+    def poll(self) -> None:
+        for _, _, run in self.runs:
+            run.poll()
+
+    def finish(self) -> list[FloxelsResult]:
+        pr, cfg = self.prepared, self.cfg
+        solved: dict[int, tuple] = {}
+        hosts = []
+        for group, packed, run in self.runs:
+            run.finish(wait=False)  # the read-backs below queue behind the last iterations
+            hosts.append(packed.summaries_start())
+        for group, packed, run in self.runs:
+            for b, k in enumerate(group):
+                solved[k] = packed.best_params(b).clone()
+        flows, parts = [], []  # flow of the kept rows, (labels, fields of the result) per frame
+        for k, (prep, _) in enumerate(pr.items):
+            if pr.problems[k] is None:
+                flows.append(prep.points[prep.target].new_zeros(0, 3))
+                continue
+            corners = pr.problems[k].corners
+            flow_s = F.corner_gather(solved[k], corners.corner_idx, corners.corner_w)
+            flow = torch.empty_like(flow_s)
+            flow[pr.orders[k]] = flow_s
+            flows.append(flow)
+        # every frame's output in one transfer (numpy outputs of CUDA flows), then the one
+        # synchronisation of the read-backs
+        outs = restore_outputs(flows, [prep for prep, _ in pr.items])
+        for _, packed, run in self.runs:
+            if run.cuda:
+                run.stream.synchronize()
+        summaries: dict[int, tuple] = {}
+        for (group, packed, _), host in zip(self.runs, hosts):
+            for k, summary in zip(group, packed.summaries(host)):
+                summaries[k] = summary
+        timings = dict(pr.timings)
+        if pr.dt_events is not None:  # the EDTs overlapped other work: their GPU time
+            timings["dt"] = 1e-3 * pr.dt_events[0].elapsed_time(pr.dt_events[1])
+        timings["optimise"] = time.perf_counter() - self.t0
+        timings["total"] = time.perf_counter() - pr.t_start
+        if len(pr.items) > 1:
+            timings["group_size"] = float(len(pr.items))
+        for k, lab in enumerate(pr.labels):
+            if pr.problems[k] is None:
+                parts.append((None, [], -1, 0, dict(timings), None, cfg.voxel_size, None, None))
+                continue
+            losses, best_iter = summaries[k]
+            parts.append((lab, losses, best_iter, len(losses), dict(timings), pr.grids[k], cfg.voxel_size,
+                          pr.problems[k].corners, solved[k]))
+        return [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
+
+
+def _groups(live: list[int], problems: list) -> list[list[int]]:
+    """Split problems into op calls: at most MAX_PROBLEMS each and MAX_DTS distinct DTs."""
+    groups, cur, dts = [], [], set()
+    for k in live:
+        ids = {id(d) for d in problems[k].dts}
+        if cur and (len(cur) == MAX_PROBLEMS or len(dts | ids) > MAX_DTS):
+            groups.append(cur)
+            cur, dts = [], set()
+        cur.append(k)
+        dts |= ids
+    if cur:
+        groups.append(cur)
+    return groups
+
+
+def known_bounds(prep: PreparedScans, i: int):
+    return prep.bounds[i] if prep.bounds is not None else None

@@ -1,0 +1,36 @@
+"""What the estimator returns for one frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from floxels_ext.ops.corners import CompactCorners
+
+__all__ = ["FloxelsResult"]
+
+
+@dataclass
+class FloxelsResult:
+    """Everything one optimisation produced."""
+
+    flow: object                       # (N_target, 3): numpy float32 or tensor, like the input
+    flow_tensor: torch.Tensor          # (N_kept, 3) float32 on the compute device (finite target rows)
+    labels: torch.Tensor | None        # DBSCAN labels of the kept target rows (-1 = noise)
+    losses: list[float] = field(default_factory=list)  # total loss per iteration
+    best_iter: int = -1                # iteration whose flow is returned
+    num_iters: int = 0
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
+    grid_origin: list[float] | None = None
+    voxel_size: float = 0.5
+    _corners: CompactCorners | None = None
+    _params: torch.Tensor | None = None
+
+    @property
+    def grid(self) -> torch.Tensor | None:
+        """Dense (3, Z, Y, X) flow grid (vertex (iz,iy,ix) at grid_origin + (ix,iy,iz)*voxel_size);
+        vertices no point touches hold 0."""
+        if self._corners is None:
+            return None
+        return self._corners.to_dense(self._params)

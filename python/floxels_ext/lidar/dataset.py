@@ -1,0 +1,250 @@
+"""A dataset for ``floxels run``: the sequences under a root (or in a list file), where each one's
+output goes, and how a sequence is cut into tasks.
+
+``floxels run DATASET --out OUT`` accepts, besides one sequence directory:
+
+* a directory tree holding sequences at any depth (up to ``MAX_DEPTH``): an Argoverse 2 split
+  (``<log_id>/sensors/lidar``), KITTI odometry (``sequences/NN/velodyne`` with the poses in
+  ``poses/NN.txt`` and ``sequences/NN/calib.txt`` paired automatically), a directory of
+  ``floxels simulate`` sequences, or any directories of frame files;
+* a text file listing sequence directories, one a line (``#`` comments; relative paths are
+  relative to the file), optionally followed by ``--poses FILE`` and ``--calib FILE`` for that
+  sequence.
+
+A sequence's output goes to ``OUT/<its path relative to the root>``, so the output tree mirrors
+the input tree. A task is a contiguous range of a sequence's frames, run as ``floxels run SEQ
+--frames A:B``: ``--frames`` keeps the neighbours outside the range as support scans, so every
+window is exactly the one the run over the whole sequence uses.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import os
+import shlex
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks", "parse_frame_range",
+           "MAX_DEPTH"]
+
+MAX_DEPTH = 4  # KITTI's dataset/sequences/NN/velodyne is depth 3
+
+
+@dataclass
+class SequenceSpec:
+    path: Path                   # the directory ``floxels run`` reads
+    rel: Path                    # output sub-directory (mirrors the input tree); "." = OUT itself
+    poses: Path | None = None    # per-sequence --poses / --calib (KITTI pairing or list file)
+    calib: Path | None = None
+
+
+@dataclass
+class Task:
+    """Frames [start, stop) of one sequence; ``names`` are their output stems, ``todo`` those not written yet."""
+
+    seq: SequenceSpec
+    out_dir: Path
+    start: int
+    stop: int
+    names: list[str]
+    todo: list[str] = field(default_factory=list)
+    frame_paths: list[str] = field(default_factory=list)   # input files, for failure reports
+
+    @property
+    def label(self) -> str:
+        return f"{self.seq.path} frames {self.start}:{self.stop}"
+
+
+def _lidar_suffixes() -> tuple[str, ...]:
+    from floxels_ext.lidar.io.readers import SUFFIXES
+
+    return tuple(SUFFIXES)
+
+
+def is_sequence_dir(d: Path) -> bool:
+    """Whether ``floxels run`` would read ``d`` as one sequence (AV2 log or a directory of frames)."""
+    if (d / "sensors" / "lidar").is_dir():
+        return True
+    suffixes = _lidar_suffixes()
+    try:
+        return any(e.is_file() and not e.name.startswith(".") and Path(e.name).suffix.lower() in suffixes
+                   for e in os.scandir(d))
+    except OSError:
+        return False
+
+
+def _kitti_pairing(d: Path) -> tuple[Path | None, Path | None]:
+    """KITTI odometry ``.../sequences/NN/velodyne``: (``.../poses/NN.txt``, ``.../sequences/NN/calib.txt``)
+    when those files exist."""
+    if d.name != "velodyne" or d.parent.parent.name != "sequences":
+        return None, None
+    nn = d.parent.name
+    poses = d.parent.parent.parent / "poses" / f"{nn}.txt"
+    calib = d.parent / "calib.txt"
+    return (poses if poses.is_file() else None), (calib if calib.is_file() else None)
+
+
+def _walk(root: Path, exclude: Path | None) -> list[Path]:
+    found: list[Path] = []
+
+    def visit(d: Path, depth: int) -> None:
+        if exclude is not None and (d == exclude or exclude in d.parents):
+            return  # never read our own output tree as input
+        if depth > 0 and is_sequence_dir(d):
+            found.append(d)
+            return
+        if depth >= MAX_DEPTH:
+            return
+        try:
+            subs = sorted(e.path for e in os.scandir(d) if e.is_dir() and not e.name.startswith("."))
+        except OSError:
+            return
+        for s in subs:
+            visit(Path(s), depth + 1)
+
+    visit(root, 0)
+    return found
+
+
+def _read_list(list_file: Path) -> list[SequenceSpec]:
+    from floxels_ext.cli import CLIError
+
+    specs = []
+    base = list_file.parent
+    try:
+        lines = list_file.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise CLIError(f"cannot read the sequence list {list_file}: {e}") from None
+    for no, line in enumerate(lines, 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        try:
+            words = shlex.split(line)
+        except ValueError as e:
+            raise CLIError(f"{list_file}:{no}: {e}") from None
+        path, opts, rest = words[0], {}, words[1:]
+        while rest:
+            key = rest.pop(0)
+            if key not in ("--poses", "--calib") or not rest:
+                raise CLIError(f"{list_file}:{no}: expected 'PATH [--poses FILE] [--calib FILE]', got {line!r}")
+            opts[key[2:]] = (base / rest.pop(0)).resolve()
+        d = (base / path).resolve()
+        if not d.is_dir() or not is_sequence_dir(d):
+            what = "does not exist" if not d.exists() else "is not a sequence directory (no lidar frames, no sensors/lidar)"
+            raise CLIError(f"{list_file}:{no}: {d} {what}")
+        for key, p in opts.items():
+            if not p.is_file():
+                raise CLIError(f"{list_file}:{no}: --{key} {p} does not exist")
+        poses, calib = _kitti_pairing(d)
+        specs.append(SequenceSpec(d, Path("."), opts.get("poses", poses), opts.get("calib", calib)))
+    if not specs:
+        raise CLIError(f"the sequence list {list_file} names no sequence")
+    under = all(base.resolve() in s.path.parents for s in specs)
+    common = base.resolve() if under else Path(os.path.commonpath([str(s.path) for s in specs]))
+    for s in specs:
+        rel = s.path.relative_to(common) if s.path != common else Path(s.path.name)
+        s.rel = rel if str(rel) != "." else Path(s.path.name)
+    return specs
+
+
+def discover_dataset(input_path, out=None, patterns: list[str] | None = None) -> list[SequenceSpec] | None:
+    """The sequences of a dataset root or list file, sorted by output path; None when INPUT is
+    one sequence (the plain ``floxels run`` reads it). ``patterns`` (shell globs on the output
+    sub-path, e.g. ``sequences/0[0-5]/*``) select sequences. Raises CLIError when INPUT holds none."""
+    from floxels_ext.cli import CLIError
+
+    root = Path(input_path)
+    if not root.exists():
+        return None  # the plain run reports a missing INPUT
+    if root.is_file():
+        if root.suffix.lower() in _lidar_suffixes():
+            return None  # one frame file: the plain run explains that INPUT must be a directory
+        specs = _read_list(root)
+    else:
+        if is_sequence_dir(root):
+            return None
+        exclude = Path(out).resolve() if out else None
+        dirs = _walk(root.resolve(), exclude)
+        if not dirs:
+            raise CLIError(f"{root} holds no lidar frames and no sequences in its sub-directories (up to "
+                           f"{MAX_DEPTH} levels: AV2 <log>/sensors/lidar, KITTI sequences/NN/velodyne, "
+                           f"directories of frame files)")
+        specs = []
+        for d in dirs:
+            poses, calib = _kitti_pairing(d)
+            specs.append(SequenceSpec(d, d.relative_to(root.resolve()), poses, calib))
+    seen: dict[Path, Path] = {}
+    for s in specs:
+        if s.rel in seen:
+            raise CLIError(f"{seen[s.rel]} and {s.path} would write to the same output directory {s.rel}")
+        seen[s.rel] = s.path
+    if patterns:
+        specs = [s for s in specs if any(fnmatch.fnmatchcase(s.rel.as_posix(), p) for p in patterns)]
+        if not specs:
+            raise CLIError(f"--sequences {' '.join(patterns)} selects none of the sequences of {root}")
+    return sorted(specs, key=lambda s: s.rel.as_posix())
+
+
+def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
+    """``--frames`` (A:B, A:, :B or A; Python slice semantics) as a [start, stop) range of n frames."""
+    from floxels_ext.cli import CLIError
+
+    if not text:
+        return 0, n
+    try:
+        if ":" in text:
+            a, b = text.split(":", 1)
+            sl = slice(int(a) if a.strip() else None, int(b) if b.strip() else None)
+        else:
+            k = int(text)
+            sl = slice(k, k + 1 if k != -1 else None)
+    except ValueError:
+        raise CLIError(f"--frames expects A:B, A:, :B or A (integers), got {text!r}") from None
+    start, stop, _ = sl.indices(n)
+    if stop <= start:
+        raise CLIError(f"--frames {text} selects no frame of the {n}")
+    return start, stop
+
+
+def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, align: int = 1
+               ) -> tuple[list[Task], list[str]]:
+    """Lists every sequence's frames (as ``floxels run`` will) and cuts them into tasks of at most
+    ``task_frames`` frames (0: whole sequences), starting at multiples of ``align`` (the run's
+    ``--chunk``, so tasks batch their targets exactly like the run over the whole sequence).
+    Returns (tasks, problems): a problem names a sequence that cannot run and why."""
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.io.poses import PoseFormatError
+    from floxels_ext.lidar.io.sources import InputError, discover_input
+
+    tasks: list[Task] = []
+    problems: list[str] = []
+    size = 0 if task_frames <= 0 else -(-task_frames // align) * align
+    for s in specs:
+        try:
+            seq = discover_input(s.path, poses_file=s.poses, calib=s.calib, bin_columns=args.bin_columns,
+                                 ext=args.ext, points_frame=args.points_frame)
+        except (InputError, PoseFormatError, MissingDependencyError) as e:
+            problems.append(str(e))
+            continue
+        n = len(seq)
+        if n < 2:
+            problems.append(f"{s.path} holds {n} frame; scene flow needs at least 2")
+            continue
+        if seq.kind == "files" and seq.poses is None and not (args.no_ego_motion or args.odometry) \
+                and seq.frames[0].path.suffix.lower() != ".npz":
+            problems.append(f"{s.path}: no poses for ego-motion compensation (KITTI: poses/NN.txt next to "
+                            f"sequences/; a list file: 'PATH --poses FILE'; or --odometry kiss-icp / --no-ego-motion)")
+            continue
+        start, stop = parse_frame_range(args.frames, n)
+        out_dir = out / s.rel
+        step = size or (stop - start)
+        if args.odometry:  # one task per sequence: KISS-ICP runs over the whole sequence once
+            step = stop - start
+        # cut every `step` frames from the first selected one, where the run's own batches start
+        cuts = [*range(start, stop, step), stop]
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            tasks.append(Task(s, out_dir, a, b, [f.name for f in seq.frames[a:b]],
+                              frame_paths=[str(f.path) for f in seq.frames[a:b]]))
+    return tasks, problems

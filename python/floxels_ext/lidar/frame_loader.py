@@ -1,0 +1,331 @@
+"""Frames read and preprocessed ahead of the optimiser for ``floxels run``.
+
+:class:`FrameLoader` reads, checks, crops and removes the ground of frames on worker threads
+(or processes), at most one chunk ahead; :class:`ChunkScans` hands a chunk's frames to the
+method as scans in one world frame, lazily, so the first windows start before the chunk is
+read; :class:`Stages` adds up where the time went. Reading (file I/O), the numpy/torch
+preprocessing and ``np.savez`` release the GIL for most of their time, and frames are hundreds
+of kB, so threads overlap them with the optimiser without copying frames between processes.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "FrameLoader", "ChunkScans"]
+
+
+@dataclass
+class PreparedFrame:
+    kept: np.ndarray         # (M, 3) float32: the optimised points, native coordinates, file order
+    mask: np.ndarray         # (N,) bool: which rows of the file they are
+    nonfinite: np.ndarray    # indices of the rows with NaN/inf coordinates
+    to_world: np.ndarray     # (4, 4) native -> world
+    points: np.ndarray | None = None  # (N, 3) all rows, only when asked for (--self-contained)
+
+    @property
+    def n(self) -> int:
+        return len(self.mask)
+
+
+@dataclass
+class Stages:
+    """Seconds per stage. read/preprocess/write: summed over worker threads (CPU time spent);
+    wait_input: the optimiser waited for frames; estimate: inside the method; wait_writer: the
+    optimiser waited for the writer (queue full); wall: the whole pipeline. ``wait_input_in_estimate``:
+    the part of wait_input spent inside the method (it asks for the scans lazily), so
+    ``estimate - wait_input_in_estimate`` is the time the method actually computed."""
+
+    read: float = 0.0
+    preprocess: float = 0.0
+    transform: float = 0.0
+    estimate: float = 0.0
+    write: float = 0.0
+    wait_input: float = 0.0
+    wait_input_in_estimate: float = 0.0
+    wait_writer: float = 0.0
+    wall: float = 0.0
+    in_estimate: bool = False  # set by the thread calling the method
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def add(self, name: str, dt: float) -> None:
+        with self._lock:
+            setattr(self, name, getattr(self, name) + dt)
+
+    def as_dict(self) -> dict:
+        d = {k: round(getattr(self, k), 6) for k in
+             ("read", "preprocess", "transform", "estimate", "write", "wait_input", "wait_input_in_estimate",
+              "wait_writer", "wall")}
+        # the method waits for nothing but its own work: the rest of the wall time is host-bound
+        d["compute"] = round(max(0.0, self.estimate - self.wait_input_in_estimate - self.wait_writer), 6)
+        d["outside_estimate"] = round(max(0.0, self.wall - self.estimate), 6)
+        d["host_bound"] = round(max(0.0, self.wall - d["compute"]), 6)
+        return d
+
+
+def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, pre_device=None) -> dict:
+    """Read and preprocess frame ``i`` (runs on a worker thread or process). Returns a dict:
+    ``frame`` (a PreparedFrame) or ``error`` (a message naming the file), ``warning``, and the
+    seconds spent reading and preprocessing. ``pose_mode``: "table" (``poses[i]``), "frame" (the
+    file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
+    frame; the file's ``pose`` locates the sensor for cropping)."""
+    from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
+    from floxels_ext.lidar.preprocess import preprocess_mask, transform_points
+
+    path = seq.frames[i].path
+    out: dict = {"read": 0.0, "preprocess": 0.0}
+    t0 = time.perf_counter()
+    try:
+        scan = seq.load(i)
+        sensor_from_native = None
+        if pose_mode == "seqio":
+            to_world = np.eye(4)
+            if scan.pose is not None:
+                sensor_from_native = np.linalg.inv(scan.pose)
+            else:
+                out["warning"] = "no_pose"
+        elif pose_mode == "frame":
+            if scan.pose is None:
+                raise LidarFormatError(f"{path}: no 'pose' in this frame, but other frames of the sequence "
+                                       f"have one (give --poses)")
+            to_world = scan.pose
+        elif pose_mode == "identity":
+            to_world = np.eye(4)
+        else:  # "table": seq.poses or odometry
+            to_world = poses[i]
+    except MissingDependencyError:
+        raise
+    except (LidarFormatError, ValueError, OSError) as e:
+        out["error"] = str(e)
+        return out
+    pts = np.asarray(scan.points, np.float32)
+    finite = np.isfinite(pts).all(axis=1)
+    nonfinite = np.flatnonzero(~finite)
+    if len(nonfinite) == len(pts):
+        out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
+        return out
+    t1 = time.perf_counter()
+    out["read"] = t1 - t0
+    pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
+    try:
+        if settings is None:
+            mask = finite
+        elif pre_device is not None and str(pre_device).startswith("cuda"):
+            import torch
+
+            # a stream per worker thread: its kernels and read-back do not queue behind the optimiser's
+            if getattr(_TLS, "stream", None) is None:
+                _TLS.stream = torch.cuda.Stream(device=pre_device)
+            with torch.cuda.stream(_TLS.stream):
+                mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+        else:
+            mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+    except ValueError as e:
+        out["error"] = f"{path}: preprocessing failed: {e}"
+        return out
+    out["preprocess"] = time.perf_counter() - t1
+    out["frame"] = PreparedFrame(pts[mask], mask, nonfinite, np.asarray(to_world, np.float64),
+                                 pts if keep_points else None)
+    return out
+
+
+_TLS = threading.local()
+_WORKER: dict = {}
+
+
+def single_threaded_blas():
+    """A context limiting numpy's BLAS to one thread (a no-op without threadpoolctl).
+
+    Why: the per-scan BLAS calls (the ground plane's least squares, 3x3 transforms of 100k
+    points) are tiny; from 16 workers, each spinning up a 16-thread BLAS pool, they ran ~5x slower
+    than on one thread (84 ms a 240k-point scan on a 16-core host). Results are unchanged: each
+    output element is computed by the same kernel whatever the thread count."""
+    import contextlib
+
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
+def _init_process(kwargs) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it stops us)
+    _WORKER["blas"] = single_threaded_blas()  # kept alive: the limit holds for the worker's life
+    _WORKER["blas"].__enter__()
+    _WORKER["kwargs"] = kwargs
+
+
+def _process_load(i: int) -> dict:
+    return load_frame(i, **_WORKER["kwargs"])
+
+
+def _nothing() -> None:
+    return None
+
+
+class FrameLoader:
+    """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
+    processes (``kind="process"``: numpy preprocessing without sharing the GIL with the
+    optimiser's host work; forked at construction, before the device is used)."""
+
+    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
+                 pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn) -> None:
+        self.seq, self.report, self.warn = seq, report, warn
+        self.stages = stages or Stages()
+        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+        workers = max(1, workers)
+        if kind == "process":
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork"),
+                                            initializer=_init_process, initargs=(self.kwargs,))
+            for f in [self.pool.submit(_nothing) for _ in range(workers)]:
+                f.result()  # start them all now
+            self._submit = lambda i: self.pool.submit(_process_load, i)
+        else:
+            self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
+            self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
+        # transforms wait for loads: a pool of their own, so they never queue behind later loads
+        self.tpool = ThreadPoolExecutor(max_workers=min(workers, 8), thread_name_prefix="floxels-move")
+        self.futures: dict = {}
+        self.done: dict[int, PreparedFrame | None] = {}
+        self.errors: dict[int, str] = {}
+        self.nonfinite: dict[int, int] = {}
+        self._warned_no_pose = False
+        self._lock = threading.Lock()
+
+    def prefetch(self, indices) -> None:
+        with self._lock:
+            for i in indices:
+                if i not in self.futures and i not in self.done:
+                    self.futures[i] = self._submit(i)
+
+    def _collect(self, i: int, res: dict) -> PreparedFrame | None:
+        with self._lock:
+            if i in self.done:
+                return self.done[i]
+            self.stages.add("read", res["read"])
+            self.stages.add("preprocess", res["preprocess"])
+            fr = res.get("frame")
+            if "error" in res:
+                self.errors[i] = res["error"]
+            elif len(fr.nonfinite):
+                self.nonfinite[i] = len(fr.nonfinite)
+            first_no_pose = res.get("warning") == "no_pose" and not self._warned_no_pose
+            self._warned_no_pose |= first_no_pose
+            self.done[i] = fr
+        if "error" in res:
+            self.report(f"floxels: error: {res['error']}")
+        if first_no_pose:
+            self.warn(f"{self.seq.frames[i].path} has no 'pose': ranges and heights are measured from the world origin")
+        return fr
+
+    def get(self, i: int) -> PreparedFrame | None:
+        """Frame ``i`` (None if it cannot be used); waits for it. Thread-safe."""
+        with self._lock:
+            if i in self.done:
+                return self.done[i]
+            fut = self.futures.get(i)
+            if fut is None:
+                fut = self.futures[i] = self._submit(i)
+        if not fut.done():
+            t0 = time.perf_counter()
+            fut.result()
+            dt = time.perf_counter() - t0
+            self.stages.add("wait_input", dt)
+            if self.stages.in_estimate:
+                self.stages.add("wait_input_in_estimate", dt)
+        fr = self._collect(i, fut.result())
+        with self._lock:
+            self.futures.pop(i, None)
+        return fr
+
+    def peek(self, i: int) -> PreparedFrame | None:
+        """The frame if it is loaded already (never waits)."""
+        if i in self.done:
+            return self.done[i]
+        fut = self.futures.get(i)
+        if fut is None or not fut.done() or fut.exception() is not None:
+            return None
+        return self._collect(i, fut.result())
+
+    def evict_below(self, lo: int) -> None:
+        with self._lock:
+            for k in [k for k in self.futures if k < lo]:
+                self.futures.pop(k).cancel()
+            for k in [k for k in self.done if k < lo]:
+                del self.done[k]
+
+    def close(self) -> None:
+        for fut in self.futures.values():
+            fut.cancel()
+        self.tpool.shutdown(wait=True, cancel_futures=True)
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class ChunkScans(Sequence):
+    """The ego-motion-compensated scans of frames ``[lo, hi)`` as a sequence: item ``k`` is frame
+    ``lo + k``'s kept points moved into the chunk's world frame (re-centred on ``anchor``). The
+    transforms run on the loader's transform threads as soon as the chunk is planned; an item
+    is dropped once a later window starts after it."""
+
+    def __init__(self, loader: FrameLoader, lo: int, hi: int, anchor: np.ndarray) -> None:
+        self.loader, self.lo, self.hi, self.anchor = loader, lo, hi, anchor
+        self._futs = {k: loader.tpool.submit(self._make, k) for k in range(hi - lo)}
+
+    def __len__(self) -> int:
+        return self.hi - self.lo
+
+    def _make(self, k: int) -> np.ndarray:
+        p = self.loader.get(self.lo + k)
+        t0 = time.perf_counter()
+        if p is None:
+            return np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
+        T = p.to_world.copy()
+        T[:3, 3] -= self.anchor
+        kept = p.kept.astype(np.float64)
+        s = (kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        self.loader.stages.add("transform", time.perf_counter() - t0)
+        return s
+
+    def _scan(self, k: int) -> np.ndarray:
+        fut = self._futs.get(k)
+        if fut is None:  # dropped (asked for again after its window passed): make it again
+            fut = self._futs[k] = self.loader.tpool.submit(self._make, k)
+        if not fut.done():
+            t0 = time.perf_counter()
+            fut.result()
+            dt = time.perf_counter() - t0
+            self.loader.stages.add("wait_input", dt)
+            if self.loader.stages.in_estimate:
+                self.loader.stages.add("wait_input_in_estimate", dt)
+        return fut.result()
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            idx = range(len(self))[k]
+            if k.step in (None, 1) and len(idx):  # a window: nothing before it is asked for again
+                for j in [j for j in self._futs if j < idx[0]]:
+                    del self._futs[j]
+            return [self._scan(j) for j in idx]
+        k = int(k)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        return self._scan(k)
+
+    def close(self) -> None:
+        for f in self._futs.values():
+            f.cancel()
+        self._futs.clear()

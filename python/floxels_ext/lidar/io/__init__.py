@@ -1,0 +1,8 @@
+"""Lidar frame readers and pose files (see ``readers`` and ``poses``)."""
+
+from floxels_ext.lidar.io._optional import MissingDependencyError
+from floxels_ext.lidar.io.poses import PoseFormatError, read_av2_poses, read_kitti_calib, read_poses
+from floxels_ext.lidar.io.readers import SUFFIXES, LidarFormatError, LidarScan, natural_key, read_points
+
+__all__ = ["LidarScan", "LidarFormatError", "PoseFormatError", "MissingDependencyError", "SUFFIXES",
+           "read_points", "read_poses", "read_av2_poses", "read_kitti_calib", "natural_key"]

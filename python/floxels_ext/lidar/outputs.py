@@ -1,0 +1,188 @@
+"""The files ``floxels run`` writes, and the one reader for them (:func:`read_flow_output`).
+
+One ``OUT_DIR/<frame name>.npz`` per frame (layout in :data:`OUTPUT`). Writes are atomic (a
+hidden temporary name in the same directory, then ``os.replace``), so a file that exists is
+complete and an interrupted run resumes by skipping it. Each file records the settings that
+produced it (``settings``, JSON) so a resumed run with other settings is detected
+(:func:`settings_mismatch`). By default the files are written uncompressed and without the input
+points (they are read back from the recorded ``source`` file); ``--self-contained`` stores them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["OUTPUT", "FORMAT_VERSION", "OutputError", "write_output", "read_flow_output", "cleanup_temps",
+           "read_settings", "settings_mismatch", "run_outputs"]
+
+FORMAT_VERSION = 2
+
+OUTPUT = """\
+Output: OUT_DIR/<frame name>.npz per frame (np.savez; --compress: zip-compressed) with
+  flow        (N,3) float32  motion to the next frame (metres per frame step), in the frame
+                             file's own coordinates and point order; ego-motion compensated
+                             (static = 0). Points not optimised (cropped, ground) get 0,
+                             rows with NaN/inf input coordinates get NaN.
+  mask        (N,)  bool     points that passed cropping and ground removal and were optimised
+                             (the points the paper evaluates)
+  dynamic     (N,)  bool     optimised points whose |flow| exceeds dynamic_threshold
+                             (--dynamic-threshold, metres per frame step; default 0.05, i.e.
+                             0.5 m/s at 10 Hz, the Argoverse 2 protocol's dynamic threshold)
+  pose        (4,4) float64  the frame's coordinates -> the sequence's world frame
+  ego_motion  (4,4) float64  the frame's coordinates -> the next frame's (when the next pose
+                             is known, the last selected frame included)
+  points      (N,3) float32  the input points (same order): only with --self-contained;
+                             otherwise read back from 'source' (floxels_ext.lidar.outputs.
+                             read_flow_output does either)
+  source, bin_columns, points_frame  the frame file and how to read it again
+  timestamp_ns               the frame's time when the input names it (Argoverse 2 sweeps)
+  method, num_scans, elapsed_s, options (JSON), dynamic_threshold, format (2),
+  settings (JSON: everything that changes the result; a resumed run with other
+  settings stops, --force recomputes)
+OUT_DIR/run_summary.json (or --summary FILE): frames, written, skipped, failures with file
+names, s/frame and per-stage times of the last run.
+"""
+
+_TMP_RE = re.compile(r"^\.(?P<name>.+\.npz)\.\d+\.tmp$")
+
+
+class OutputError(ValueError):
+    """A run output cannot be read (the message names the file)."""
+
+
+def cleanup_temps(out: Path, names=None) -> int:
+    """Remove the temporary files an interrupted run left in ``out``; returns how many.
+
+    ``names``: only the temporaries of these output files (``NAME.npz``), so that a run over some
+    frames leaves alone those of another run writing other frames of the same directory (Ray
+    tasks of one sequence)."""
+    n = 0
+    for p in out.iterdir():
+        m = _TMP_RE.match(p.name)
+        if m and (names is None or m.group("name") in names):
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
+def write_output(path: Path, *, compress: bool = False, **arrays) -> Path:
+    """Atomic .npz write: a temporary name in the same directory, then ``os.replace``."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_settings(path: Path) -> dict | None:
+    """The ``settings`` a run output records (None for files of older versions: their
+    method/num_scans/options are returned instead, as far as they are known)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "settings" in z.files:
+                return json.loads(str(z["settings"]))
+            old = {}
+            if "method" in z.files:
+                old["method"] = str(z["method"])
+            if "options" in z.files:
+                old["options"] = json.loads(str(z["options"]))
+            return old or None
+    except Exception:  # unreadable: not "done"; the caller recomputes it
+        return None
+
+
+def settings_mismatch(recorded: dict, current: dict) -> list[str]:
+    """Human-readable differences between two ``settings`` dicts (keys both know)."""
+    cur = json.loads(json.dumps(current, default=str))  # same normal form as the recorded JSON
+    return [f"{k}: {recorded[k]!r} (recorded) vs {cur[k]!r} (now)" for k in sorted(set(recorded) & set(cur))
+            if recorded[k] != cur[k]]
+
+
+def run_outputs(run_dir) -> list[Path]:
+    """The frame outputs of a ``floxels run`` OUT_DIR in natural order."""
+    from floxels_ext.lidar.io.readers import natural_key
+
+    d = Path(run_dir)
+    if not d.is_dir():
+        raise FileNotFoundError(f"{d} is not a directory" if d.exists() else f"{d} does not exist")
+    files = sorted((p for p in d.glob("*.npz") if not p.name.startswith(".")), key=lambda p: natural_key(p.name))
+    if not files:
+        raise FileNotFoundError(f"{d} holds no frame outputs (*.npz from floxels run)")
+    return files
+
+
+def _source_points(d: dict, path: Path) -> np.ndarray:
+    from floxels_ext.lidar.io import read_points
+
+    if "source" not in d:
+        raise OutputError(f"{path}: no 'points' and no 'source' recorded; expected an output of 'floxels run'")
+    src = Path(str(d["source"]))
+    if not src.is_absolute():
+        src = path.parent / src
+    cols = int(d["bin_columns"]) if "bin_columns" in d and int(d["bin_columns"]) > 0 else None
+    try:
+        pts = read_points(src, bin_columns=cols).points
+    except (ValueError, OSError) as e:
+        raise OutputError(f"{path}: its input points are not stored (run without --self-contained) and its "
+                          f"source {src} cannot be read: {e}") from None
+    return np.asarray(pts, np.float32)
+
+
+def read_flow_output(path, *, points: bool = True) -> dict:
+    """One ``floxels run`` output as a dict: ``flow``, ``mask``, ``dynamic``, ``pose``,
+    ``ego_motion`` (None when unknown), ``points`` (stored, else read from the recorded source
+    file; skipped with ``points=False``), ``options``/``settings`` (dicts), ``method``,
+    ``num_scans``, ``source``, ``timestamp_ns`` (None when unknown), ``elapsed_s``.
+    Errors (:class:`OutputError`) name the file."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+    except Exception as e:
+        raise OutputError(f"{path}: cannot read ({e})") from None
+    if "flow" not in d:
+        raise OutputError(f"{path}: no 'flow'; expected an output of 'floxels run'")
+    flow = np.asarray(d["flow"])
+    if flow.ndim != 2 or flow.shape[1] != 3:
+        raise OutputError(f"{path}: 'flow' must be (N, 3), got {flow.shape}")
+    n = len(flow)
+    out: dict = {"flow": flow}
+    if points:
+        pts = d["points"] if "points" in d else _source_points(d, path)
+        if pts.shape != flow.shape:
+            raise OutputError(f"{path}: {len(pts)} points ({'stored' if 'points' in d else d.get('source')}) "
+                              f"but 'flow' has {n} rows")
+        if "points" not in d and "points_frame" in d and str(d["points_frame"]) == "world":
+            pass  # seqio input: the source stores the points in the same (world) frame as written
+        out["points"] = np.asarray(pts, np.float32)
+    finite = np.isfinite(flow).all(1)
+    out["mask"] = np.asarray(d["mask"], bool) if "mask" in d else finite
+    if "dynamic" in d:
+        out["dynamic"] = np.asarray(d["dynamic"], bool)
+    else:
+        thr = float(d["dynamic_threshold"]) if "dynamic_threshold" in d else 0.05
+        with np.errstate(invalid="ignore"):
+            out["dynamic"] = out["mask"] & (np.linalg.norm(np.nan_to_num(flow), axis=1) > thr)
+    for k in ("mask", "dynamic"):
+        if out[k].shape != (n,):
+            raise OutputError(f"{path}: '{k}' has shape {out[k].shape}, expected ({n},)")
+    out["pose"] = np.asarray(d.get("pose", np.eye(4)), np.float64)
+    out["ego_motion"] = np.asarray(d["ego_motion"], np.float64) if "ego_motion" in d else None
+    for k in ("options", "settings"):
+        out[k] = json.loads(str(d[k])) if k in d else {}
+    for k in ("method", "source"):
+        out[k] = str(d[k]) if k in d else None
+    out["num_scans"] = int(d["num_scans"]) if "num_scans" in d else None
+    out["timestamp_ns"] = int(d["timestamp_ns"]) if "timestamp_ns" in d else None
+    out["elapsed_s"] = float(d["elapsed_s"]) if "elapsed_s" in d else None
+    return out

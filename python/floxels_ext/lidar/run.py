@@ -1,0 +1,306 @@
+"""``floxels run INPUT --out OUT_DIR``: scene flow for every frame of a real lidar sequence.
+
+Per frame: read the file (``floxels_ext.lidar.io``), crop and remove the ground in the
+scan's own sensor frame (``floxels_ext.lidar.preprocess``), bring the scans of its window into one
+frame with the poses (ego-motion compensation), estimate the flow with the chosen method and
+write ``OUT_DIR/<frame name>.npz`` (see :data:`floxels_ext.lidar.outputs.OUTPUT`). Frames already
+written with the same settings are skipped, so an interrupted run continues where it stopped.
+Reading and preprocessing run ahead on worker threads and writing on a writer thread while the
+method optimises (:mod:`floxels_ext.lidar.pipeline`).
+
+Coordinates: the scans of a window are compensated in a world frame re-centred on the chunk
+being processed (world axes, so float32 stays precise with city-scale AV2 coordinates); the
+flow is then rotated into the target frame's *native* coordinates, those its file stores (the
+sensor frame for plain files, the ego frame for AV2, the world frame for a ``floxels simulate``
+sequence). Flow is ego-motion compensated: static points have zero flow. ``ego_motion`` holds
+the rigid motion of the frame itself to the next one, for those who need raw displacements.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import statistics
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from floxels_ext.lidar.outputs import OUTPUT, write_output  # noqa: F401  (write_output: re-exported for callers)
+
+
+def _opt_float(text: str) -> float | None:
+    if text.lower() in ("none", "off", "inf"):
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"expected a number or 'none', got {text!r}") from None
+    return v
+
+
+def add_parser(sub) -> None:
+    import argparse
+    import textwrap
+
+    from floxels_ext.lidar.dataset_run import add_dataset_arguments
+
+    p = sub.add_parser(
+        "run", help="estimate scene flow for a whole lidar sequence (resumable)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="\n\n".join(textwrap.fill(t, 92) for t in (
+            "Estimate the flow of every frame of INPUT and write one .npz per frame to OUT_DIR.",
+            "INPUT: a directory of frame files of one format (.bin .npy .npz .pcd .ply .feather, natural "
+            "order), a 'floxels simulate' sequence, or an Argoverse 2 log directory "
+            "(sensors/lidar/*.feather + city_SE3_egovehicle.feather).",
+            "Ego-motion: --poses FILE, else poses stored with the frames (AV2, .npz 'pose'), else "
+            "--odometry kiss-icp (estimated; pip install 'floxels_ext[odometry]'), else --no-ego-motion "
+            "if the scans are already in one frame.")) + "\n\n" + OUTPUT)
+    p.add_argument("input", metavar="INPUT", nargs="?")
+    p.add_argument("--out", metavar="OUT_DIR", help="output directory (created; required)")
+    p.add_argument("--poses", metavar="FILE", help="poses: KITTI poses.txt (12/line), 4x4 per line, TUM, "
+                   ".npy/.npz (F,4,4), or AV2 city_SE3_egovehicle.feather")
+    p.add_argument("--calib", metavar="FILE", help="KITTI calib.txt: turn camera poses into velodyne poses")
+    p.add_argument("--odometry", choices=["kiss-icp"], help="estimate poses with KISS-ICP when none are given")
+    p.add_argument("--no-ego-motion", action="store_true", help="the scans are already ego-motion compensated")
+    p.add_argument("--method", default="floxels", help="scene-flow method (see --list-methods; default floxels)")
+    p.add_argument("--list-methods", action="store_true", help="print the available methods and exit")
+    p.add_argument("--scans", type=int, default=5, help="scans per window, target in the middle (default 5)")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
+    p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
+                   "neighbours outside still serve as support scans")
+    p.add_argument("--max-iters", type=int, help="shortcut for --option max_iters=N")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="method option (Floxels: any FloxelsConfig field, e.g. voxel_size=0.5); repeatable")
+    p.add_argument("--no-ground-removal", action="store_true", help="keep ground points")
+    p.add_argument("--min-range", type=_opt_float, default=3.0, help="m, drop closer points (default 3; 'none')")
+    p.add_argument("--max-range", type=_opt_float, default=50.0, help="m, drop farther points (default 50; 'none')")
+    p.add_argument("--max-height", type=_opt_float, default=4.0,
+                   help="m above the local ground, drop higher points (default 4; 'none')")
+    p.add_argument("--ground-threshold", type=float, default=0.3, help="m above the ground surface that is "
+                   "still ground (default 0.3)")
+    p.add_argument("--ground-window", type=float, default=8.0, help="m, morphological window (default 8)")
+    p.add_argument("--ground-cell", type=float, default=0.5, help="m, ground grid cell (default 0.5)")
+    p.add_argument("--bin-columns", type=int, choices=[3, 4, 5, 6], help="float32 columns of .bin frames "
+                   "(default: from the file size; 4 KITTI, 5 nuScenes)")
+    p.add_argument("--ext", help="frame extension to use when INPUT mixes formats")
+    p.add_argument("--points-frame", choices=["auto", "sensor", "world"], default="auto",
+                   help="coordinates of the stored points: each scan's sensor frame, or one world frame "
+                        "(.npz with the sensor 'pose', as 'floxels simulate' writes); auto: world for a "
+                        "'floxels simulate' directory (sequence.json present), else sensor")
+    p.add_argument("--chunk", type=int, default=None, help="targets per method call (one re-centred world frame, "
+                   "shared distance transforms); default: 8, 16, 32, then 64 (the device starts early)")
+    p.add_argument("--force", action="store_true", help="recompute frames already written (also those written "
+                   "with other settings)")
+    p.add_argument("--dynamic-threshold", type=float, default=0.05, metavar="M",
+                   help="m per frame step: optimised points moving faster are flagged 'dynamic' (default 0.05, "
+                        "0.5 m/s at 10 Hz as in the Argoverse 2 protocol)")
+    p.add_argument("--self-contained", action="store_true", help="also store the input points in every output "
+                   "(default: read back from the recorded source file)")
+    p.add_argument("--compress", action="store_true", help="zip-compress the outputs (smaller, slower)")
+    p.add_argument("--summary", metavar="FILE", help="JSON summary of the run (default OUT_DIR/run_summary.json)")
+    p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: 4 with GPU "
+                   "preprocessing, else the CPU cores, at most 16)")
+    p.add_argument("--worker-kind", choices=["auto", "thread", "process"], default="auto",
+                   help="readers/preprocessors as threads or processes (numpy preprocessing only); auto: threads "
+                        "(faster than processes on the hosts measured)")
+    p.add_argument("--preprocess-device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="where cropping/ground removal run: numpy on the CPU, or torch on the GPU (same masks; "
+                        "worker threads); auto: the GPU when --device is one, else the CPU")
+    add_dataset_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from floxels_ext.lidar.run_args import check_args, check_out_dir, check_resume, parse_frames, reader_plan
+    from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
+
+    from floxels_ext.lidar.dataset_run import maybe_run_dataset
+
+    rc = maybe_run_dataset(args)
+    if rc is not None:
+        return rc
+    import torch
+
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.io.poses import PoseFormatError
+    from floxels_ext.lidar.io.sources import InputError, discover_input
+    from floxels_ext.methods import available_methods, get_method
+    from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
+    from floxels_ext.lidar.frame_loader import FrameLoader, Stages, single_threaded_blas
+    from floxels_ext.lidar.pipeline import EstimationError, run_pipeline
+    from floxels_ext.lidar.preprocess import Preprocess
+    from floxels_ext.lidar.progress import Progress
+
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
+    if args.list_methods:
+        for name in available_methods():
+            print(f"{name:<12} {get_method(name).description}")
+        return 0
+    device, options = check_args(args, torch)
+    try:
+        settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
+                              remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
+                              ground_window=args.ground_window, ground_threshold=args.ground_threshold)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+    out = Path(args.out)
+    try:
+        seq = discover_input(args.input, poses_file=args.poses, calib=args.calib, bin_columns=args.bin_columns,
+                             ext=args.ext, points_frame=args.points_frame)
+    except (InputError, PoseFormatError, MissingDependencyError) as e:
+        raise CLIError(str(e)) from None
+    if len(seq) < 2:
+        raise CLIError(f"{seq.root} holds {len(seq)} frame; scene flow needs at least 2")
+    check_out_dir(out, seq)
+    selected = parse_frames(args.frames, len(seq))
+    out.mkdir(parents=True, exist_ok=True)
+    stale = cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
+    bar: Progress | None = None
+
+    def report(msg: str) -> None:  # errors and warnings: shown at every verbosity
+        (bar.message(msg) if bar is not None else print(msg, file=sys.stderr, flush=True))
+
+    def info(msg: str) -> None:
+        if verbosity >= 0:
+            report(msg)
+
+    if stale:
+        info(f"removed {stale} temporary file(s) left by an interrupted run")
+    try:
+        pose_mode, poses = resolve_poses(seq, args, out, report)
+    except (PoseFormatError, MissingDependencyError) as e:
+        raise CLIError(str(e)) from None
+    run_settings = {"method": args.method, "num_scans": args.scans, "options": options,
+                    "preprocess": asdict(settings), "ego_motion": pose_mode,
+                    "pose_source": str(seq.pose_source) if seq.pose_source else None,
+                    "dynamic_threshold": args.dynamic_threshold}
+    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
+    todo = check_resume(out_path, selected, run_settings, args.force)
+    skipped = len(selected) - len(todo)
+    info(f"{seq.root}: {len(seq)} frames ({seq.kind}), {len(selected)} selected, {skipped} already done, "
+         f"{len(todo)} to estimate with {args.method} on {device} "
+         f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})")
+
+    pre_dev, workers, kind = reader_plan(args, device)
+    if kind == "process" and pre_dev is not None:
+        raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
+    stages = Stages()
+    loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
+                         keep_points=args.self_contained, stages=stages,
+                         warn=lambda m: report(f"floxels: warning: {m}"))
+    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
+    # pipeline passes them to methods whose estimate_sequence takes ``times``
+    stamps = [f.timestamp_ns for f in seq.frames]
+    times_s, times_source = frame_times(seq, stamps, report)
+    if times_source is not None:
+        info(f"frame times from {times_source}: window offsets follow them, flow stays per frame step")
+    meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
+            "options": np.str_(json.dumps(options, default=str)),
+            "settings": np.str_(json.dumps(run_settings, default=str)),
+            "dynamic_threshold": np.float64(args.dynamic_threshold), "format": np.int32(FORMAT_VERSION),
+            "bin_columns": np.int32(seq.bin_columns or 0),
+            "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
+
+    def write_one(i, p, flow_kept, elapsed, next_to_world):
+        # float32 arithmetic and index (not boolean) assignment: this ran on the writer threads
+        # at ~6 ms a frame in float64, a third of a GPU frame's budget (flow differs < 1e-6 m)
+        full = np.zeros((p.n, 3), np.float32)
+        full[p.nonfinite] = np.nan
+        kept = np.flatnonzero(p.mask)
+        # world-axes flow -> the frame's native axes: R^T f (row vectors: f @ R)
+        native = np.asarray(flow_kept, np.float32) @ p.to_world[:3, :3].astype(np.float32)
+        full[kept] = native
+        dynamic = np.zeros(len(full), bool)
+        thr = args.dynamic_threshold
+        dynamic[kept] = np.einsum("ij,ij->i", native, native) > np.float32(thr) * np.float32(thr)
+        extra = {}
+        if next_to_world is not None:
+            extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)
+        if args.self_contained:
+            extra["points"] = p.points
+        if stamps[i] is not None:
+            extra["timestamp_ns"] = np.int64(stamps[i])
+        write_output(out_path[i], compress=args.compress, flow=full, mask=p.mask, dynamic=dynamic,
+                     pose=p.to_world, elapsed_s=np.float64(elapsed),
+                     source=np.str_(str(seq.frames[i].path.resolve())), **meta, **extra)
+
+    def next_pose(i):
+        if i + 1 >= len(seq) or pose_mode == "seqio":
+            return None
+        if pose_mode == "table":
+            return poses[i + 1]
+        if pose_mode == "identity":
+            return np.eye(4)
+        nxt = loader.peek(i + 1)
+        return None if nxt is None else nxt.to_world
+
+    bar = Progress(len(todo), verbosity=verbosity)
+    t0 = time.perf_counter()
+    # with the method on the GPU, numpy's BLAS serves only the per-scan host work: one thread each
+    blas = single_threaded_blas() if device.startswith("cuda") else contextlib.nullcontext()
+    try:
+        with blas:
+            res = run_pipeline(loader=loader, method=get_method(args.method), todo=todo, n=len(seq),
+                               num_scans=args.scans, chunk=args.chunk, device=device, options=options,
+                               write_one=write_one, next_pose=next_pose, times_s=times_s,
+                               on_written=lambda i: bar.update(note=seq.frames[i].name))
+    except EstimationError as e:
+        raise CLIError(f"{args.method}: {e}") from None
+    except MissingDependencyError as e:
+        raise CLIError(str(e)) from None
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    failed = res["failed"]
+    for i, msg in loader.errors.items():  # unreadable support scans count as failures too
+        failed.setdefault(i, msg)
+    written = res["written"]
+    nonfinite = {i: k for i, k in loader.nonfinite.items() if i in set(todo)}
+    if nonfinite:
+        first = sorted(nonfinite)[:3]
+        report(f"floxels: warning: {len(nonfinite)} frame(s) have rows with NaN/inf coordinates (their flow is "
+               f"NaN): " + ", ".join(f"{seq.frames[i].path.name} ({nonfinite[i]} rows)" for i in first)
+               + (" ..." if len(nonfinite) > 3 else ""))
+    times = res["times"]
+    msgs = {}
+    for i in sorted(failed):
+        path = str(seq.frames[i].path)
+        msgs[i] = failed[i] if failed[i].startswith(path) else path + ": " + failed[i]
+    summary = {"input": str(seq.root), "out": str(out), "method": args.method, "device": device,
+               "frames": len(seq), "selected": len(selected), "written": written, "skipped": skipped,
+               "failed": len(failed), "failures": [{"frame": seq.frames[i].name, "message": msgs[i]} for i in msgs],
+               "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
+               "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
+               "s_per_frame_median": round(statistics.median(times), 6) if times else None,
+               "stages_s": stages.as_dict(), "workers": workers, "worker_kind": kind,
+               "preprocess_device": pre_dev or "cpu",
+               "settings": json.loads(json.dumps(run_settings, default=str))}
+    summary_path = Path(args.summary) if args.summary else out / "run_summary.json"
+    try:
+        tmp = summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        os.replace(tmp, summary_path)
+    except OSError as e:
+        report(f"floxels: warning: cannot write the summary {summary_path}: {e}")
+    line = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failed)} failed"
+    if times:
+        line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
+                 f"{sum(times):.1f} s total")
+    if verbosity >= 0:
+        print(line, file=sys.stderr)
+    if verbosity >= 1:
+        st = stages.as_dict()
+        print("stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()) + f"; summary: {summary_path}",
+              file=sys.stderr)
+    if failed:
+        print("failed frames:", file=sys.stderr)
+        for i in msgs:
+            print(f"  {msgs[i]}", file=sys.stderr)
+        return 1
+    return 0

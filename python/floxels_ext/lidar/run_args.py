@@ -1,0 +1,161 @@
+"""``floxels run``'s arguments checked before any data is read (every mistake a CLIError,
+reported as ``floxels: error: ...``), the frames to do (resume), and how many readers to use."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["parse_options", "parse_frames", "check_args", "check_out_dir", "check_resume", "reader_plan"]
+
+
+def parse_options(items: list[str], max_iters: int | None, config: type | None) -> dict:
+    """``--option KEY=VALUE`` items as typed values: parsed for the field's type of the method's
+    ``config`` dataclass (bools from true/false/yes/no/on/off/1/0, tuples from a,b); JSON for
+    a method without one."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.estimator.config_fields import parse_option_value
+
+    opts: dict = {}
+    for item in items:
+        key, sep, val = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise CLIError(f"--option expects KEY=VALUE, got {item!r}")
+        if config is not None:
+            try:
+                opts[key] = parse_option_value(config, key, val)
+            except (TypeError, ValueError) as e:
+                raise CLIError(f"bad --option {item!r}: {e}") from None
+            continue
+        try:
+            opts[key] = json.loads(val)
+        except json.JSONDecodeError:
+            opts[key] = val  # a bare string such as reg_scale=paper
+        if isinstance(opts[key], list):
+            opts[key] = tuple(opts[key])
+    if max_iters is not None:
+        opts["max_iters"] = max_iters
+    return opts
+
+
+def parse_frames(text: str | None, n: int) -> list[int]:
+    from floxels_ext.cli import CLIError
+
+    if not text:
+        return list(range(n))
+    try:
+        if ":" in text:
+            a, b = text.split(":", 1)
+            sl = slice(int(a) if a.strip() else None, int(b) if b.strip() else None)
+        else:
+            k = int(text)
+            sl = slice(k, k + 1 if k != -1 else None)
+    except ValueError:
+        raise CLIError(f"--frames expects A:B, A:, :B or A (integers), got {text!r}") from None
+    sel = list(range(n))[sl]
+    if not sel:
+        raise CLIError(f"--frames {text} selects no frame of the {n}")
+    return sel
+
+
+def check_args(args, torch):
+    """Validate the plain arguments; returns (device, options). Raises CLIError."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.methods import available_methods, get_method
+
+    if not args.input or not args.out:
+        raise CLIError("floxels run needs INPUT and --out OUT_DIR")
+    if args.method not in available_methods():
+        raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
+    if not 2 <= args.scans <= 13:
+        raise CLIError(f"--scans must be in [2, 13], got {args.scans}")
+    if args.chunk is not None and args.chunk < 1:
+        raise CLIError("--chunk must be >= 1")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError("--workers must be >= 1")
+    if not (np.isfinite(args.dynamic_threshold) and args.dynamic_threshold >= 0):
+        raise CLIError(f"--dynamic-threshold must be a finite number >= 0 (m per frame), got {args.dynamic_threshold}")
+    if args.calib and not args.poses:
+        raise CLIError("--calib turns the camera poses of --poses into lidar poses; it needs --poses FILE")
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        raise CLIError(f"--device must be cpu or cuda, got {device!r}")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise CLIError("--device cuda requested but no CUDA device is available")
+    if args.preprocess_device == "cuda" and not torch.cuda.is_available():
+        raise CLIError("--preprocess-device cuda requested but no CUDA device is available")
+    options = parse_options(args.option, args.max_iters, get_method(args.method).config)
+    if "num_scans" in options and options["num_scans"] != args.scans:
+        raise CLIError(f"--option num_scans={options['num_scans']} contradicts --scans {args.scans}; "
+                       f"give the window size once, with --scans")
+    if args.method == "floxels":  # the baselines estimate from a (frame, next frame) pair
+        options = {"num_scans": args.scans, **options}
+        from floxels_ext.estimator.config import FloxelsConfig  # fail fast on a bad option instead of after reading data
+        try:
+            FloxelsConfig(**options)
+        except (TypeError, ValueError) as e:
+            raise CLIError(f"bad --option for floxels: {e}") from None
+    return device, options
+
+
+def check_out_dir(out: Path, seq) -> None:
+    from floxels_ext.cli import CLIError
+
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {out} exists and is not a directory")
+    o = out.resolve()
+    frame_dir = seq.frames[0].path.parent.resolve()
+    for d, what in ((seq.root.resolve(), "the input directory"), (frame_dir, "the directory of the frame files")):
+        if o == d:
+            raise CLIError(f"--out {out} is {what}: the outputs would be taken for input frames by the next run; "
+                           f"choose another directory")
+
+
+def check_resume(out_path: dict, selected: list[int], settings: dict, force: bool) -> list[int]:
+    """Frames to estimate: those without an output, and (with --force) all; an output written
+    with other settings stops the run (CLIError) unless --force."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.outputs import read_settings, settings_mismatch
+
+    if force:
+        return list(selected)
+    todo, clash = [], None
+    for i in selected:
+        if not out_path[i].is_file():
+            todo.append(i)
+            continue
+        rec = read_settings(out_path[i])
+        if rec is None:  # unreadable (e.g. truncated by a crash of the machine): recompute it
+            todo.append(i)
+            continue
+        diff = settings_mismatch(rec, settings)
+        if diff and clash is None:
+            clash = (out_path[i], diff)
+    if clash is not None:
+        raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
+                       f"use --force to recompute, or another --out")
+    return todo
+
+
+def reader_plan(args, device: str) -> tuple[str | None, int, str]:
+    """(preprocessing device or None for numpy, reader workers, "thread"/"process").
+
+    Measured on a 16-core H100 host (bench/bench_run.py, bench/RESULTS.md): cropping and ground
+    removal on the GPU from 4 reader threads beat numpy on 16 threads or processes by ~1.3-2x
+    (more threads contend for the GIL with the optimiser's host work). ``args.cpu_limit`` (set
+    by a Ray task: the CPUs it was given) caps the default worker count."""
+    cores = os.cpu_count() or 1
+    limit = getattr(args, "cpu_limit", None)
+    if limit:
+        cores = min(cores, max(1, int(limit)))
+    pre = args.preprocess_device
+    if pre == "auto":  # worker processes preprocess with numpy (CUDA does not survive a fork)
+        pre = "cuda" if device.startswith("cuda") and args.worker_kind != "process" else "cpu"
+    pre_dev = (device if device.startswith("cuda") else "cuda") if pre == "cuda" else None
+    workers = args.workers or (min(4, cores) if pre_dev else max(1, min(16, cores)))
+    kind = "thread" if args.worker_kind == "auto" else args.worker_kind
+    return pre_dev, workers, kind

@@ -1,0 +1,108 @@
+"""Where a run's ego-motion and frame times come from: pose tables, poses in the frames, KISS-ICP
+odometry (cached next to the outputs), a KITTI ``times.txt``, AV2 timestamps or gaps in the
+frame numbering."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["resolve_poses", "odometry_poses", "frame_times"]
+
+
+def resolve_poses(seq, args, out: Path, report):
+    """(pose_mode, poses) for the sequence; raises CLIError when ego-motion cannot be resolved."""
+    from floxels_ext.cli import CLIError
+
+    if args.no_ego_motion and (args.poses or args.odometry):
+        raise CLIError("--no-ego-motion contradicts --poses/--odometry")
+    if seq.kind == "seqio":
+        if args.poses or args.odometry:
+            raise CLIError(f"{seq.root}: the points are already in one world frame (floxels simulate layout / "
+                           f"--points-frame world); --poses and --odometry do not apply")
+        return "seqio", None
+    if seq.poses is not None:
+        return "table", seq.poses
+    if args.no_ego_motion:
+        return "identity", None
+    if seq.frames[0].path.suffix.lower() == ".npz":
+        for i in range(len(seq)):  # the first readable frame decides
+            try:
+                if seq.load(i).pose is not None:
+                    return "frame", None
+                break
+            except ValueError:
+                continue
+    if args.odometry == "kiss-icp":
+        return "table", odometry_poses(seq, out, report, int(getattr(args, "verbosity", 0) or 0))
+    raise CLIError(f"{seq.root}: no poses for ego-motion compensation. Give one of: --poses FILE (KITTI "
+                   f"poses.txt, .npy/.npz (F,4,4), AV2 city_SE3_egovehicle.feather); --odometry kiss-icp "
+                   f"(estimate them; needs pip install 'floxels_ext[odometry]'); or --no-ego-motion if the scans "
+                   f"are already in one common frame")
+
+
+def odometry_poses(seq, out: Path, report, verbosity: int = 0) -> np.ndarray:
+    from floxels_ext.lidar.io import read_poses
+    from floxels_ext.lidar.io.poses import PoseFormatError
+    from floxels_ext.lidar.odometry import kiss_icp_poses
+    from floxels_ext.lidar.progress import Progress
+
+    cache = out / "poses_kiss_icp.txt"
+    if cache.is_file():
+        try:
+            poses = read_poses(cache)
+            if len(poses) == len(seq):
+                report(f"reusing odometry poses from {cache}")
+                return poses
+        except PoseFormatError:
+            pass
+
+    def scans():
+        for i in range(len(seq)):
+            try:
+                yield seq.load(i).points
+            except ValueError:
+                yield np.zeros((0, 3), np.float32)
+
+    bar = Progress(len(seq), "frames (KISS-ICP odometry)", verbosity=verbosity)
+    poses = kiss_icp_poses(scans(), progress=lambda i: bar.update())
+    bar.close()
+    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
+    np.savetxt(tmp, poses[:, :3, :].reshape(len(poses), 12), fmt="%.9g")
+    os.replace(tmp, cache)
+    report(f"wrote odometry poses to {cache} (KITTI format)")
+    return poses
+
+
+def frame_times(seq, stamps: list, report) -> tuple[list[float] | None, str | None]:
+    """Per-frame times for methods that take them (unequally spaced scans), and where they came
+    from: the frames' own timestamps (AV2 sweeps), a KITTI ``times.txt`` (seconds, one line per
+    scan) next to the frames, or gaps in numbered frame names (000004 missing between 000003
+    and 000005: a dropped scan; offsets in frame steps). None when frames are evenly spaced or
+    nothing says otherwise."""
+    if all(t is not None for t in stamps):
+        return [(t - stamps[0]) * 1e-9 for t in stamps], None
+    n = len(seq.frames)
+    parent = seq.frames[0].path.parent
+    for cand in dict.fromkeys((parent / "times.txt", parent.parent / "times.txt")):
+        if not cand.is_file():
+            continue
+        try:
+            t = np.loadtxt(cand, ndmin=1, dtype=np.float64)
+        except ValueError as e:
+            report(f"floxels: warning: {cand} is not one time (s) per line ({e}); frames taken as evenly spaced")
+            return None, None
+        if t.ndim != 1 or len(t) != n or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
+            report(f"floxels: warning: {cand} holds {t.size} values for {n} frames (or not increasing); "
+                   f"frames taken as evenly spaced")
+            return None, None
+        return [float(v - t[0]) for v in t], str(cand)
+    names = [f.path.stem for f in seq.frames]
+    if all(s.isdigit() for s in names):
+        num = np.array([int(s) for s in names], np.int64)
+        steps = np.diff(num)
+        if len(steps) and np.all(steps > 0) and len(set(steps.tolist())) > 1:
+            return [float(v - num[0]) for v in num], "gaps in the frame numbers"
+    return None, None

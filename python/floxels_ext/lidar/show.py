@@ -1,0 +1,202 @@
+"""``floxels show``: bird's-eye view of one ``floxels run`` output, and optionally a rerun
+recording (``pip install 'floxels_ext[viz]'``).
+
+With matplotlib (extra ``viz``) the picture is :func:`floxels_ext.lidar.flow_plot.plot_flow_bev`:
+metres on the axes, a scale bar, moving points coloured by direction and speed (colour
+wheel), moving objects boxed with their speeds, zoom panels on them. Without matplotlib a
+plain raster (:func:`render_frame`) is written instead: optimised points coloured by height,
+the others dim grey, flow arrows whose hue is the heading (wheel top right) and brightness
+the speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["add_parser", "run", "render_frame", "direction_wheel"]
+
+
+def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.ndarray:
+    """Draw the heading colour legend (same mapping as ``viz.bev_image``) in the top-right corner."""
+    from floxels_ext.lidar.viz import hsv_to_rgb
+
+    h, w, _ = img.shape
+    r = min(radius, (min(h, w) - 2 * margin) // 2)
+    if r < 4:
+        return img
+    cy, cx = margin + r, w - margin - r
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    inside = (xx ** 2 + yy ** 2 <= r * r) & (xx ** 2 + yy ** 2 >= (0.35 * r) ** 2)
+    # image rows grow downwards: a vector pointing 'up' in the picture has +y in the world
+    hue = (np.arctan2(-yy, xx) + math.pi) / (2 * math.pi)
+    rgb = (hsv_to_rgb(hue, np.ones_like(hue), np.ones_like(hue)) * 255).astype(np.uint8)
+    patch = img[cy - r:cy + r + 1, cx - r:cx + r + 1]
+    patch[inside] = rgb[inside]
+    return img
+
+
+def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, center=None,
+                 flow_scale: float = 1.0, legend: bool = True) -> np.ndarray:
+    """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask)."""
+    from floxels_ext.lidar.viz import BACKGROUND, bev_image
+
+    pts = np.asarray(data["points"], np.float64)
+    ok = np.isfinite(pts).all(1)
+    flow = np.nan_to_num(np.asarray(data["flow"], np.float64))
+    if center is None:
+        center = _default_center(pts)
+    mask = np.asarray(data.get("mask", ok), bool) & ok
+    kw = dict(center=center, extent=extent, resolution=resolution)
+    # optimised points coloured by height with their flow; the rest (ground, cropped) dim grey below
+    img = bev_image(pts[mask], flow[mask], flow_scale=flow_scale, **kw)
+    rest = bev_image(pts[ok & ~mask], color_by="grey", **kw)
+    empty = np.all(img == BACKGROUND, axis=2) & ~np.all(rest == BACKGROUND, axis=2)
+    img[empty] = (0.45 * rest[empty] + 0.55 * np.array(BACKGROUND)).astype(np.uint8)
+    return direction_wheel(img) if legend else img
+
+
+def _default_center(points) -> tuple[float, float]:
+    """The sensor (origin) when the points surround it, else the points' median."""
+    pts = np.asarray(points, np.float64)
+    ok = np.isfinite(pts).all(1)
+    if not ok.any():
+        return (0.0, 0.0)
+    lo, hi = pts[ok, :2].min(0), pts[ok, :2].max(0)
+    if np.all(lo <= 0) and np.all(hi >= 0):
+        return (0.0, 0.0)
+    m = np.median(pts[ok, :2], 0)
+    return (float(m[0]), float(m[1]))
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("show", help="bird's-eye-view PNG (and rerun recording) of a frame's points and flow",
+                       description="Render one output of 'floxels run' (a .npz file, or RUN_DIR with --frame) as a "
+                                   "top-view PNG: points coloured by height, flow arrows coloured by direction "
+                                   "(legend wheel top right) with brightness by speed.")
+    p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
+    p.add_argument("--frame", default="0", help="with a RUN_DIR: frame index (sorted order) or name (default 0)")
+    p.add_argument("--png", metavar="FILE", help="output PNG (default <frame name>.png in the current directory)")
+    p.add_argument("--extent", type=float, default=40.0, help="half-width of the view in metres (default 40)")
+    p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1)")
+    p.add_argument("--center", help="X,Y view centre (default: the sensor, else the points' median)")
+    p.add_argument("--flow-scale", type=float, default=1.0,
+                   help="arrow length = flow x this (default 1; plain raster without matplotlib only)")
+    p.add_argument("--frame-period", type=float, default=None, metavar="S",
+                   help="seconds between frames, to label speeds in m/s (default: m/frame)")
+    p.add_argument("--rerun", metavar="FILE.rrd", help="also save a rerun recording (needs rerun-sdk)")
+    p.set_defaults(func=run)
+
+
+def _resolve(target: str, frame: str) -> Path:
+    from floxels_ext.lidar.accumulate import _run_frames
+    from floxels_ext.cli import CLIError
+
+    t = Path(target)
+    if t.is_file():
+        return t
+    if not t.is_dir():
+        raise CLIError(f"{t} does not exist")
+    files = _run_frames(t)
+    names = [p.stem for p in files]
+    if frame in names:
+        return files[names.index(frame)]
+    try:
+        k = int(frame)
+        return files[k]
+    except (ValueError, IndexError):
+        raise CLIError(f"{t}: no frame {frame!r} ({len(files)} outputs: {names[0]} .. {names[-1]})") from None
+
+
+def write_rerun(path: Path, data: dict, name: str) -> None:
+    from floxels_ext.lidar.io._optional import require
+
+    rr = require("rerun", "viz", "rerun-sdk", "writing rerun recordings (--rerun)")
+    pts = np.asarray(data["points"], np.float32)
+    ok = np.isfinite(pts).all(1)
+    flow = np.nan_to_num(np.asarray(data["flow"], np.float32))
+    mask = np.asarray(data.get("mask", ok), bool) & ok
+    rr.init("floxels", spawn=False)
+    rr.save(str(path))
+    grey = np.array([150, 150, 150], np.uint8)
+    colours = np.where(mask[ok, None], np.array([90, 200, 250], np.uint8), grey)
+    rr.log(f"{name}/points", rr.Points3D(pts[ok], colors=colours, radii=0.03))
+    moving = mask & (np.linalg.norm(flow, axis=1) > 0.05)
+    if moving.any():
+        v = flow[moving]
+        hue = (np.arctan2(v[:, 1], v[:, 0]) + math.pi) / (2 * math.pi)
+        from floxels_ext.lidar.viz import hsv_to_rgb
+
+        rgb = (hsv_to_rgb(hue, np.ones_like(hue), np.ones_like(hue)) * 255).astype(np.uint8)
+        rr.log(f"{name}/flow", rr.Arrows3D(origins=pts[moving], vectors=v, colors=rgb))
+
+
+def load_flow_output(path: Path) -> dict:
+    """One ``floxels run`` output (:func:`floxels_ext.lidar.outputs.read_flow_output`: ``points``,
+    ``flow``, ``mask``, ``dynamic``, ...); anything else is a CLIError saying the file is not a
+    floxels flow output and why."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.outputs import OutputError, read_flow_output
+
+    path = Path(path)
+    not_output = f"{path}: not a floxels flow output (expected a .npz written by 'floxels run'"
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if path.suffix.lower() != ".npz":
+        raise CLIError(f"{not_output}; this is a {path.suffix or 'suffix-less'} file)")
+    if magic[:2] != b"PK":
+        raise CLIError(f"{not_output}; this file is not a .npz (zip) archive)")
+    try:
+        return read_flow_output(path)
+    except OutputError as e:
+        raise CLIError(f"{not_output}): {e}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.viz import write_png
+
+    path = _resolve(args.target, args.frame)
+    data = load_flow_output(path)
+    center = None
+    if args.center:
+        try:
+            center = tuple(float(v) for v in args.center.split(","))
+            assert len(center) == 2
+        except (ValueError, AssertionError):
+            raise CLIError(f"--center expects X,Y, got {args.center!r}") from None
+    if not (args.extent > 0 and args.resolution > 0) or args.extent / args.resolution > 8000:
+        raise CLIError("--extent and --resolution must be > 0 and give at most 16000 pixels across")
+    if args.frame_period is not None and not args.frame_period > 0:
+        raise CLIError(f"--frame-period must be > 0 seconds, got {args.frame_period}")
+    png = Path(args.png) if args.png else Path(f"{path.stem}.png")
+    if not png.parent.is_dir():
+        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
+    n_mov = int(data["dynamic"].sum())
+    try:
+        from floxels_ext.lidar.flow_plot import plot_flow_bev
+
+        if center is None:
+            center = _default_center(data["points"])
+        view = ((center[0] - args.extent, center[0] + args.extent), (center[1] - args.extent, center[1] + args.extent))
+        plot_flow_bev(png, data["points"], data["flow"], mask=data["mask"], view=view,
+                      frame_period=args.frame_period, title=f"floxels show: {path}")
+        size = "matplotlib"
+    except MissingDependencyError as e:
+        print(f"note: {e}; writing a plain raster instead")
+        img = render_frame(data, extent=args.extent, resolution=args.resolution, center=center,
+                           flow_scale=args.flow_scale)
+        write_png(png, img)
+        size = f"{img.shape[1]}x{img.shape[0]}"
+    print(f"wrote {png} ({size}, {len(data['points'])} points, {n_mov} moving)")
+    if args.rerun:
+        try:
+            write_rerun(Path(args.rerun), data, path.stem)
+        except MissingDependencyError as e:
+            raise CLIError(str(e)) from None
+        print(f"wrote {args.rerun}")
+    return 0
