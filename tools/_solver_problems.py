@@ -1,5 +1,5 @@
 """The solver problems the estimator builds for a simulated ~100k-point sequence, shared by
-the profiling scripts (scripts/profile_solver.py, scripts/ncu_solver.py)."""
+the profiling scripts (tools/profile_solver.py, tools/ncu_solver.py)."""
 import os
 import sys
 

@@ -3,7 +3,7 @@ before the optimiser, on one ~100k-point frame: upload and checks, DBSCAN, the f
 problem_setup (sorting, compact corners, segment tables) against its former pieces, and a
 whole frame for reference.
 
-    python scripts/prep_probe.py [--reps 10]
+    python tools/prep_probe.py [--reps 10]
 """
 import argparse
 import time

@@ -2,7 +2,7 @@
 host (perf_counter), and when the GPU reaches the optimiser (CUDA events), without a
 profiler's overhead. Prints the median frame's timeline (ms from the start of fit).
 
-    python scripts/frame_phases.py [--frames 9]
+    python tools/frame_phases.py [--frames 9]
 """
 import argparse
 import statistics
