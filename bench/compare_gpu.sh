@@ -20,7 +20,7 @@ cmp() {  # name, args...
 for stage in "$@"; do
   case $stage in
     build)
-      OUT=$OUT scripts/gpu_run.sh build || exit 1
+      OUT=$OUT tools/gpu_run.sh build || exit 1
       so=$(python3 -c 'import floxels_ext,os,glob;print(glob.glob(os.path.dirname(floxels_ext.__file__)+"/_C*.so")[0])')
       cp "$so" "$OUT/" && cp "$so" python/floxels_ext/ && export PYTHONPATH=$PWD/python && rm -f "$OUT/build.log"
       timeout 150 python3 -m pytest -q tests/baselines/test_baselines.py tests/ops/test_solver.py > "$OUT/tests.log" 2>&1

@@ -1,6 +1,7 @@
 // Every schema of the `floxels` op namespace lives here; implementations register per
 // device in cpu/*.cpp and cuda/*_binding.cpp (TORCH_LIBRARY_IMPL), fake/autograd
-// registrations live in python/floxels_ext/ops/*.py.
+// registrations live in python/floxels_ext/ops/*.py. (Exception: has_profiling, which takes
+// no tensor and has one device-independent kernel, registered with its schema below.)
 //
 // Conventions shared by all ops (see README "Op reference"):
 //  * points are (N, 3) float32/float64 in (x, y, z) order;
@@ -12,6 +13,8 @@
 //    reference", tests/test_ops_nonfinite.py); bad host scalars are refused (common/check.h).
 #include <Python.h>
 #include <torch/library.h>
+
+#include "common/env_switches.h"
 
 extern "C" {
 // `import floxels_ext._C` only needs a module object; the ops register through the
@@ -120,4 +123,11 @@ TORCH_LIBRARY(floxels, m) {
   // and 1.0 if all are finite.
   m.def("stage_points(Tensor[] points, Tensor(a!)[] out) -> Tensor");
   m.def("solver_loop_blocks(Tensor points, int[] point_ranges, int[] vertex_ranges, bool cluster) -> int");
+
+  // --- build information ---
+  // True when this library was built with FLOXELS_PROFILING=ON (CMakeLists.txt): only such a
+  // build has the measurement-only solver code that FLOXELS_SOLVER_TRACE / FLOXELS_SOLVER_SKIP
+  // switch on (csrc/common/env_switches.h); tools/profile_solver.py checks it. No tensor
+  // arguments, so one catch-all kernel serves every device.
+  m.def("has_profiling() -> bool", [] { return floxels::env::kProfiling; });
 }

@@ -14,7 +14,7 @@ from floxels_ext.switches import SWITCHES, flag
 ROOT = Path(__file__).resolve().parents[1]
 NAME = re.compile(r"\bFLOXELS_[A-Z0-9_]*[A-Z0-9]\b")
 # compile-time macros set by CMake (not environment variables a user sets)
-MACROS = {"FLOXELS_WITH_CUDA", "FLOXELS_PROFILING_BUILD"}
+MACROS = {"FLOXELS_WITH_CUDA"}
 
 
 def _source_names() -> set[str]:

@@ -19,9 +19,9 @@ import numpy as np
 
 def _job(args):
     path, blas1 = args
-    from floxels_ext.io import read_points
-    from floxels_ext.pipeline import single_threaded_blas
-    from floxels_ext.preprocess import Preprocess, preprocess_mask
+    from floxels_ext.lidar.io import read_points
+    from floxels_ext.lidar.frame_loader import single_threaded_blas
+    from floxels_ext.lidar.preprocess import Preprocess, preprocess_mask
 
     t0 = time.perf_counter()
     pts = read_points(path).points
@@ -39,8 +39,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     ap.add_argument("--frames", type=int, default=64)
     args = ap.parse_args()
-    from floxels_ext.preprocess import transform_points
-    from floxels_ext.sim import simulate_sequence
+    from floxels_ext.lidar.preprocess import transform_points
+    from floxels_ext.evaluation.sim import simulate_sequence
 
     fr = simulate_sequence("urban", 1, 0, beams=128, azimuth_steps=1800).frames[0]
     p = transform_points(fr.points, np.linalg.inv(fr.pose)).astype(np.float32)

@@ -139,9 +139,9 @@ __global__ void segments_kernel(const uint64_t* __restrict__ keys, const int32_t
   }
 }
 
-// The per-item logic lives in dbscan_stages.cuh (shared with the CPU emulation of
-// scripts/dbscan_stress.cu); num_cells / num_subs are only known on the device (counts), so
-// those kernels are launched with one thread per point and check the count.
+// The per-item logic lives in dbscan_stages.cuh (host+device functions); num_cells /
+// num_subs are only known on the device (counts), so those kernels are launched with one
+// thread per point and check the count.
 __global__ void ranges_kernel(Grid g, const uint64_t* __restrict__ cell_keys, const int32_t* __restrict__ cell_start,
                               const int32_t* __restrict__ counts, const int32_t* __restrict__ sub_incl,
                               int32_t* __restrict__ ranges) {

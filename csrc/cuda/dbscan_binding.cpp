@@ -8,11 +8,10 @@
 #include <torch/library.h>
 
 #include <cmath>
-#include <cstdlib>
-#include <string>
 #include <cstdint>
 #include <limits>
 
+#include "common/env_switches.h"
 #include "common/op_args.h"
 #include "cuda/dbscan_launch.h"
 
@@ -43,18 +42,15 @@ at::Tensor dbscan_cuda(const at::Tensor& points, double eps, int64_t min_samples
   return labels;
 }
 
-// CUDA input runs the GPU kernel. Escape hatch: FLOXELS_CPU_DBSCAN=1 (read once per process)
-// routes CUDA input to the exact CPU kernel instead (identical labels, copied back to the
-// input's device). The GPU kernel used to fail intermittently with
+// CUDA input runs the GPU kernel. Escape hatch: FLOXELS_CPU_DBSCAN=1 (env::cpu_dbscan, read
+// once per process) routes CUDA input to the exact CPU kernel instead (identical labels,
+// copied back to the input's device). The GPU kernel used to fail intermittently with
 // cudaErrorInvalidAddressSpace; the cause (roots stored into the union-find's parent array
 // while other threads were still path-halving through it, leaving non-roots that indexed
-// min_orig/cid with INT_MAX) is fixed in dbscan.cu, see scripts/dbscan_stress.cu.
+// min_orig/cid with INT_MAX) is fixed in dbscan.cu (commit d81449d, which also added a
+// torch-free stress harness, since removed: see tools/README.md).
 at::Tensor dbscan_cuda_input(const at::Tensor& points, double eps, int64_t min_samples) {
-  static const bool use_cpu_kernel = [] {
-    const char* v = std::getenv("FLOXELS_CPU_DBSCAN");
-    return v != nullptr && std::string(v) == "1";
-  }();
-  if (!use_cpu_kernel) return dbscan_cuda(points, eps, min_samples);
+  if (!env::cpu_dbscan()) return dbscan_cuda(points, eps, min_samples);
   args::dbscan(points, eps, min_samples);
   static const auto cpu_op = c10::Dispatcher::singleton()
                                  .findSchemaOrThrow("floxels::dbscan", "")

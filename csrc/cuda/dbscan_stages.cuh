@@ -1,6 +1,7 @@
 // Per-item stages of the CUDA exact DBSCAN (csrc/cuda/dbscan.cu), as host+device functions:
-// the kernels are one call each, and scripts/dbscan_stress.cu --emulate runs the very same
-// code sequentially on the CPU (checks the logic, not the concurrency, without a GPU).
+// the kernels are one call each, so the very same code can also run sequentially on the CPU
+// (checks the logic, not the concurrency, without a GPU; the torch-free stress harness that
+// did so, scripts/dbscan_stress.cu --emulate, was removed after the race fix: tools/README.md).
 //
 // Sorted order: points sorted by dbscan::point_sub_key. Sub-cell s covers sorted points
 // [sub_start[s], sub_start[s+1]); point i lies in sub-cell sub_incl[i] - 1 and cell

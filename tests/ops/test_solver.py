@@ -360,3 +360,42 @@ def test_cuda_segments_across_tiles(monkeypatch, persistent):
     # the sums' order differs (atomics), so the trajectories drift apart by rounding only
     np.testing.assert_allclose(losses[4096][:3], losses[32][:3], rtol=1e-4)
     assert min(losses[4096]) == pytest.approx(min(losses[32]), rel=1e-2)
+
+
+def test_has_profiling_reports_the_build():
+    """torch.ops.floxels.has_profiling() says whether this library holds the measurement-only
+    solver code (CMake option FLOXELS_PROFILING); tools/profile_solver.py relies on it."""
+    assert isinstance(F.has_profiling(), bool)
+
+
+def _measured_losses(monkeypatch, env):
+    monkeypatch.setenv("FLOXELS_SOLVER_PERSISTENT", "1")  # the switches act on the loop kernel
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    cfg = FloxelsConfig(max_iters=20, patience=1000)
+    P, sup = _scene(41, n=2000)
+    packed = PackedProblems([_to_cuda(_problem(P, sup, cfg, sort=True))], cfg)
+    run_solver(packed)
+    return packed.losses(0)
+
+
+@pytest.mark.cuda
+def test_cuda_release_build_ignores_measurement_switches(monkeypatch):
+    """A release build has no traced loop: FLOXELS_SOLVER_TRACE / FLOXELS_SOLVER_SKIP change
+    nothing (in a profiling build, skip mask 8 leaves the loss reduction out)."""
+    if F.has_profiling():
+        pytest.skip("profiling build: the measurement switches are live")
+    plain = _measured_losses(monkeypatch, {})
+    measured = _measured_losses(monkeypatch, {"FLOXELS_SOLVER_TRACE": "1", "FLOXELS_SOLVER_SKIP": "127"})
+    np.testing.assert_allclose(measured[:2], plain[:2], rtol=1e-4)  # float atomics: rounding only
+    assert min(measured) == pytest.approx(min(plain), rel=3e-2)
+
+
+@pytest.mark.cuda
+def test_cuda_profiling_build_skip_switch(monkeypatch):
+    """A profiling build's traced loop honours FLOXELS_SOLVER_SKIP: mask 8 leaves the loss
+    reduction out, so every recorded loss is 0 (measurement only)."""
+    if not F.has_profiling():
+        pytest.skip("release build: no traced loop")
+    assert min(_measured_losses(monkeypatch, {})) > 0
+    assert _measured_losses(monkeypatch, {"FLOXELS_SOLVER_TRACE": "1", "FLOXELS_SOLVER_SKIP": "8"})[0] == 0.0

@@ -208,7 +208,7 @@ class PackedProblems:
         return int(self.state[b, COL_BEST_ITER].item())
 
 
-SEGMENT_TILE = 32  # points per warp of the CUDA solver's point phase (kTile in solver.cu)
+SEGMENT_TILE = 32  # points per warp of the CUDA solver's point phase (kTile in csrc/cuda/solver_params.cuh)
 
 
 def problem_segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, num_vertices: int,

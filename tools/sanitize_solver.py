@@ -1,7 +1,7 @@
 """A few solver iterations on two small simulated frames, to run under compute-sanitizer:
 
-    compute-sanitizer --tool memcheck python3 scripts/sanitize_solver.py
-    compute-sanitizer --tool racecheck --kernel-name kns=points_kernel python3 scripts/sanitize_solver.py
+    compute-sanitizer --tool memcheck python3 tools/sanitize_solver.py
+    compute-sanitizer --tool racecheck --kernel-name kns=points_kernel python3 tools/sanitize_solver.py
 
 These small problems run the persistent loop kernel by default; FLOXELS_SOLVER_PERSISTENT=0
 selects the two-kernel iteration, and FLOXELS_SOLVER_PERSISTENT=1 FLOXELS_SOLVER_MAX_GRID=7

@@ -1,12 +1,12 @@
 """The solver problems the estimator builds for a simulated ~100k-point sequence, shared by
-the profiling scripts (scripts/profile_solver.py, scripts/ncu_solver.py)."""
+the profiling scripts (tools/profile_solver.py, tools/ncu_solver.py)."""
 import os
 import sys
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "bench"))
 from bench_speed import _frames  # noqa: E402
 
-import floxels_ext.estimator as E  # noqa: E402
+import floxels_ext.estimator.group as E  # noqa: E402  (where the estimator packs its problems)
 from floxels_ext import estimate_sequence  # noqa: E402
 
 

@@ -3,7 +3,7 @@ before the optimiser, on one ~100k-point frame: upload and checks, DBSCAN, the f
 problem_setup (sorting, compact corners, segment tables) against its former pieces, and a
 whole frame for reference.
 
-    python scripts/prep_probe.py [--reps 10]
+    python tools/prep_probe.py [--reps 10]
 """
 import argparse
 import time
@@ -15,8 +15,8 @@ from floxels_ext import Floxels, FloxelsConfig
 from floxels_ext.ops import compact_corners, problem_setup, stage_points
 from floxels_ext.ops.grid import grid_from_bounds
 from floxels_ext.ops.solver import PackedProblems, problem_segments
-from floxels_ext.reference import cell_key
-from floxels_ext.scans import prepare_scans
+from floxels_ext.reference.ops import cell_key
+from floxels_ext.estimator.scans import prepare_scans
 
 F = torch.ops.floxels
 ap = argparse.ArgumentParser()

@@ -2,7 +2,7 @@
 host (perf_counter), and when the GPU reaches the optimiser (CUDA events), without a
 profiler's overhead. Prints the median frame's timeline (ms from the start of fit).
 
-    python scripts/frame_phases.py [--frames 9]
+    python tools/frame_phases.py [--frames 9]
 """
 import argparse
 import statistics
@@ -10,9 +10,11 @@ import time
 
 import torch
 
-import floxels_ext.estimator as est_mod
-import floxels_ext.scans as scans_mod
-import floxels_ext.solver as solver_mod
+import floxels_ext.estimator.api as api_mod
+import floxels_ext.estimator.distance as dist_mod
+import floxels_ext.estimator.group as est_mod
+import floxels_ext.estimator.scans as scans_mod
+import floxels_ext.estimator.solver_run as solver_mod
 from _solver_problems import simulated_scans
 from floxels_ext import Floxels, FloxelsConfig
 from floxels_ext.ops import solver as opsolver
@@ -60,16 +62,18 @@ class _OpsProxy:
         return call
 
 
-for name in ("prepare_scans", "point_bounds", "_build_dt", "problem_setup", "restore_outputs"):
+wrap(api_mod, "prepare_scans")
+for name in ("point_bounds", "build_dt", "problem_setup", "restore_outputs", "prepare_group", "_targets",
+             "solve_group", "pack"):
     wrap(est_mod, name)
+wrap(dist_mod, "build_dt", "build_dt (early EDT)")
 wrap(scans_mod, "_finite_rows")
 wrap(scans_mod, "stage_points")
 wrap(scans_mod._STAGER, "take", "_STAGER.take")
 wrap(scans_mod._STAGER, "used", "_STAGER.used")
 wrap(scans_mod, "_numpy_float32")
-for name in ("fit", "_prepare_group", "_targets", "_solve_group", "_pack"):
-    wrap(Floxels, name)
-wrap(est_mod._Solving, "finish", "_Solving.finish")
+wrap(Floxels, "fit")
+wrap(est_mod.Solving, "finish", "Solving.finish")
 wrap(opsolver.PackedProblems, "__init__", "PackedProblems()")
 wrap(opsolver.PackedProblems, "summaries")
 wrap(opsolver.PackedProblems, "summaries_start")

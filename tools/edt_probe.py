@@ -1,7 +1,7 @@
 """GPU time of the distance transforms of a frame's support scans (the estimator's grids),
 per kernel, from the torch profiler; and the whole op with CUDA events.
 
-    python scripts/edt_probe.py [--scans 4]
+    python tools/edt_probe.py [--scans 4]
 """
 import argparse
 

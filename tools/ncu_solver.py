@@ -1,8 +1,11 @@
 """A few eager solver iterations on the estimator's problems (PDL off), for hardware-counter
 profiling of the solver kernels, e.g.
 
-    ncu --clock-control none -k regex:'points_kernel|cluster_kernel|vertex_kernel' \
-        --launch-skip 15 --launch-count 3 python3 scripts/ncu_solver.py --batch 1
+    ncu --clock-control none -k regex:'points_kernel|vertex_kernel' \
+        --launch-skip 15 --launch-count 3 python3 tools/ncu_solver.py --batch 1
+
+Small batches run the persistent loop kernel by default: profile it with -k regex:loop_kernel,
+or set FLOXELS_SOLVER_PERSISTENT=0 for the two-kernel iteration above.
 """
 import argparse
 import os

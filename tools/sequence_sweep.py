@@ -1,6 +1,6 @@
 """Sequence throughput of estimate_sequence on the simulated ~100k-point sequence under
 several schedules (batch size, pipelining, smaller first batches), each the median of a few
-passes over the same frames:  python3 scripts/sequence_sweep.py [--frames 40] [--passes 3]"""
+passes over the same frames:  python3 tools/sequence_sweep.py [--frames 40] [--passes 3]"""
 import argparse
 import os
 import statistics

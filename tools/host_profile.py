@@ -2,7 +2,7 @@
 ~100k-point frame; a synchronisation shows up in the function that waits). cProfile adds a
 little time per Python call, so compare the figures with each other, not with bench_speed.
 
-    python scripts/host_profile.py [--frames 5] [--top 35]
+    python tools/host_profile.py [--frames 5] [--top 35]
 """
 import argparse
 import cProfile

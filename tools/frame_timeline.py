@@ -2,7 +2,7 @@
 torch.profiler, writes Chrome traces, and prints a condensed timeline (host regions of the
 estimator, GPU busy time per stream, idle gaps before the optimiser starts).
 
-    python scripts/frame_timeline.py --out DIR [--seq-frames 40] [--batch 16]
+    python tools/frame_timeline.py --out DIR [--seq-frames 40] [--batch 16]
 """
 import argparse
 import gzip

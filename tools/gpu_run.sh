@@ -2,7 +2,9 @@
 # One device call: build with CUDA, run the whole test suite (CUDA tests included) and the
 # CUDA benchmarks, leaving logs and JSON under $OUT. Each stage has its own time limit so
 # the call ends inside the device tool's 10 minutes.
-#   usage: scripts/gpu_run.sh [build|test|bench|all]...
+#   usage: tools/gpu_run.sh [build|test|bench|all]...
+# FLOXELS_PROFILING=ON tools/gpu_run.sh build makes a profiling build (for
+# tools/profile_solver.py's phase trace; see CMakeLists.txt); the default is a release build.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
@@ -19,6 +21,8 @@ if has build; then
   rc=$?; log "build rc=$rc in $((SECONDS - t0)) s"
   if [ $rc -ne 0 ]; then grep -E "error|Error" "$OUT/build.log" | head -40; exit 1; fi
   python3 -c "import floxels_ext as f; print('cuda kernels:', f.ops.has_cuda_kernels())" | tee -a "$OUT/summary.log"
+  python3 -c "import torch, floxels_ext; print('profiling build:', torch.ops.floxels.has_profiling())" \
+    | tee -a "$OUT/summary.log"
 fi
 if has test; then
   t0=$SECONDS

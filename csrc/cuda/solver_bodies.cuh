@@ -1,0 +1,266 @@
+// The two bodies of a Floxels iteration on CUDA (design: solver.cu's header), shared by the
+// two-kernel iteration (solver_iteration.cu) and the persistent loop (solver_loop.cu):
+//   points_body  stages 1-2 of one point block, a thread per point;
+//   vertex_body  stage 3 then 4 of one vertex block, a group of 8 lanes per vertex, then the
+//                vertices' shares of the next iteration's cluster means.
+// kDebug (profiling builds only, the traced loop): P.debug_skip leaves parts out
+// (FLOXELS_SOLVER_SKIP, common/env_switches.h); the results are then wrong. Release builds
+// cannot instantiate it. nvcc only.
+#pragma once
+#include <cuda_runtime.h>
+
+#include <cstdint>
+
+#include "cuda/solver_device.cuh"
+#include "cuda/warp_aggregate.cuh"
+#include "kernels/cluster.h"
+#include "kernels/dt_loss.h"
+#include "kernels/solver.h"
+
+namespace floxels::cuda::solver_detail {
+
+using cuda_detail::warp_add;
+
+// Stages 1-2 of point block `vb`, a thread per point, from its fixed data `fx` (load_fixed).
+// `clear`: also run clear_other_parity (the per-iteration kernel; the persistent loop clears
+// once per iteration instead).
+template <bool kCluster, bool kDebug = false>
+__device__ __forceinline__ void points_body(const KParams& P, int parity, int vb, bool clear, PointSmem& sm,
+                                            const PointFixed& fx) {
+  static_assert(!kDebug || kProfiling, "the traced variant exists in profiling builds only");
+  const int skip = (kProfiling && kDebug) ? P.debug_skip : 0;
+  const int p = problem_of(vb, P.block_begin, P.num_problems);
+  const float4 pt = fx.pt;
+  const int seg = tag_segment(P, pt.w);
+  const bool spans = (__float_as_int(pt.w) & kSpansBit) != 0;
+  const float w[8] = {fx.w0.x, fx.w0.y, fx.w0.z, fx.w0.w, fx.w1.x, fx.w1.y, fx.w1.z, fx.w1.w};
+  const int idx[8] = {fx.c0.x, fx.c0.y, fx.c0.z, fx.c0.w, fx.c1.x, fx.c1.y, fx.c1.z, fx.c1.w};
+  const bool valid = seg >= 0;
+  const int label = kCluster ? fx.label : -1;
+  if constexpr (kCluster) {  // empty u-sum slots (the barrier below publishes them)
+    sm.ukey[threadIdx.x] = -1;
+    sm.usum[threadIdx.x][0] = sm.usum[threadIdx.x][1] = sm.usum[threadIdx.x][2] = 0.0f;
+  }
+  pdl_wait_previous();
+  if (clear) clear_other_parity<kCluster>(P, parity);
+  const int C3 = 3 * P.num_clusters;
+  const double* st = P.state + p * kStateCols;
+  if (vb == P.block_begin[p] && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
+    P.snap[p * kStateCols + threadIdx.x] = st[threadIdx.x];
+  __syncthreads();
+  const bool active = st[kActive] != 0.0;  // uniform per block
+  float loss = 0.0f;
+  if (active) {
+    float f[3] = {0.0f, 0.0f, 0.0f};
+    float mean[3] = {0.0f, 0.0f, 0.0f};
+    if (valid && !(skip & 16)) {
+      for (int j = 0; j < 8; ++j) {
+        if (idx[j] < 0) continue;  // invalid tables (validated in Python): never read outside
+        const float* row = P.theta + 3 * int64_t(idx[j]);
+        for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
+      }
+      if (kCluster && label >= 0) {
+        const float* m = P.mbuf + (parity ? C3 : 0) + 3 * label;
+        for (int c = 0; c < 3; ++c) mean[c] = m[c];
+      }
+    }
+    float g[3] = {0.0f, 0.0f, 0.0f};
+    float u[3] = {0.0f, 0.0f, 0.0f};
+    if (valid && !(skip & 1))
+      loss = dt_loss::point_loss<true, float, int>(P.scans + p * kMaxSupport, P.num_support[p], pt.x, pt.y, pt.z, f[0], f[1], f[2],
+                                                   P.hyper.inv_dt_cell, P.hyper.truncation, g,
+                                                   P.hyper.trunc_above);
+    if (valid) {
+      const float lam = float(lambda_g(P.hyper, st[kIter])) * P.flow_coef[p];
+      float unit[3];
+      loss += lam * norm_and_unit(f, unit);
+      for (int c = 0; c < 3; ++c) g[c] += lam * unit[c];
+      if (kCluster && label >= 0) {
+        const float coef = P.cluster_coef[p];
+        loss += coef * cluster::residual_unit<float>(f, mean, 3, u);
+        for (int c = 0; c < 3; ++c) g[c] += coef * u[c];
+      }
+    }
+    // Segment sums of w_k * g_i, per warp: the run's last lane writes the row (plain stores:
+    // one writer per segment), or adds it where the segment crosses tiles.
+    if (!(skip & 2)) {
+      const WarpRuns runs = warp_runs(seg);
+      float* dst = P.seg_grad + int64_t(kSegVals) * seg;
+      // two halves of 4 corners: fewer values live at once (the loop kernel has 64 registers)
+      for (int h = 0; h < 2; ++h) {
+        float wg[kSegVals / 2];
+        for (int k = 0; k < 4; ++k)
+          for (int c = 0; c < 3; ++c) wg[3 * k + c] = w[4 * h + k] * g[c];
+        warp_run_sums(runs, wg);
+        if (runs.tail && valid) {
+          if (!spans) {
+            float4* d4 = reinterpret_cast<float4*>(dst + 12 * h);  // rows of 96 bytes: 16-byte aligned
+            for (int j = 0; j < 3; ++j) d4[j] = make_float4(wg[4 * j], wg[4 * j + 1], wg[4 * j + 2], wg[4 * j + 3]);
+          } else {
+            for (int j = 0; j < 12; ++j) atomicAdd(dst + 12 * h + j, wg[j]);  // cleared by its readers
+          }
+        }
+      }
+    }
+    // Cluster u sums: per warp run, into the block's slot of the cluster (one atomic per
+    // cluster and block below); a slot taken by another cluster (labels of one block more
+    // than kThreads apart: not with sorted tables) adds to global memory directly.
+    if (kCluster && !(skip & 4)) {
+      const int key = valid ? label : -1;
+      const WarpRuns runs = warp_runs(key);
+      warp_run_sums(runs, u);
+      if (runs.tail && key >= 0) {
+        const int slot = key % kThreads;
+        const int had = atomicCAS(&sm.ukey[slot], -1, key);
+        if (had == -1 || had == key) {
+          for (int c = 0; c < 3; ++c) atomicAdd(&sm.usum[slot][c], u[c]);
+        } else {
+          float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
+          for (int c = 0; c < 3; ++c) atomicAdd(ub + c, u[c]);
+        }
+      }
+    }
+  }
+  // Loss: per warp, then one double atomic per block. The sum order across blocks varies
+  // between runs (last bits of the loss), like the float atomics of the other sums; a
+  // per-block table re-read by every vertex block cost more than the whole vertex gradient
+  // with 16 problems.
+  if (!(skip & 8)) {
+    double dl = double(loss);
+    for (int off = 16; off > 0; off >>= 1) dl += __shfl_xor_sync(0xffffffffu, dl, off);
+    if ((threadIdx.x & 31) == 0) sm.wloss[threadIdx.x >> 5] = dl;
+  }
+  __syncthreads();
+  if (!active) return;  // uniform per block
+  if constexpr (kCluster) {
+    const int key = sm.ukey[threadIdx.x];
+    if (key >= 0) {
+      float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
+      for (int c = 0; c < 3; ++c) atomicAdd(ub + c, sm.usum[threadIdx.x][c]);
+    }
+  }
+  if (threadIdx.x == 0 && !(skip & 8)) {
+    double total = 0.0;
+    for (int k = 0; k < kWarps; ++k) total += sm.wloss[k];
+    if (total != 0.0) atomicAdd(P.loss + (parity ? kMaxProblems : 0) + p, total);
+  }
+}
+
+// Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
+// iteration's cluster means. kInitMeans: only the means, of the current parameters (once
+// per call, before the first iteration).
+template <bool kCluster, bool kInitMeans, bool kDebug = false>
+__device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm, int2 entries) {
+  static_assert(!kDebug || kProfiling, "the traced variant exists in profiling builds only");
+  const int skip = (kProfiling && kDebug) ? P.debug_skip : 0;
+  float* scratch = sm.scratch;
+  double* st = sm.st;
+  const int p = problem_of(vb, P.vblock_begin, P.num_problems);
+  const int sub = threadIdx.x & (kLanesPerVertex - 1), lane = threadIdx.x & 31;
+  const int v = vertex_of(P, p, vb);
+  const bool has_v = v < P.vertex_end[p];
+  const int e_begin = entries.x, e_end = entries.y;
+  pdl_wait_previous();
+  const int C3 = 3 * P.num_clusters;
+  if constexpr (!kInitMeans) {
+    if (P.snap[p * kStateCols + kActive] == 0.0) return;  // stopped earlier: nothing changes (uniform)
+    if (threadIdx.x == 0) {
+      // Stage 3, by every block from the same loss and state snapshot (so all take the same
+      // decision; the others gather gradients meanwhile); the problem's first block keeps
+      // the record.
+      for (int c = 0; c < kStateCols; ++c) st[c] = P.snap[p * kStateCols + c];
+      const double loss = P.loss[(parity ? kMaxProblems : 0) + p];
+      const bool keeper = vb == P.vblock_begin[p];
+      control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias);
+      if (keeper)
+        for (int c = 0; c < kStateCols; ++c) P.state[p * kStateCols + c] = st[c];
+    }
+    const float* ub = P.ubuf + (parity ? C3 : 0);
+    const float ccoef = P.cluster_coef[p];
+    float G[3] = {0.0f, 0.0f, 0.0f};
+    // kUnroll entries per lane at once: their loads are in flight together (a vertex near
+    // the sensor has hundreds of entries; one at a time, each waits for two dependent loads)
+    constexpr int kUnroll = 4;
+    const int e_stop = (skip & 32) ? e_begin : e_end;
+    for (int e0 = e_begin + sub; e0 < e_stop; e0 += kUnroll * kLanesPerVertex) {
+      int4 r[kUnroll];
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        const int e = e0 + u * kLanesPerVertex;
+        r[u] = e < e_stop ? P.ent[e] : make_int4(-1, 0, -1, 0);
+      }
+      float gv[kUnroll][3];
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        // r.x < 0: invalid tables (validated in Python) or past the end: never read outside
+        const float* sg = P.seg_grad + 3 * int64_t(max(r[u].x, 0));
+        for (int c = 0; c < 3; ++c) gv[u][c] = r[u].x >= 0 ? sg[c] : 0.0f;
+      }
+#pragma unroll
+      for (int u = 0; u < kUnroll; ++u) {
+        if (r[u].x < 0) continue;
+        if (r[u].w) {  // summed by atomics: clear for the next iteration
+          float* sg = P.seg_grad + 3 * int64_t(r[u].x);
+          sg[0] = sg[1] = sg[2] = 0.0f;
+        }
+        if (kCluster && r[u].z >= 0) {
+          const float c = ccoef * __int_as_float(r[u].y);
+          for (int k = 0; k < 3; ++k) gv[u][k] -= c * ub[3 * r[u].z + k];
+        }
+        for (int k = 0; k < 3; ++k) G[k] += gv[u][k];
+      }
+    }
+    for (int c = 0; c < 3; ++c)
+      for (int off = kLanesPerVertex / 2; off > 0; off >>= 1) G[c] += __shfl_xor_sync(0xffffffffu, G[c], off);
+    __syncthreads();  // stage 3 done
+    const bool step = st[kStep] != 0.0, copy = st[kCopyBest] != 0.0;
+    if (!step && !copy) return;  // uniform per block
+    float* th = P.theta + 3 * int64_t(v);
+    if (has_v && copy && sub < 3) P.best[3 * int64_t(v) + sub] = th[sub];
+    if (!step) return;  // uniform per block
+    if (has_v && sub < 3)
+      adam_update(th[sub], P.adam_m[3 * int64_t(v) + sub], P.adam_v[3 * int64_t(v) + sub], G[sub], P.hyper,
+                  float(st[kStepSize]), float(st[kBc2Sqrt]));
+  }
+  if constexpr (kCluster) {
+    // this vertex's (updated) parameters to every lane of its group
+    const float mine = (has_v && sub < 3) ? P.theta[3 * int64_t(v) + sub] : 0.0f;
+    const int g0 = lane & ~(kLanesPerVertex - 1);
+    const float t[3] = {__shfl_sync(0xffffffffu, mine, g0), __shfl_sync(0xffffffffu, mine, g0 + 1),
+                        __shfl_sync(0xffffffffu, mine, g0 + 2)};
+    float* mdst = P.mbuf + ((kInitMeans || parity) ? 0 : C3);  // the means of the next iteration
+    const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
+    const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
+    const int rounds = (skip & 64) ? 0 : warp_max(mine_n);
+    // Summed per block first: a vertex block (32 neighbouring vertices) meets few clusters,
+    // while a big cluster's mean receives shares from hundreds of blocks, so one global
+    // atomic per (block, cluster) instead of one per (warp, round, cluster) (those cost
+    // 2.8 of 24.7 us per iteration at one frame on an H100). A slot taken by another
+    // cluster adds to global memory directly.
+    sm.mkey[threadIdx.x] = -1;
+    for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0.0f;
+    __syncthreads();
+    float* wscratch = scratch + (threadIdx.x & ~31u);
+    for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
+      int slot = -1, spill = -1;
+      float val[3] = {0.0f, 0.0f, 0.0f};
+      if (r < mine_n) {
+        const int2 pr = P.pair[e_begin + sub + r * kLanesPerVertex];
+        if (unsigned(pr.x) < unsigned(P.num_clusters)) {
+          const float a = __int_as_float(pr.y);
+          for (int c = 0; c < 3; ++c) val[c] = a * t[c];
+          const int s = pr.x % kThreads;
+          const int had = atomicCAS(&sm.mkey[s], -1, pr.x);
+          if (had == -1 || had == pr.x) slot = s; else spill = pr.x;
+        }
+      }
+      warp_add<float>(sm.msum, slot, 3, 1, val, 1.0f, 3, wscratch);
+      warp_add<float>(mdst, spill, 3, 1, val, 1.0f, 3, wscratch);
+    }
+    __syncthreads();
+    if (const int key = sm.mkey[threadIdx.x]; key >= 0)
+      for (int c = 0; c < 3; ++c) atomicAdd(mdst + 3 * key + c, sm.msum[3 * threadIdx.x + c]);
+  }
+}
+
+}  // namespace floxels::cuda::solver_detail
