@@ -43,23 +43,11 @@ def parse_options(items: list[str], max_iters: int | None, config: type | None) 
 
 
 def parse_frames(text: str | None, n: int) -> list[int]:
-    from floxels_ext.cli import CLIError
+    """``--frames`` as the list of selected frame indices (the dataset path's range, listed)."""
+    from floxels_ext.lidar.dataset import parse_frame_range
 
-    if not text:
-        return list(range(n))
-    try:
-        if ":" in text:
-            a, b = text.split(":", 1)
-            sl = slice(int(a) if a.strip() else None, int(b) if b.strip() else None)
-        else:
-            k = int(text)
-            sl = slice(k, k + 1 if k != -1 else None)
-    except ValueError:
-        raise CLIError(f"--frames expects A:B, A:, :B or A (integers), got {text!r}") from None
-    sel = list(range(n))[sl]
-    if not sel:
-        raise CLIError(f"--frames {text} selects no frame of the {n}")
-    return sel
+    start, stop = parse_frame_range(text, n)
+    return list(range(start, stop))
 
 
 def check_args(args, torch):
