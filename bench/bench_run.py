@@ -8,7 +8,7 @@ it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argove
   and the per-stage breakdown the run records in ``run_summary.json``;
 * the ceiling: ``estimate_sequence`` on the same preprocessed, ego-motion-compensated scans,
   already in memory (one call, all frames);
-* the serial host work per frame (read + numpy preprocessing) for reference.
+* the serial host work per frame (read + preprocessing, the compiled CPU op, on one thread) for reference.
 
     python bench/bench_run.py                             # GPU host: 64 frames, 128 beams
     python bench/bench_run.py --frames 16 --beams 32      # CPU-sized
@@ -166,14 +166,14 @@ def main() -> None:
     hdr = ("input", "workers", "frames/s", "ms/frame", "read", "preproc", "transform", "estimate", "compute", "write",
            "wait in", "idle dev", "host %", "vs ceiling")
     print(" | ".join(f"{h:>9}" for h in hdr))
-    # workers: N, t(hread)/p(rocess), where preprocessing ran
+    # workers: N readers, t(hread)/p(rocess), where preprocessing ran, writers t/p
     for name, r in rows.items():
         st = r["summary"]["stages_s"]
         host_pct = 100 * (r["wall_s"] - st["compute"]) / r["wall_s"]  # everything but the method computing
         r["host_pct"] = host_pct
         r["ratio_to_ceiling"] = ceil["frames_per_s"] / r["frames_per_s"]
         sm = r["summary"]
-        vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}", f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
+        vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}/w{sm.get('writer_kind', 'thread')[0]}", f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
             [f"{1e3 * st[k] / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute", "write",
                                                  "wait_input")] + \
             [f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
@@ -186,7 +186,7 @@ def main() -> None:
           "the estimate; 'idle dev' = wall - compute: time the method was not computing)")
     print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "
           f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
-          f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (numpy, one thread)")
+          f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (the CPU op, one thread)")
     res = {"device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
            "frames": n, "beams": args.beams, "gil_switch_interval": args.gil_switch_interval, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
            "runs": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()}, "ceiling": ceil}

@@ -124,6 +124,27 @@ TORCH_LIBRARY(floxels, m) {
   m.def("stage_points(Tensor[] points, Tensor(a!)[] out) -> Tensor");
   m.def("solver_loop_blocks(Tensor points, int[] point_ranges, int[] vertex_ranges, bool cluster) -> int");
 
+  // --- lidar pipeline, CPU (csrc/kernels/lidar.h, cpu/lidar_cpu.cpp) ---
+  // The per-frame host work of `floxels run`, as ops so that the run's worker threads do it
+  // without the GIL. keep (N,) bool: the points of one scan (sensor frame, z up) inside the
+  // range crop [min_range, max_range] (horizontal), at most max_height above the local ground
+  // surface, and (remove_ground) not within ground_threshold of it; the surface is built from
+  // the finite points within grid_distance (horizontal): lowest z per ground_cell cell, opened
+  // with a window_cells-wide square window, capped at a trimmed least-squares plane +
+  // ground_max_rise (None: no cap); more than max_cells grid cells is an error. Equal to
+  // floxels_ext.lidar.preprocess.preprocess_mask_numpy (the reference). Non-finite rows: False.
+  m.def("lidar_keep_mask(Tensor points, float? min_range, float? max_range, float? max_height, bool remove_ground, "
+        "float ground_cell, int window_cells, float ground_threshold, float? ground_max_rise, float grid_distance, "
+        "int max_cells) -> Tensor");
+  // out (N, 3), points' dtype = R p + t of a (4, 4) float64 rigid transform, computed in float64.
+  m.def("rigid_transform(Tensor points, Tensor transform) -> Tensor");
+  // A frame's flow in its file's rows and axes: flow (M, 3) float32 of the rows where mask
+  // (N,) is set, in world axes, times rotation (3, 3) float32 (world <- file) from the left,
+  // i.e. f @ R; other rows 0, rows listed in nonfinite (K,) int64 NaN. dynamic (N,) bool:
+  // |flow| > dynamic_threshold (float32 arithmetic).
+  m.def("frame_flow(Tensor flow, Tensor mask, Tensor nonfinite, Tensor rotation, float dynamic_threshold) "
+        "-> (Tensor, Tensor)");
+
   // --- build information ---
   // True when this library was built with FLOXELS_PROFILING=ON (CMakeLists.txt): only such a
   // build has the measurement-only solver code that FLOXELS_SOLVER_TRACE / FLOXELS_SOLVER_SKIP

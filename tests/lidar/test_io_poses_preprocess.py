@@ -9,7 +9,7 @@ from floxels_ext.lidar.accumulate import accumulate
 from floxels_ext.lidar.io import MissingDependencyError, PoseFormatError, read_poses
 from floxels_ext.lidar.io.poses import check_poses, match_timestamps, quat_to_matrix, read_av2_poses
 from floxels_ext.lidar.preprocess import (Preprocess, crop_mask, ground_mask, ground_surface, preprocess_mask,
-                                    relative_pose, transform_points)
+                                          preprocess_mask_numpy, relative_pose, transform_points)
 
 
 def _rot_z(a, t=(0, 0, 0)):
@@ -150,8 +150,9 @@ _SETTINGS = [Preprocess(), Preprocess(max_range=None), Preprocess(remove_ground=
 
 
 @pytest.mark.parametrize("k", range(len(_SETTINGS)))
-def test_torch_preprocessing_gives_the_numpy_masks(k):
-    """The GPU path (run here on CPU tensors) must select exactly the numpy path's points."""
+def test_op_and_torch_preprocessing_give_the_numpy_masks(k):
+    """The compiled op (the default) and the GPU path (run here on CPU tensors) must select
+    exactly the numpy reference's points."""
     from floxels_ext.lidar.preprocess_torch import preprocess_mask_torch
 
     for scene, seed in (("urban", 3), ("parking", 4)):
@@ -160,9 +161,11 @@ def test_torch_preprocessing_gives_the_numpy_masks(k):
         ps[3] = np.nan
         ps[4] = [1e30, 2.0, 0.0]
         ps[5] = [900.0, -40.0, -3.0]
-        a = preprocess_mask(ps, _SETTINGS[k])
+        a = preprocess_mask_numpy(ps, _SETTINGS[k])
+        assert 0 < a.sum() < len(a)
         np.testing.assert_array_equal(preprocess_mask_torch(ps, _SETTINGS[k], "cpu"), a)
-        np.testing.assert_array_equal(preprocess_mask(ps, _SETTINGS[k], device="cpu"), a)
+        np.testing.assert_array_equal(preprocess_mask(ps, _SETTINGS[k]), a)
+        np.testing.assert_array_equal(preprocess_mask(ps.astype(np.float64), _SETTINGS[k]), a)
 
 
 @pytest.mark.cuda
@@ -175,7 +178,7 @@ def test_torch_preprocessing_on_cuda_gives_the_numpy_masks():
 
     _, ps = _sim_frame("urban", 6)
     for st in _SETTINGS:
-        np.testing.assert_array_equal(preprocess_mask_torch(ps, st, "cuda"), preprocess_mask(ps, st))
+        np.testing.assert_array_equal(preprocess_mask_torch(ps, st, "cuda"), preprocess_mask_numpy(ps, st))
 
 
 def test_stray_far_points_neither_crash_nor_change_the_near_masks():
@@ -190,6 +193,7 @@ def test_stray_far_points_neither_crash_nor_change_the_near_masks():
     m = preprocess_mask(bad)
     assert time.perf_counter() - t0 < 2.0
     np.testing.assert_array_equal(m[:len(ps)], base)
+    np.testing.assert_array_equal(preprocess_mask_numpy(bad), m)
     assert not m[len(ps):].any()
     m2 = preprocess_mask(bad, Preprocess(max_range=None))  # no range crop: the grid stays bounded
     assert not m2[len(ps):].any()

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from floxels_ext.lidar.preprocess import transform_points
+
 __all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "FrameLoader", "ChunkScans"]
 
 
@@ -104,7 +106,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     except (LidarFormatError, ValueError, OSError) as e:
         out["error"] = str(e)
         return out
-    pts = np.asarray(scan.points, np.float32)
+    pts = np.ascontiguousarray(scan.points, np.float32)
     finite = np.isfinite(pts).all(axis=1)
     nonfinite = np.flatnonzero(~finite)
     if len(nonfinite) == len(pts):
@@ -125,12 +127,13 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
             with torch.cuda.stream(_TLS.stream):
                 mask = preprocess_mask(pts_sensor, settings, device=pre_device)
         else:
-            mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+            mask = preprocess_mask(pts_sensor, settings)  # the compiled CPU op: no GIL while it runs
     except ValueError as e:
         out["error"] = f"{path}: preprocessing failed: {e}"
         return out
+    kept = pts[mask]
     out["preprocess"] = time.perf_counter() - t1
-    out["frame"] = PreparedFrame(pts[mask], mask, nonfinite, np.asarray(to_world, np.float64),
+    out["frame"] = PreparedFrame(kept, mask, nonfinite, np.asarray(to_world, np.float64),
                                  pts if keep_points else None)
     return out
 
@@ -156,9 +159,6 @@ def single_threaded_blas():
 
 
 def _init_process(kwargs) -> None:
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it stops us)
     _WORKER["blas"] = single_threaded_blas()  # kept alive: the limit holds for the worker's life
     _WORKER["blas"].__enter__()
     _WORKER["kwargs"] = kwargs
@@ -168,14 +168,10 @@ def _process_load(i: int) -> dict:
     return load_frame(i, **_WORKER["kwargs"])
 
 
-def _nothing() -> None:
-    return None
-
-
 class FrameLoader:
     """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
-    processes (``kind="process"``: numpy preprocessing without sharing the GIL with the
-    optimiser's host work; forked at construction, before the device is used)."""
+    processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
+    host work; started at construction, see :mod:`floxels_ext.lidar.worker_processes`)."""
 
     def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
                  pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn) -> None:
@@ -184,19 +180,16 @@ class FrameLoader:
         self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
         workers = max(1, workers)
         if kind == "process":
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
+            from floxels_ext.lidar.worker_processes import process_pool
 
-            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork"),
-                                            initializer=_init_process, initargs=(self.kwargs,))
-            for f in [self.pool.submit(_nothing) for _ in range(workers)]:
-                f.result()  # start them all now
+            self.pool = process_pool(workers, _init_process, (self.kwargs,))
             self._submit = lambda i: self.pool.submit(_process_load, i)
         else:
             self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
             self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
-        # transforms wait for loads: a pool of their own, so they never queue behind later loads
-        self.tpool = ThreadPoolExecutor(max_workers=min(workers, 8), thread_name_prefix="floxels-move")
+        # transforms wait for loads: a pool of their own, so they never queue behind later loads;
+        # two threads: a transform is one op call of ~1 ms (more threads only contend for the GIL)
+        self.tpool = ThreadPoolExecutor(max_workers=min(workers, 2), thread_name_prefix="floxels-move")
         self.futures: dict = {}
         self.done: dict[int, PreparedFrame | None] = {}
         self.errors: dict[int, str] = {}
@@ -293,8 +286,7 @@ class ChunkScans(Sequence):
             return np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
         T = p.to_world.copy()
         T[:3, 3] -= self.anchor
-        kept = p.kept.astype(np.float64)
-        s = (kept @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        s = transform_points(p.kept, T)
         self.loader.stages.add("transform", time.perf_counter() - t0)
         return s
 

@@ -76,12 +76,58 @@ def write_output(path: Path, *, compress: bool = False, **arrays) -> Path:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as fh:
-            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+            if compress or not _write_npz_stored(fh, arrays):
+                (np.savez_compressed if compress else np.savez)(fh, **arrays)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def _write_npz_stored(fh, arrays: dict) -> bool:
+    """What ``np.savez`` writes (a zip of ``NAME.npy`` members, stored), written directly: a
+    header per member and the arrays' own memory, CRC-32 by zlib. Why: np.savez runs zipfile's
+    Python code and copies each array to bytes, holding the GIL for ~1 ms a frame on the writer
+    threads, which the thread driving the GPU waited for; here the big steps (crc32 and the file
+    writes of MBs) run without it. Returns False (nothing written) for what this does not cover
+    (object arrays, members of 2 GiB or more: zip64); the caller uses np.savez then."""
+    import struct
+    import time as _time
+    import zlib
+    from io import BytesIO
+
+    prepared, total = [], 0
+    for name, value in arrays.items():
+        a = np.asanyarray(value)
+        if not a.flags.c_contiguous:  # (not ascontiguousarray: it turns 0-d arrays into 1-d)
+            a = a.copy(order="C")
+        if a.dtype.hasobject:
+            return False
+        bio = BytesIO()
+        np.lib.format.write_array_header_1_0(bio, np.lib.format.header_data_from_array_1_0(a))
+        header = bio.getvalue()
+        data = a.reshape(-1).view(np.uint8) if a.size else np.zeros(0, np.uint8)
+        total += len(header) + data.nbytes + 100 + 2 * len(name)
+        prepared.append(((name + ".npy").encode("utf-8"), header, data))
+    if total >= 2**31:
+        return False
+    t = _time.localtime()
+    dos_time = (t.tm_hour << 11) | (t.tm_min << 5) | (t.tm_sec // 2)
+    dos_date = ((t.tm_year - 1980) << 9) | (t.tm_mon << 5) | t.tm_mday
+    central, offset = [], 0
+    for fname, header, data in prepared:
+        crc = zlib.crc32(data, zlib.crc32(header))
+        size = len(header) + data.nbytes
+        fh.write(struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, 0, dos_time, dos_date, crc, size, size,
+                             len(fname), 0) + fname + header)
+        fh.write(data)
+        central.append(struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, 0, dos_time, dos_date, crc, size,
+                                   size, len(fname), 0, 0, 0, 0, 0o600 << 16, offset) + fname)
+        offset += 30 + len(fname) + size
+    cd = b"".join(central)
+    fh.write(cd + struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(central), len(central), len(cd), offset, 0))
+    return True
 
 
 def read_settings(path: Path) -> dict | None:

@@ -1,6 +1,6 @@
 """The machinery of ``floxels run``: reading and preprocessing ahead on worker threads
-(``frame_loader``), the optimisation in the calling thread, writing on writer threads (see
-:func:`run_pipeline`).
+(``frame_loader``), the optimisation in the calling thread, writing on writer threads or
+processes (``frame_writer``; see :func:`run_pipeline`).
 
 Memory stays flat: frames are read at most one chunk ahead (:class:`FrameLoader`), dropped once
 behind the current window, and results wait in a bounded queue (the optimiser blocks when the
@@ -14,14 +14,13 @@ moved into one world frame re-centred on the first readable frame of the chunk.
 from __future__ import annotations
 
 import inspect
-import queue
 import sys
-import threading
 import time
 
 import numpy as np
 
-from floxels_ext.lidar.frame_loader import ChunkScans, FrameLoader, Stages
+from floxels_ext.lidar.frame_loader import ChunkScans, FrameLoader
+from floxels_ext.lidar.frame_writer import WriterPool
 
 # Python hands the GIL to a waiting thread only every "switch interval" (5 ms by default): with
 # reader and writer threads holding it for numpy work, the thread driving the GPU waited that
@@ -51,58 +50,14 @@ def _accepts_times(fn) -> bool:
         return False
 
 
-class _Writer:
-    """Writes results on ``threads`` threads (an output costs a few ms of numpy and file I/O, most
-    of it without the GIL: one thread capped a GPU run near 60 frames/s); ``put`` blocks while
-    ``depth`` results wait (flat memory). Frames are independent files, written atomically, so
-    their order does not matter."""
-
-    def __init__(self, write_one, stages: Stages, depth: int = 32, threads: int = 4) -> None:
-        self.write_one, self.stages = write_one, stages
-        self.q: queue.Queue = queue.Queue(maxsize=depth)
-        self.failures: dict[int, str] = {}
-        self.written = 0
-        self._lock = threading.Lock()
-        self.threads = [threading.Thread(target=self._loop, name=f"floxels-write-{k}", daemon=True)
-                        for k in range(max(1, threads))]
-        for t in self.threads:
-            t.start()
-
-    def put(self, item) -> None:
-        t0 = time.perf_counter()
-        self.q.put(item)
-        self.stages.add("wait_writer", time.perf_counter() - t0)
-
-    def _loop(self) -> None:
-        while True:
-            item = self.q.get()
-            if item is None:
-                return
-            t0 = time.perf_counter()
-            try:
-                self.write_one(*item)
-                with self._lock:
-                    self.written += 1
-            except Exception as e:  # a full disk, a permission problem: this frame fails, not the run
-                with self._lock:
-                    self.failures[item[0]] = f"cannot write the output: {e}"
-            self.stages.add("write", time.perf_counter() - t0)
-
-    def close(self) -> None:
-        """Write what is queued (finished results are not thrown away), then stop."""
-        for _ in self.threads:
-            self.q.put(None)
-        for t in self.threads:
-            t.join()
-
-
-def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_scans: int, chunk: int | None,
-                 device, options: dict, write_one, on_written, next_pose=lambda i: None, times_s=None,
-                 writer_depth: int = 32, writer_threads: int = 4) -> dict:
+def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[int], n: int, num_scans: int,
+                 chunk: int | None, device, options: dict, on_written, next_pose=lambda i: None,
+                 times_s=None) -> dict:
     """Estimate every frame of ``todo`` (sorted sequence indices of ``n`` frames).
 
-    ``write_one(i, prepared, flow_kept, elapsed_s, next_to_world)`` runs on ``writer_threads`` threads
-    (``next_pose(i)``, called on this thread, gives the last argument: the next frame's pose or None);
+    ``writer.put(i, prepared, flow_kept, elapsed_s, next_to_world)`` takes each result (``next_pose(i)``,
+    called on this thread, gives the last argument: the next frame's pose or None); the writer is
+    closed (queued results written) before returning, also on errors and Ctrl-C;
     ``on_written(i)`` (progress) on the calling thread, as results are handed over.
     Returns {"failed": {i: message}, "times": [s/frame], "delivered": count}; raises
     ``EstimationError`` (a ValueError/TypeError of the method before any frame was delivered)."""
@@ -110,7 +65,6 @@ def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_sc
     pad = num_scans - 1
     chunks = plan_chunks(todo, chunk)
     pass_times = times_s is not None and _accepts_times(method.estimate_sequence)
-    writer = _Writer(write_one, stages, writer_depth, writer_threads)
     failed: dict[int, str] = {}
     elapsed: list[float] = []
     delivered = 0
@@ -155,7 +109,7 @@ def run_pipeline(*, loader: FrameLoader, method, todo: list[int], n: int, num_sc
                 dt, t_last[0] = now - t_last[0], now
                 elapsed.append(dt)
                 flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)
-                writer.put((i, loader.get(i), flow_kept, dt, next_pose(i)))
+                writer.put(i, loader.get(i), flow_kept, dt, next_pose(i))
                 delivered += 1
                 on_written(i)
 

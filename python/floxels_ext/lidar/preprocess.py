@@ -31,14 +31,23 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["transform_points", "relative_pose", "ground_surface", "ground_mask", "crop_mask",
-           "Preprocess", "preprocess_mask"]
+           "Preprocess", "preprocess_mask", "preprocess_mask_numpy"]
 
 
 def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 rigid transform to (N, 3) points (NaN rows stay NaN); float32 out."""
-    T = np.asarray(T, np.float64)
-    p = np.asarray(points, np.float64)
-    return (p @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+    """Apply a 4x4 rigid transform to (N, 3) points (NaN rows stay NaN), in float64; float32 out.
+    (The compiled :func:`floxels_ext.ops.rigid_transform`: numpy's ``p @ R.T + t`` to the last
+    bit of the float32 result, without the GIL.)"""
+    import torch
+
+    from floxels_ext.ops.lidar import rigid_transform
+
+    p = np.asarray(points)
+    if p.dtype not in (np.float32, np.float64):
+        p = p.astype(np.float64)
+    p = np.ascontiguousarray(p).reshape(-1, 3)
+    out = rigid_transform(torch.from_numpy(p), torch.from_numpy(np.asarray(T, np.float64)))
+    return out.numpy().astype(np.float32, copy=False)
 
 
 def relative_pose(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
@@ -211,12 +220,33 @@ class Preprocess:
 def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess(), device=None) -> np.ndarray:
     """(N,) bool of the points of one scan (in its sensor frame, z up) kept by ``settings``.
 
-    ``device`` (a torch device, e.g. "cuda"): run the grid work there
-    (:func:`floxels_ext.lidar.preprocess_torch.preprocess_mask_torch`, identical masks)."""
-    if device is not None:
+    ``device`` None or "cpu": the compiled CPU op (:func:`floxels_ext.ops.lidar_keep_mask`, a few
+    ms a 200k-point scan, without the GIL); a CUDA device: the grid work there
+    (:func:`floxels_ext.lidar.preprocess_torch.preprocess_mask_torch`). Both give the masks of
+    :func:`preprocess_mask_numpy`, the reference (tests compare them)."""
+    if device is not None and str(device) != "cpu":
         from floxels_ext.lidar.preprocess_torch import preprocess_mask_torch
 
         return preprocess_mask_torch(points_sensor, settings, device)
+    import torch
+
+    from floxels_ext.ops.lidar import lidar_keep_mask
+
+    pts = np.asarray(points_sensor)
+    if pts.dtype not in (np.float32, np.float64):
+        pts = pts.astype(np.float64)
+    return lidar_keep_mask(torch.from_numpy(np.ascontiguousarray(pts)), **_op_arguments(settings)).numpy()
+
+
+def _op_arguments(s: Preprocess) -> dict:
+    return dict(min_range=s.min_range, max_range=s.max_range, max_height=s.max_height,
+                remove_ground=s.remove_ground, ground_cell=s.ground_cell,
+                window_cells=_window_cells(s.ground_window, s.ground_cell), ground_threshold=s.ground_threshold,
+                ground_max_rise=s.ground_max_rise, grid_distance=s.grid_distance, max_cells=MAX_GROUND_CELLS)
+
+
+def preprocess_mask_numpy(points_sensor: np.ndarray, settings: Preprocess = Preprocess()) -> np.ndarray:
+    """The reference of :func:`preprocess_mask` in numpy/scipy (tens of ms a 200k-point scan)."""
     need_surface = settings.remove_ground or settings.max_height is not None
     surface = ground_surface(points_sensor, cell_size=settings.ground_cell, window=settings.ground_window,
                              max_rise=settings.ground_max_rise,

@@ -102,14 +102,16 @@ def add_parser(sub) -> None:
                    "(default: read back from the recorded source file)")
     p.add_argument("--compress", action="store_true", help="zip-compress the outputs (smaller, slower)")
     p.add_argument("--summary", metavar="FILE", help="JSON summary of the run (default OUT_DIR/run_summary.json)")
-    p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: 4 with GPU "
-                   "preprocessing, else the CPU cores, at most 16)")
+    p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: the CPU "
+                   "cores, at most 4: more only contend for the GIL with the optimiser's host work)")
+    p.add_argument("--writers", type=int, default=None, help="writer threads (default 2: an output is written "
+                   "in ~5 ms, mostly without the GIL)")
     p.add_argument("--worker-kind", choices=["auto", "thread", "process"], default="auto",
-                   help="readers/preprocessors as threads or processes (numpy preprocessing only); auto: threads "
-                        "(faster than processes on the hosts measured)")
+                   help="readers/preprocessors and writers as threads or processes (CPU preprocessing only); "
+                        "auto: threads (faster than processes on the hosts measured)")
     p.add_argument("--preprocess-device", choices=["auto", "cpu", "cuda"], default="auto",
-                   help="where cropping/ground removal run: numpy on the CPU, or torch on the GPU (same masks; "
-                        "worker threads); auto: the GPU when --device is one, else the CPU")
+                   help="where cropping/ground removal run: the compiled CPU op, or torch on the GPU (same masks; "
+                        "worker threads); auto: the CPU op (the faster on the hosts measured)")
     add_dataset_arguments(p)
     p.set_defaults(func=run)
 
@@ -130,6 +132,7 @@ def run(args) -> int:
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
     from floxels_ext.methods import available_methods, get_method
+    from floxels_ext.lidar.frame_writer import FrameOutput, WriterPool
     from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
     from floxels_ext.lidar.frame_loader import FrameLoader, Stages, single_threaded_blas
     from floxels_ext.lidar.pipeline import EstimationError, run_pipeline
@@ -186,13 +189,6 @@ def run(args) -> int:
          f"{len(todo)} to estimate with {args.method} on {device} "
          f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})")
 
-    pre_dev, workers, kind = reader_plan(args, device)
-    if kind == "process" and pre_dev is not None:
-        raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
-    stages = Stages()
-    loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
-                         keep_points=args.self_contained, stages=stages,
-                         warn=lambda m: report(f"floxels: warning: {m}"))
     # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
     # pipeline passes them to methods whose estimate_sequence takes ``times``
     stamps = [f.timestamp_ns for f in seq.frames]
@@ -206,28 +202,22 @@ def run(args) -> int:
             "bin_columns": np.int32(seq.bin_columns or 0),
             "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
 
-    def write_one(i, p, flow_kept, elapsed, next_to_world):
-        # float32 arithmetic and index (not boolean) assignment: this ran on the writer threads
-        # at ~6 ms a frame in float64, a third of a GPU frame's budget (flow differs < 1e-6 m)
-        full = np.zeros((p.n, 3), np.float32)
-        full[p.nonfinite] = np.nan
-        kept = np.flatnonzero(p.mask)
-        # world-axes flow -> the frame's native axes: R^T f (row vectors: f @ R)
-        native = np.asarray(flow_kept, np.float32) @ p.to_world[:3, :3].astype(np.float32)
-        full[kept] = native
-        dynamic = np.zeros(len(full), bool)
-        thr = args.dynamic_threshold
-        dynamic[kept] = np.einsum("ij,ij->i", native, native) > np.float32(thr) * np.float32(thr)
-        extra = {}
-        if next_to_world is not None:
-            extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)
-        if args.self_contained:
-            extra["points"] = p.points
-        if stamps[i] is not None:
-            extra["timestamp_ns"] = np.int64(stamps[i])
-        write_output(out_path[i], compress=args.compress, flow=full, mask=p.mask, dynamic=dynamic,
-                     pose=p.to_world, elapsed_s=np.float64(elapsed),
-                     source=np.str_(str(seq.frames[i].path.resolve())), **meta, **extra)
+    write_one = FrameOutput(out_path=out_path, sources={i: str(seq.frames[i].path.resolve()) for i in todo},
+                            stamps=stamps, meta=meta, dynamic_threshold=args.dynamic_threshold,
+                            compress=args.compress, self_contained=args.self_contained)
+
+    pre_dev, workers, kind, writer_kind = reader_plan(args, device)
+    if kind == "process" and pre_dev is not None:
+        raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
+    stages = Stages()
+    writer = WriterPool(write_one, stages, workers=args.writers or 2, kind=writer_kind)
+    try:
+        loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
+                             keep_points=args.self_contained, stages=stages,
+                             warn=lambda m: report(f"floxels: warning: {m}"))
+    except BaseException:
+        writer.close()
+        raise
 
     def next_pose(i):
         if i + 1 >= len(seq) or pose_mode == "seqio":
@@ -245,9 +235,9 @@ def run(args) -> int:
     blas = single_threaded_blas() if device.startswith("cuda") else contextlib.nullcontext()
     try:
         with blas:
-            res = run_pipeline(loader=loader, method=get_method(args.method), todo=todo, n=len(seq),
+            res = run_pipeline(loader=loader, writer=writer, method=get_method(args.method), todo=todo, n=len(seq),
                                num_scans=args.scans, chunk=args.chunk, device=device, options=options,
-                               write_one=write_one, next_pose=next_pose, times_s=times_s,
+                               next_pose=next_pose, times_s=times_s,
                                on_written=lambda i: bar.update(note=seq.frames[i].name))
     except EstimationError as e:
         raise CLIError(f"{args.method}: {e}") from None
@@ -278,8 +268,8 @@ def run(args) -> int:
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
-               "stages_s": stages.as_dict(), "workers": workers, "worker_kind": kind,
-               "preprocess_device": pre_dev or "cpu",
+               "stages_s": stages.as_dict(), "workers": workers, "writers": args.writers or 2, "worker_kind": kind,
+               "writer_kind": writer_kind, "preprocess_device": pre_dev or "cpu",
                "settings": json.loads(json.dumps(run_settings, default=str))}
     summary_path = Path(args.summary) if args.summary else out / "run_summary.json"
     try:

@@ -65,6 +65,8 @@ def check_args(args, torch):
         raise CLIError("--chunk must be >= 1")
     if args.workers is not None and args.workers < 1:
         raise CLIError("--workers must be >= 1")
+    if getattr(args, "writers", None) is not None and args.writers < 1:
+        raise CLIError("--writers must be >= 1")
     if not (np.isfinite(args.dynamic_threshold) and args.dynamic_threshold >= 0):
         raise CLIError(f"--dynamic-threshold must be a finite number >= 0 (m per frame), got {args.dynamic_threshold}")
     if args.calib and not args.poses:
@@ -129,21 +131,24 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
     return todo
 
 
-def reader_plan(args, device: str) -> tuple[str | None, int, str]:
-    """(preprocessing device or None for numpy, reader workers, "thread"/"process").
+def reader_plan(args, device: str) -> tuple[str | None, int, str, str]:
+    """(preprocessing device, None for the compiled CPU op; reader workers; reader kind, writer
+    kind: "thread"/"process").
 
-    Measured on a 16-core H100 host (bench/bench_run.py, bench/RESULTS.md): cropping and ground
-    removal on the GPU from 4 reader threads beat numpy on 16 threads or processes by ~1.3-2x
-    (more threads contend for the GIL with the optimiser's host work). ``args.cpu_limit`` (set
-    by a Ray task: the CPUs it was given) caps the default worker count."""
+    Cropping and ground removal run in the compiled CPU op by default: a few ms a 200k-point
+    scan without the GIL, so reader threads overlap the optimiser instead of taking turns with
+    its Python (bench/bench_run.py, bench/RESULTS.md; the GPU path, --preprocess-device cuda,
+    launches ~30 small kernels and syncs from each thread). Readers and writers are threads
+    unless ``--worker-kind process`` (measured slower on an H100 host: 26-33 frames/s against
+    75-83 with threads, bench/RESULTS.md). At most 4 readers by default: on a 16-core H100 host
+    4 gave 83 frames/s, 8 gave 78, 12 gave 72 (more threads take GIL turns from the optimiser's
+    host work). ``args.cpu_limit`` (set by a Ray task: the CPUs it was
+    given) caps the default worker count."""
     cores = os.cpu_count() or 1
     limit = getattr(args, "cpu_limit", None)
     if limit:
         cores = min(cores, max(1, int(limit)))
-    pre = args.preprocess_device
-    if pre == "auto":  # worker processes preprocess with numpy (CUDA does not survive a fork)
-        pre = "cuda" if device.startswith("cuda") and args.worker_kind != "process" else "cpu"
-    pre_dev = (device if device.startswith("cuda") else "cuda") if pre == "cuda" else None
-    workers = args.workers or (min(4, cores) if pre_dev else max(1, min(16, cores)))
+    pre_dev = (device if device.startswith("cuda") else "cuda") if args.preprocess_device == "cuda" else None
+    workers = args.workers or max(1, min(4, cores))
     kind = "thread" if args.worker_kind == "auto" else args.worker_kind
-    return pre_dev, workers, kind
+    return pre_dev, workers, kind, kind

@@ -1,0 +1,150 @@
+"""Writing ``floxels run``'s outputs: :class:`FrameOutput` turns one estimated frame into its
+``.npz`` (layout: :data:`floxels_ext.lidar.outputs.OUTPUT`), :class:`WriterPool` runs it on
+writer threads or processes while the optimiser goes on.
+
+Why processes: ``np.savez`` goes through ``zipfile`` (Python code and many small numpy calls),
+so writer threads took the GIL dozens of times a frame, and every time the thread driving the
+GPU waited; a writer process has a GIL of its own. A frame crosses as ~1.5 MB (flow, mask) per
+write, pickled once. Outputs are identical either way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from floxels_ext.lidar.outputs import write_output
+
+__all__ = ["FrameOutput", "WriterPool"]
+
+
+@dataclasses.dataclass
+class FrameOutput:
+    """Everything a frame's output needs besides the frame: paths, the run's metadata."""
+
+    out_path: dict[int, Path]
+    sources: dict[int, str]
+    stamps: list
+    meta: dict
+    dynamic_threshold: float
+    compress: bool = False
+    self_contained: bool = False
+
+    def __call__(self, i: int, p, flow_kept: np.ndarray, elapsed: float, next_to_world) -> None:
+        import torch
+
+        from floxels_ext.ops.lidar import frame_flow
+
+        # world-axes flow -> the frame's rows and native axes (f @ R), dynamic flags: one op,
+        # float32, without the GIL (in numpy this held it for ~3 ms a frame)
+        full, dynamic = frame_flow(torch.from_numpy(np.ascontiguousarray(flow_kept, np.float32)),
+                                   torch.from_numpy(p.mask), torch.from_numpy(p.nonfinite),
+                                   torch.from_numpy(p.to_world[:3, :3].astype(np.float32)), self.dynamic_threshold)
+        extra = {}
+        if next_to_world is not None:
+            extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)
+        if self.self_contained:
+            extra["points"] = p.points
+        if self.stamps[i] is not None:
+            extra["timestamp_ns"] = np.int64(self.stamps[i])
+        write_output(self.out_path[i], compress=self.compress, flow=full.numpy(), mask=p.mask,
+                     dynamic=dynamic.numpy(), pose=p.to_world, elapsed_s=np.float64(elapsed),
+                     source=np.str_(self.sources[i]), **self.meta, **extra)
+
+
+_CHILD: dict = {}
+
+
+def _child_init(write_one) -> None:
+    _CHILD["write"] = write_one
+
+
+def _child_write(item) -> float:
+    t0 = time.perf_counter()
+    _CHILD["write"](*item)
+    return time.perf_counter() - t0
+
+
+class WriterPool:
+    """Writes results on ``workers`` threads (``kind="thread"``) or forked processes
+    (``"process"``); ``put`` blocks while ``depth`` results wait (flat memory). Frames are
+    independent files, written atomically, so their order does not matter; a failed write
+    fails its frame (``failures``), not the run. Processes start at construction
+    (:mod:`floxels_ext.lidar.worker_processes`)."""
+
+    def __init__(self, write_one, stages, *, depth: int = 32, workers: int = 4, kind: str = "thread") -> None:
+        self.write_one, self.stages, self.kind = write_one, stages, kind
+        self.failures: dict[int, str] = {}
+        self.written = 0
+        self._lock = threading.Lock()
+        workers = max(1, workers)
+        if kind == "process":
+            from floxels_ext.lidar.worker_processes import process_pool
+
+            self._slots = threading.BoundedSemaphore(depth)
+            self.pool = process_pool(workers, _child_init, (write_one,))
+        else:
+            self.q: queue.Queue = queue.Queue(maxsize=depth)
+            self.threads = [threading.Thread(target=self._loop, name=f"floxels-write-{k}", daemon=True)
+                            for k in range(workers)]
+            for t in self.threads:
+                t.start()
+
+    def put(self, i: int, p, flow_kept, elapsed: float, next_to_world) -> None:
+        t0 = time.perf_counter()
+        if self.kind == "process":
+            self._slots.acquire()
+            self.stages.add("wait_writer", time.perf_counter() - t0)
+            light = dataclasses.replace(p, kept=np.zeros((0, 3), np.float32))  # the writer needs no kept points
+            try:
+                fut = self.pool.submit(_child_write, (i, light, flow_kept, elapsed, next_to_world))
+            except Exception as e:  # a writer died (killed, out of memory): the pool is broken
+                self._slots.release()
+                with self._lock:
+                    self.failures[i] = f"cannot write the output: {e}"
+                return
+            fut.add_done_callback(lambda f, i=i: self._done(i, f))
+        else:
+            self.q.put((i, p, flow_kept, elapsed, next_to_world))
+            self.stages.add("wait_writer", time.perf_counter() - t0)
+
+    def _done(self, i: int, fut) -> None:
+        err = fut.exception()
+        with self._lock:
+            if err is None:
+                self.written += 1
+            else:  # a full disk, a permission problem: this frame fails, not the run
+                self.failures[i] = f"cannot write the output: {err}"
+        if err is None:
+            self.stages.add("write", fut.result())  # seconds the child spent
+        self._slots.release()
+
+    def _loop(self) -> None:
+        while True:
+            item = self.q.get()
+            if item is None:
+                return
+            t0 = time.perf_counter()
+            try:
+                self.write_one(*item)
+                with self._lock:
+                    self.written += 1
+            except Exception as e:  # a full disk, a permission problem: this frame fails, not the run
+                with self._lock:
+                    self.failures[item[0]] = f"cannot write the output: {e}"
+            self.stages.add("write", time.perf_counter() - t0)
+
+    def close(self) -> None:
+        """Write what is queued (finished results are not thrown away), then stop."""
+        if self.kind == "process":
+            self.pool.shutdown(wait=True)
+            return
+        for _ in self.threads:
+            self.q.put(None)
+        for t in self.threads:
+            t.join()

@@ -1,0 +1,44 @@
+"""Worker processes of ``floxels run`` (readers with ``--worker-kind process``, writers).
+
+They come from a fork server (``multiprocessing``'s "forkserver"), not a plain fork of the run:
+the run is multi-threaded and has used torch (and CUDA) by then, and a forked copy of it
+deadlocked inside its first torch op call (a lock some other thread held at the fork). The fork
+server is a fresh, single-threaded interpreter that imports the package once (~1-2 s, once per
+Python process) and forks every worker from that clean state. Workers ignore Ctrl-C: the run
+stops them after finishing what is queued.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+
+__all__ = ["process_pool"]
+
+_PRELOAD = ["floxels_ext.lidar.frame_loader", "floxels_ext.lidar.frame_writer"]
+
+
+def _init(initializer, initargs) -> None:
+    import signal
+
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    torch.set_num_threads(1)  # the workers are the parallelism: no OpenMP team in each of them
+    initializer(*initargs)
+
+
+def _nothing() -> None:
+    return None
+
+
+def process_pool(workers: int, initializer, initargs: tuple) -> ProcessPoolExecutor:
+    """``workers`` processes from the fork server, each running ``initializer(*initargs)``
+    (pickled: module-level functions and picklable state only); started before returning."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(_PRELOAD)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init,
+                               initargs=(initializer, initargs))
+    for f in [pool.submit(_nothing) for _ in range(workers)]:
+        f.result()
+    return pool

@@ -1,0 +1,90 @@
+"""The lidar pipeline's CPU ops (``floxels run``'s per-frame host work): fake registrations and
+wrappers. References: :func:`floxels_ext.lidar.preprocess.preprocess_mask_numpy` (cropping and
+ground removal), :func:`floxels_ext.lidar.preprocess.transform_points` and the numpy code in
+``tests/lidar/test_lidar_ops.py`` (flow back into a frame's rows).
+
+Lidar rows may hold NaN/inf coordinates (kept so outputs line up with the file): these ops
+accept them (False in the mask, NaN after a transform) instead of refusing them like the
+optimiser's ops. They run without the GIL, single-threaded, on the calling thread.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from floxels_ext.ops._lib import ops_ns
+
+__all__ = ["lidar_keep_mask", "rigid_transform", "frame_flow"]
+
+
+@torch.library.register_fake("floxels::lidar_keep_mask")
+def _fake_keep(points, min_range, max_range, max_height, remove_ground, ground_cell, window_cells,
+               ground_threshold, ground_max_rise, grid_distance, max_cells):
+    return points.new_empty((points.shape[0],), dtype=torch.bool)
+
+
+@torch.library.register_fake("floxels::rigid_transform")
+def _fake_transform(points, transform):
+    return torch.empty_like(points)
+
+
+@torch.library.register_fake("floxels::frame_flow")
+def _fake_frame_flow(flow, mask, nonfinite, rotation, dynamic_threshold):
+    n = mask.shape[0]
+    return flow.new_empty((n, 3)), mask.new_empty((n,))
+
+
+def _host_points(points, name: str = "points") -> torch.Tensor:
+    if not isinstance(points, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(points).__name__}")
+    if points.dim() != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
+    if points.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must be float32 or float64, got {points.dtype}")
+    if points.device.type != "cpu":
+        raise ValueError(f"{name} must be on the CPU (a lidar pipeline op), got {points.device}")
+    return points
+
+
+def lidar_keep_mask(points: torch.Tensor, *, min_range: float | None, max_range: float | None,
+                    max_height: float | None, remove_ground: bool, ground_cell: float, window_cells: int,
+                    ground_threshold: float, ground_max_rise: float | None, grid_distance: float,
+                    max_cells: int) -> torch.Tensor:
+    """(N,) bool: the rows of ``points`` (one scan, sensor frame, z up) kept by cropping and
+    ground removal (the op's schema comment in ``csrc/ops.cpp`` says each argument).
+    A ground grid over ``max_cells`` cells raises ValueError."""
+    points = _host_points(points)
+    try:
+        return ops_ns.lidar_keep_mask(points, min_range, max_range, max_height, bool(remove_ground),
+                                      float(ground_cell), int(window_cells), float(ground_threshold),
+                                      ground_max_rise, float(grid_distance), int(max_cells))
+    except RuntimeError as e:
+        raise ValueError(str(e).split("\n")[0].removeprefix("floxels: lidar_keep_mask: ")) from None
+
+
+def rigid_transform(points: torch.Tensor, transform: torch.Tensor) -> torch.Tensor:
+    """``R p + t`` for every row of ``points`` (N, 3) with a (4, 4) float64 ``transform``,
+    computed in float64, returned in ``points``' dtype (NaN rows stay NaN)."""
+    points = _host_points(points)
+    transform = torch.as_tensor(transform, dtype=torch.float64)
+    if transform.shape != (4, 4):
+        raise ValueError(f"transform must be (4, 4), got {tuple(transform.shape)}")
+    if not bool(torch.isfinite(transform).all()):
+        raise ValueError("transform has NaN/inf entries")
+    return ops_ns.rigid_transform(points, transform)
+
+
+def frame_flow(flow: torch.Tensor, mask: torch.Tensor, nonfinite: torch.Tensor, rotation: torch.Tensor,
+               dynamic_threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A frame's flow in its file's rows and axes, and the dynamic flags.
+
+    ``flow`` (M, 3) float32: the flow of the rows where ``mask`` (N,) bool is set, in world
+    axes; ``rotation`` (3, 3): the frame's file -> world rotation. Returns ``(flow (N, 3)
+    float32, dynamic (N,) bool)``: ``flow @ rotation`` on the masked rows, 0 on the others,
+    NaN on the rows listed in ``nonfinite`` (int64); dynamic where |flow| > ``dynamic_threshold``."""
+    try:
+        return ops_ns.frame_flow(torch.as_tensor(flow, dtype=torch.float32).reshape(-1, 3),
+                                 torch.as_tensor(mask, dtype=torch.bool), torch.as_tensor(nonfinite, dtype=torch.int64),
+                                 torch.as_tensor(rotation, dtype=torch.float32), float(dynamic_threshold))
+    except RuntimeError as e:
+        raise ValueError(str(e).split("\n")[0].removeprefix("floxels: frame_flow: ")) from None
