@@ -30,7 +30,6 @@ import numpy as np
 import torch
 
 from floxels_ext import cli
-from floxels_ext.lidar.frame_loader import single_threaded_blas
 from floxels_ext.lidar.preprocess import Preprocess, preprocess_mask, transform_points
 
 
@@ -89,8 +88,7 @@ def ceiling(kitti: Path, scans_n: int, device: str, options: dict) -> dict:
         t0 = time.perf_counter()
         pts = read_points(f).points
         t1 = time.perf_counter()
-        with single_threaded_blas():  # as floxels run does (see there)
-            m = preprocess_mask(pts, settings)
+        m = preprocess_mask(pts, settings)
         t2 = time.perf_counter()
         t_read, t_pre = t_read + t1 - t0, t_pre + t2 - t1
         T = T.copy()

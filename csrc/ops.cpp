@@ -138,6 +138,10 @@ TORCH_LIBRARY(floxels, m) {
         "int max_cells) -> Tensor");
   // out (N, 3), points' dtype = R p + t of a (4, 4) float64 rigid transform, computed in float64.
   m.def("rigid_transform(Tensor points, Tensor transform) -> Tensor");
+  // kept (M, 3) contiguous, points' dtype: the rows of points where mask (N,) bool is set, in
+  // order; nonfinite (K,) int64: the rows with a NaN/inf coordinate. These three ops take
+  // points (N, 3) with any strides (the x y z columns of a file's rows, without a copy).
+  m.def("lidar_select(Tensor points, Tensor mask) -> (Tensor, Tensor)");
   // A frame's flow in its file's rows and axes: flow (M, 3) float32 of the rows where mask
   // (N,) is set, in world axes, times rotation (3, 3) float32 (world <- file) from the left,
   // i.e. f @ R; other rows 0, rows listed in nonfinite (K,) int64 NaN. dynamic (N,) bool:

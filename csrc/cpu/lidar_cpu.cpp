@@ -2,6 +2,7 @@
 //  * lidar_keep_mask: cropping and ground removal, floxels_ext/lidar/preprocess.py's numpy
 //    reference step for step (float64, same grid, same filters, same trimmed plane);
 //  * rigid_transform: a 4x4 transform of (N, 3) points in float64;
+//  * lidar_select: the kept rows as an (M, 3) array and the rows with NaN/inf coordinates;
 //  * frame_flow: a frame's optimised flow back into its file's rows and axes, plus the dynamic
 //    flags.
 // Why ops and not numpy: the run calls them from its reader and writer threads, and an op runs
@@ -40,13 +41,13 @@ struct GroundGrid {
 
 // Steps 1-3 of preprocess.py's module docstring: lowest z per cell, opening, plane cap.
 template <typename T>
-void build_ground(const T* p, int64_t N, double cell_size, int64_t window_cells, double max_rise,
+void build_ground(const lidar::Rows<T>& p, int64_t N, double cell_size, int64_t window_cells, double max_rise,
                   double grid_distance, int64_t max_cells, GroundGrid& g) {
   g.cell.assign(N, -1);
   double lo[2] = {kInf, kInf}, hi[2] = {-kInf, -kInf};
   bool any = false;
   for (int64_t i = 0; i < N; ++i) {
-    const double x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
+    const double x = p.x(i), y = p.y(i), z = p.z(i);
     if (!finite3(x, y, z) || lidar::compare_range(x, y, grid_distance) > 0) continue;
     g.cell[i] = 0;  // marks "builds the grid"; the index is set below
     any = true;
@@ -69,12 +70,12 @@ void build_ground(const T* p, int64_t N, double cell_size, int64_t window_cells,
   const bool small = std::max(std::fabs(lo_c[0]) + size[0], std::fabs(lo_c[1]) + size[1]) < 0x1p52;
   for (int64_t i = 0; i < N; ++i) {
     if (g.cell[i] < 0) continue;
-    const double qa = double(p[3 * i]) / cell_size, qb = double(p[3 * i + 1]) / cell_size;
+    const double qa = p.x(i) / cell_size, qb = p.y(i) / cell_size;
     const int64_t a = int64_t((small ? lidar::floor_exact(qa) : std::floor(qa)) - lo_c[0]);
     const int64_t b = int64_t((small ? lidar::floor_exact(qb) : std::floor(qb)) - lo_c[1]);
     const int64_t c = a * W + b;
     g.cell[i] = c;
-    grid[c] = std::min(grid[c], double(p[3 * i + 2]));
+    grid[c] = std::min(grid[c], p.z(i));
   }
   // separable square filters (exact: min and max round nothing), constant border as scipy's
   const int64_t h = window_cells / 2;
@@ -91,10 +92,10 @@ void build_ground(const T* p, int64_t N, double cell_size, int64_t window_cells,
 }
 
 template <typename T>
-void keep_mask(const T* p, int64_t N, const lidar::CropRule& rule, bool need_surface, const GroundGrid& g,
+void keep_mask(const lidar::Rows<T>& p, int64_t N, const lidar::CropRule& rule, bool need_surface, const GroundGrid& g,
                bool* keep) {
   for (int64_t i = 0; i < N; ++i) {
-    const double x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
+    const double x = p.x(i), y = p.y(i), z = p.z(i);
     if (!finite3(x, y, z)) {
       keep[i] = false;
       continue;
@@ -102,6 +103,11 @@ void keep_mask(const T* p, int64_t N, const lidar::CropRule& rule, bool need_sur
     const double h = (need_surface && !g.cell.empty() && g.cell[i] >= 0) ? z - g.opened[g.cell[i]] : kNaN;
     keep[i] = lidar::keep_point(rule, x, y, z, h, need_surface);
   }
+}
+
+template <typename T>
+lidar::Rows<T> rows(const at::Tensor& points) {
+  return {points.const_data_ptr<T>(), points.stride(0), points.stride(1)};
 }
 
 void check_host_points(const at::Tensor& points, const char* op) {
@@ -137,17 +143,17 @@ at::Tensor lidar_keep_mask_cpu(const at::Tensor& points_in, std::optional<double
   FLX_CHECK(!ground_max_rise || std::isfinite(*ground_max_rise),
             "floxels: lidar_keep_mask: ground_max_rise must be finite or None, got ", max_rise);
   const bool need_surface = remove_ground || lidar::has(rule.max_height);
-  const auto points = points_in.contiguous();
+  const auto& points = points_in;  // any strides: rows of a file read without a copy
   const int64_t N = points.size(0);
   auto out = at::empty({N}, points.options().dtype(at::kBool));
   bool* keep = out.mutable_data_ptr<bool>();
   GroundGrid g;
-  auto run = [&](const auto* p) {
+  auto run = [&](const auto& p) {
     if (need_surface) build_ground(p, N, ground_cell, window_cells, max_rise, grid_distance, max_cells, g);
     keep_mask(p, N, rule, need_surface, g, keep);
   };
-  if (points.scalar_type() == at::kFloat) run(points.const_data_ptr<float>());
-  else run(points.const_data_ptr<double>());
+  if (points.scalar_type() == at::kFloat) run(rows<float>(points));
+  else run(rows<double>(points));
   return out;
 }
 
@@ -158,19 +164,52 @@ at::Tensor rigid_transform_cpu(const at::Tensor& points_in, const at::Tensor& tr
   FLX_CHECK(transform_in.scalar_type() == at::kDouble && transform_in.device().is_cpu(),
             "floxels: rigid_transform: transform must be a float64 CPU tensor, got ", transform_in.scalar_type(),
             " on ", transform_in.device());
-  const auto points = points_in.contiguous();
+  const auto& points = points_in;
   const auto M = transform_in.contiguous();
   const double* m = M.const_data_ptr<double>();
   for (int k = 0; k < 16; ++k)
     FLX_CHECK(std::isfinite(m[k]), "floxels: rigid_transform: the transform has a NaN/inf entry");
   const int64_t N = points.size(0);
   auto out = at::empty({N, 3}, points.options());
-  auto run = [&](const auto* p, auto* o) {
-    for (int64_t i = 0; i < N; ++i) lidar::transform(m, p[3 * i], p[3 * i + 1], p[3 * i + 2], o + 3 * i);
+  auto run = [&](const auto& p, auto* o) {
+    for (int64_t i = 0; i < N; ++i) lidar::transform(m, p.at(i, 0), p.at(i, 1), p.at(i, 2), o + 3 * i);
   };
-  if (points.scalar_type() == at::kFloat) run(points.const_data_ptr<float>(), out.mutable_data_ptr<float>());
-  else run(points.const_data_ptr<double>(), out.mutable_data_ptr<double>());
+  if (points.scalar_type() == at::kFloat) run(rows<float>(points), out.mutable_data_ptr<float>());
+  else run(rows<double>(points), out.mutable_data_ptr<double>());
   return out;
+}
+
+std::tuple<at::Tensor, at::Tensor> lidar_select_cpu(const at::Tensor& points, const at::Tensor& mask_in) {
+  check_host_points(points, "lidar_select");
+  FLX_CHECK(mask_in.dim() == 1 && mask_in.scalar_type() == at::kBool && mask_in.device().is_cpu(),
+            "floxels: lidar_select: mask must be a (N,) bool CPU tensor, got ", mask_in.sizes(), " ",
+            mask_in.scalar_type(), " on ", mask_in.device());
+  const int64_t N = points.size(0);
+  FLX_CHECK(mask_in.size(0) == N, "floxels: lidar_select: mask has ", mask_in.size(0), " rows, points ", N);
+  const auto mask = mask_in.contiguous();
+  const bool* m = mask.const_data_ptr<bool>();
+  int64_t M = 0, K = 0;
+  auto count = [&](const auto& p) {
+    for (int64_t i = 0; i < N; ++i) {
+      M += m[i];
+      K += !finite3(p.x(i), p.y(i), p.z(i));
+    }
+  };
+  if (points.scalar_type() == at::kFloat) count(rows<float>(points));
+  else count(rows<double>(points));
+  auto kept = at::empty({M, 3}, points.options());
+  auto nonfinite = at::empty({K}, points.options().dtype(at::kLong));
+  int64_t* nf = nonfinite.mutable_data_ptr<int64_t>();
+  auto fill = [&](const auto& p, auto* o) {
+    for (int64_t i = 0; i < N; ++i) {
+      if (!finite3(p.x(i), p.y(i), p.z(i))) *nf++ = i;
+      if (!m[i]) continue;
+      for (int k = 0; k < 3; ++k) *o++ = p.at(i, k);
+    }
+  };
+  if (points.scalar_type() == at::kFloat) fill(rows<float>(points), kept.mutable_data_ptr<float>());
+  else fill(rows<double>(points), kept.mutable_data_ptr<double>());
+  return {kept, nonfinite};
 }
 
 std::tuple<at::Tensor, at::Tensor> frame_flow_cpu(const at::Tensor& flow_in, const at::Tensor& mask_in,
@@ -229,6 +268,7 @@ std::tuple<at::Tensor, at::Tensor> frame_flow_cpu(const at::Tensor& flow_in, con
 TORCH_LIBRARY_IMPL(floxels, CPU, m) {
   m.impl("lidar_keep_mask", &lidar_keep_mask_cpu);
   m.impl("rigid_transform", &rigid_transform_cpu);
+  m.impl("lidar_select", &lidar_select_cpu);
   m.impl("frame_flow", &frame_flow_cpu);
 }
 

@@ -12,6 +12,18 @@
 
 namespace floxels::lidar {
 
+// (N, 3) points with any strides (a view of a file's rows, e.g. x y z of x y z intensity rows,
+// read without a copy).
+template <typename T>
+struct Rows {
+  const T* p;
+  int64_t row, col;  // strides in elements
+  FLX_HD double x(int64_t i) const { return double(p[i * row]); }
+  FLX_HD double y(int64_t i) const { return double(p[i * row + col]); }
+  FLX_HD double z(int64_t i) const { return double(p[i * row + 2 * col]); }
+  FLX_HD T at(int64_t i, int k) const { return p[i * row + k * col]; }
+};
+
 // Optional limits arrive as NaN when unset (None in Python).
 struct CropRule {
   double min_range, max_range, max_height;  // NaN: no limit

@@ -1,5 +1,6 @@
 """The lidar pipeline's CPU ops against their numpy references: lidar_keep_mask (cropping and
-ground removal, floxels_ext.lidar.preprocess.preprocess_mask_numpy), rigid_transform, frame_flow."""
+ground removal, floxels_ext.lidar.preprocess.preprocess_mask_numpy), rigid_transform, lidar_select,
+frame_flow; strided rows (a file's x y z columns, not copied) read as their contiguous copy."""
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ import torch
 import floxels_ext  # noqa: F401
 from floxels_ext.lidar.preprocess import (MAX_GROUND_CELLS, Preprocess, _window_cells, preprocess_mask,
                                           preprocess_mask_numpy)
-from floxels_ext.ops import frame_flow, lidar_keep_mask, rigid_transform
+from floxels_ext.ops import frame_flow, lidar_keep_mask, lidar_select, rigid_transform
 
 
 def _scan(seed=0, n=20_000):
@@ -133,6 +134,40 @@ def test_frame_flow_equals_numpy():
                    torch.from_numpy(R), 0.05)
 
 
+def test_lidar_select_equals_numpy():
+    for seed, dtype in ((0, np.float32), (1, np.float64)):
+        p = _scan(seed, 5000).astype(dtype)
+        mask = np.random.default_rng(seed).random(len(p)) < 0.3
+        kept, nonfinite = lidar_select(torch.from_numpy(p), torch.from_numpy(mask))
+        assert kept.dtype == torch.from_numpy(p).dtype and kept.is_contiguous()
+        np.testing.assert_array_equal(kept.numpy(), p[mask])
+        np.testing.assert_array_equal(nonfinite.numpy(), np.flatnonzero(~np.isfinite(p).all(1)))
+    kept, nonfinite = lidar_select(torch.zeros(0, 3), torch.zeros(0, dtype=torch.bool))
+    assert kept.shape == (0, 3) and nonfinite.shape == (0,)
+    with pytest.raises(ValueError, match="mask must have shape"):
+        lidar_select(torch.zeros(4, 3), torch.ones(3, dtype=torch.bool))
+
+
+def test_ops_read_strided_rows():
+    """A KITTI .bin read as (N, 4) float32 rows: the ops take its x y z columns as a view."""
+    p = _scan(2, 8000)
+    rows = np.c_[p, np.arange(len(p), dtype=np.float32)]  # x y z intensity
+    view = rows[:, :3]
+    assert not view.flags.c_contiguous
+    for s in (Preprocess(), Preprocess(remove_ground=False, max_height=None)):
+        np.testing.assert_array_equal(preprocess_mask(view, s), preprocess_mask_numpy(p, s))
+    mask = preprocess_mask(view)
+    kept, nonfinite = lidar_select(torch.from_numpy(view), torch.from_numpy(mask))
+    np.testing.assert_array_equal(kept.numpy(), p[mask])
+    np.testing.assert_array_equal(nonfinite.numpy(), np.flatnonzero(~np.isfinite(p).all(1)))
+    T = np.eye(4)
+    T[:3, 3] = [1.5, -2.0, 0.25]
+    np.testing.assert_array_equal(rigid_transform(torch.from_numpy(view), torch.from_numpy(T)).numpy(),
+                                  rigid_transform(torch.from_numpy(p), torch.from_numpy(T)).numpy())
+    col_major = np.asfortranarray(p)  # column strides, as from a transposed (3, N) array
+    np.testing.assert_array_equal(preprocess_mask(col_major), preprocess_mask_numpy(p))
+
+
 def test_lidar_ops_pass_opcheck():
     p = torch.from_numpy(_scan(4, 2000))
     T = torch.eye(4, dtype=torch.float64)
@@ -140,6 +175,7 @@ def test_lidar_ops_pass_opcheck():
     mask = torch.rand(2000) < 0.5
     args = (p, 3.0, 50.0, 4.0, True, 0.5, 17, 0.3, 0.5, 58.0, MAX_GROUND_CELLS)
     for op, a in ((torch.ops.floxels.lidar_keep_mask, args), (torch.ops.floxels.rigid_transform, (p, T)),
+                  (torch.ops.floxels.lidar_select, (p, mask)),
                   (torch.ops.floxels.frame_flow, (torch.randn(int(mask.sum()), 3), mask,
                                                   torch.tensor([0, 3]), torch.eye(3), 0.05))):
         torch.library.opcheck(op, a, test_utils=("test_schema", "test_faketensor"))

@@ -78,7 +78,8 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
-    from floxels_ext.lidar.preprocess import preprocess_mask, transform_points
+    from floxels_ext.lidar.preprocess import host_rows, preprocess_mask, transform_points
+    from floxels_ext.ops.lidar import lidar_select
 
     path = seq.frames[i].path
     out: dict = {"read": 0.0, "preprocess": 0.0}
@@ -106,18 +107,14 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     except (LidarFormatError, ValueError, OSError) as e:
         out["error"] = str(e)
         return out
-    pts = np.ascontiguousarray(scan.points, np.float32)
-    finite = np.isfinite(pts).all(axis=1)
-    nonfinite = np.flatnonzero(~finite)
-    if len(nonfinite) == len(pts):
-        out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
-        return out
+    pts = scan.points if scan.points.dtype == np.float32 else scan.points.astype(np.float32)
     t1 = time.perf_counter()
     out["read"] = t1 - t0
+    rows = host_rows(pts)  # the file's x y z columns, viewed (the ops read any strides)
     pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
     try:
         if settings is None:
-            mask = finite
+            mask = finite_mask(rows)
         elif pre_device is not None and str(pre_device).startswith("cuda"):
             import torch
 
@@ -131,11 +128,24 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     except ValueError as e:
         out["error"] = f"{path}: preprocessing failed: {e}"
         return out
-    kept = pts[mask]
+    kept, nonfinite = lidar_select(rows, mask)  # one pass without the GIL
+    nonfinite = nonfinite.numpy()
+    if len(nonfinite) == len(pts):
+        out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
+        return out
     out["preprocess"] = time.perf_counter() - t1
-    out["frame"] = PreparedFrame(kept, mask, nonfinite, np.asarray(to_world, np.float64),
-                                 pts if keep_points else None)
+    out["frame"] = PreparedFrame(kept.numpy(), mask, nonfinite, np.asarray(to_world, np.float64),
+                                 np.ascontiguousarray(pts) if keep_points else None)
     return out
+
+
+def finite_mask(rows) -> np.ndarray:
+    """(N,) bool: the rows with finite coordinates (the keep op with nothing to crop)."""
+    from floxels_ext.ops.lidar import lidar_keep_mask
+
+    return lidar_keep_mask(rows, min_range=None, max_range=None, max_height=None, remove_ground=False,
+                           ground_cell=1.0, window_cells=1, ground_threshold=0.0, ground_max_rise=None,
+                           grid_distance=1.0, max_cells=1).numpy()
 
 
 _TLS = threading.local()

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["transform_points", "relative_pose", "ground_surface", "ground_mask", "crop_mask",
+__all__ = ["transform_points", "host_rows", "relative_pose", "ground_surface", "ground_mask", "crop_mask",
            "Preprocess", "preprocess_mask", "preprocess_mask_numpy"]
 
 
@@ -45,9 +45,21 @@ def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
     p = np.asarray(points)
     if p.dtype not in (np.float32, np.float64):
         p = p.astype(np.float64)
-    p = np.ascontiguousarray(p).reshape(-1, 3)
-    out = rigid_transform(torch.from_numpy(p), torch.from_numpy(np.asarray(T, np.float64)))
+    out = rigid_transform(host_rows(p.reshape(-1, 3)), torch.from_numpy(np.asarray(T, np.float64)))
     return out.numpy().astype(np.float32, copy=False)
+
+
+def host_rows(points: np.ndarray):
+    """``points`` as a CPU tensor for the lidar ops, without a copy where torch can view it
+    (positive strides, writeable; the ops read any strides)."""
+    import torch
+
+    p = points
+    if not p.flags.writeable or any(s <= 0 or s % p.itemsize for s in p.strides):
+        p = np.ascontiguousarray(p)
+        if not p.flags.writeable:
+            p = p.copy()
+    return torch.from_numpy(p)
 
 
 def relative_pose(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
@@ -228,14 +240,12 @@ def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess
         from floxels_ext.lidar.preprocess_torch import preprocess_mask_torch
 
         return preprocess_mask_torch(points_sensor, settings, device)
-    import torch
-
     from floxels_ext.ops.lidar import lidar_keep_mask
 
     pts = np.asarray(points_sensor)
     if pts.dtype not in (np.float32, np.float64):
         pts = pts.astype(np.float64)
-    return lidar_keep_mask(torch.from_numpy(np.ascontiguousarray(pts)), **_op_arguments(settings)).numpy()
+    return lidar_keep_mask(host_rows(pts), **_op_arguments(settings)).numpy()
 
 
 def _op_arguments(s: Preprocess) -> dict:

@@ -14,7 +14,7 @@ import torch
 
 from floxels_ext.ops._lib import ops_ns
 
-__all__ = ["lidar_keep_mask", "rigid_transform", "frame_flow"]
+__all__ = ["lidar_keep_mask", "rigid_transform", "lidar_select", "frame_flow"]
 
 
 @torch.library.register_fake("floxels::lidar_keep_mask")
@@ -26,6 +26,12 @@ def _fake_keep(points, min_range, max_range, max_height, remove_ground, ground_c
 @torch.library.register_fake("floxels::rigid_transform")
 def _fake_transform(points, transform):
     return torch.empty_like(points)
+
+
+@torch.library.register_fake("floxels::lidar_select")
+def _fake_select(points, mask):
+    ctx = torch.library.get_ctx()
+    return points.new_empty((ctx.new_dynamic_size(), 3)), points.new_empty((ctx.new_dynamic_size(),), dtype=torch.int64)
 
 
 @torch.library.register_fake("floxels::frame_flow")
@@ -72,6 +78,18 @@ def rigid_transform(points: torch.Tensor, transform: torch.Tensor) -> torch.Tens
     if not bool(torch.isfinite(transform).all()):
         raise ValueError("transform has NaN/inf entries")
     return ops_ns.rigid_transform(points, transform)
+
+
+def lidar_select(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(points[mask] as a contiguous (M, 3) array, indices of the rows with NaN/inf
+    coordinates)`` in one pass without the GIL (numpy's boolean indexing and
+    ``isfinite(...).all(1)`` of a 240k-point scan took ~7 ms with it). ``points`` (N, 3) may
+    have any strides, e.g. the x y z columns of a file's x y z intensity rows."""
+    points = _host_points(points)
+    mask = torch.as_tensor(mask, dtype=torch.bool)
+    if mask.shape != (points.shape[0],):
+        raise ValueError(f"mask must have shape ({points.shape[0]},), got {tuple(mask.shape)}")
+    return ops_ns.lidar_select(points, mask)
 
 
 def frame_flow(flow: torch.Tensor, mask: torch.Tensor, nonfinite: torch.Tensor, rotation: torch.Tensor,
