@@ -211,6 +211,26 @@ def test_feather_av2(tmp_path):
     (tmp_path / "c.feather").write_bytes(b"ARROW1 but not really")
     with pytest.raises(LidarFormatError, match=r"c\.feather"):
         read_points(tmp_path / "c.feather")
+    feather.write_feather(pa.table({"x": ["a"], "y": [1.0], "z": [2.0]}), str(tmp_path / "s.feather"))
+    with pytest.raises(LidarFormatError, match=r"s\.feather: column 'x' holds string"):
+        read_points(tmp_path / "s.feather")
+
+
+def test_feather_column_types_read_exactly(tmp_path):
+    """AV2's float16 columns (exact in float32), float64 (rounded once) and integers, as before."""
+    pa = pytest.importorskip("pyarrow")
+    feather = pytest.importorskip("pyarrow.feather")
+    g = np.random.default_rng(3)
+    x16 = g.normal(0, 30, 50).astype(np.float16)
+    y64 = g.normal(0, 30, 50)
+    z64 = np.concatenate([[np.nan], g.normal(0, 2, 49)])
+    ints = np.arange(50, dtype=np.int32) - 7
+    feather.write_feather(pa.table({"x": x16, "y": y64, "z": z64}), str(tmp_path / "a.feather"))
+    s = read_points(tmp_path / "a.feather")
+    assert s.points.dtype == np.float32
+    np.testing.assert_array_equal(s.points, np.c_[x16.astype(np.float64), y64, z64].astype(np.float32))
+    feather.write_feather(pa.table({"x": ints, "y": ints, "z": ints}), str(tmp_path / "i.feather"))
+    np.testing.assert_array_equal(read_points(tmp_path / "i.feather").points, np.c_[ints, ints, ints])
 
 
 def test_feather_without_pyarrow_says_how_to_install(tmp_path, monkeypatch):

@@ -223,7 +223,7 @@ def test_reader_errors_name_the_file_and_chunk_plan(tmp_path):
     (tmp_path / "b.npz").write_bytes(b"junk")
     with pytest.raises(OutputError, match="b.npz: cannot read"):
         read_flow_output(tmp_path / "b.npz")
-    assert [len(c) for c in plan_chunks(list(range(150)), None)] == [8, 16, 32, 64, 30]
+    assert [len(c) for c in plan_chunks(list(range(150)), None)] == [128, 22]
     assert [len(c) for c in plan_chunks(list(range(5)), 2)] == [2, 2, 1]
 
 

@@ -181,7 +181,7 @@ def maybe_run_dataset(args) -> int | None:
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out {out} exists and is not a directory")
     task_frames = args.task_frames if args.ray is not None else 0
-    tasks, problems = plan_tasks(specs, out, args, task_frames=task_frames, align=args.chunk or 64)  # 64: the largest of the run's default chunks
+    tasks, problems = plan_tasks(specs, out, args, task_frames=task_frames, align=args.chunk or 64)  # 64: half the run's default chunk
     if problems:
         raise CLIError(f"{len(problems)} of the {len(specs)} sequences cannot run (fix them or leave them out "
                        f"with --sequences):\n  " + "\n  ".join(problems))

@@ -1,11 +1,12 @@
 """Frames read and preprocessed ahead of the optimiser for ``floxels run``.
 
 :class:`FrameLoader` reads, checks, crops and removes the ground of frames on worker threads
-(or processes), at most one chunk ahead; :class:`ChunkScans` hands a chunk's frames to the
-method as scans in one world frame, lazily, so the first windows start before the chunk is
-read; :class:`Stages` adds up where the time went. Reading (file I/O), the numpy/torch
-preprocessing and ``np.savez`` release the GIL for most of their time, and frames are hundreds
-of kB, so threads overlap them with the optimiser without copying frames between processes.
+(or processes), as far ahead as the caller prefetches; :class:`ChunkScans` hands a chunk's
+frames to the method as scans in one world frame, lazily, so the first windows start before the
+chunk is read; :class:`Stages` adds up where the time went. File reads and the lidar ops
+(cropping, ground removal, row selection, transforms) run without the GIL, and frames are
+hundreds of kB, so threads overlap them with the optimiser without copying frames between
+processes.
 """
 
 from __future__ import annotations
@@ -54,7 +55,17 @@ class Stages:
     wait_writer: float = 0.0
     wall: float = 0.0
     in_estimate: bool = False  # set by the thread calling the method
+    optimiser_thread: int | None = None  # its threading.get_ident(): only its waits count
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def waited(self, dt: float) -> None:
+        """The calling thread waited ``dt`` s for a frame: counted when it is the optimiser's
+        thread (the transform threads wait for loads too, but the device does not)."""
+        if self.optimiser_thread is not None and threading.get_ident() != self.optimiser_thread:
+            return
+        self.add("wait_input", dt)
+        if self.in_estimate:
+            self.add("wait_input_in_estimate", dt)
 
     def add(self, name: str, dt: float) -> None:
         with self._lock:
@@ -244,10 +255,7 @@ class FrameLoader:
         if not fut.done():
             t0 = time.perf_counter()
             fut.result()
-            dt = time.perf_counter() - t0
-            self.stages.add("wait_input", dt)
-            if self.stages.in_estimate:
-                self.stages.add("wait_input_in_estimate", dt)
+            self.stages.waited(time.perf_counter() - t0)
         fr = self._collect(i, fut.result())
         with self._lock:
             self.futures.pop(i, None)
@@ -279,12 +287,25 @@ class FrameLoader:
 class ChunkScans(Sequence):
     """The ego-motion-compensated scans of frames ``[lo, hi)`` as a sequence: item ``k`` is frame
     ``lo + k``'s kept points moved into the chunk's world frame (re-centred on ``anchor``). The
-    transforms run on the loader's transform threads as soon as the chunk is planned; an item
+    transforms run on the loader's transform threads, at most ``TRANSFORM_AHEAD`` items ahead of
+    the one asked for (``read_ahead(frame)`` is called with it: the caller's read-ahead); an item
     is dropped once a later window starts after it."""
 
-    def __init__(self, loader: FrameLoader, lo: int, hi: int, anchor: np.ndarray) -> None:
+    TRANSFORM_AHEAD = 32  # two batches of windows: the method prepares the next batch early
+
+    def __init__(self, loader: FrameLoader, lo: int, hi: int, anchor: np.ndarray, read_ahead=None) -> None:
         self.loader, self.lo, self.hi, self.anchor = loader, lo, hi, anchor
-        self._futs = {k: loader.tpool.submit(self._make, k) for k in range(hi - lo)}
+        self._read_ahead = read_ahead or (lambda i: loader.prefetch(range(i, hi)))
+        self._futs: dict = {}
+        self._next = 0  # transforms are submitted for items < _next
+        self._advance(0)
+
+    def _advance(self, k: int) -> None:
+        self._read_ahead(self.lo + k)
+        stop = min(len(self), k + self.TRANSFORM_AHEAD)
+        while self._next < stop:
+            self._futs[self._next] = self.loader.tpool.submit(self._make, self._next)
+            self._next += 1
 
     def __len__(self) -> int:
         return self.hi - self.lo
@@ -301,16 +322,14 @@ class ChunkScans(Sequence):
         return s
 
     def _scan(self, k: int) -> np.ndarray:
+        self._advance(k)
         fut = self._futs.get(k)
         if fut is None:  # dropped (asked for again after its window passed): make it again
             fut = self._futs[k] = self.loader.tpool.submit(self._make, k)
         if not fut.done():
             t0 = time.perf_counter()
             fut.result()
-            dt = time.perf_counter() - t0
-            self.loader.stages.add("wait_input", dt)
-            if self.loader.stages.in_estimate:
-                self.loader.stages.add("wait_input_in_estimate", dt)
+            self.loader.stages.waited(time.perf_counter() - t0)
         return fut.result()
 
     def __getitem__(self, k):

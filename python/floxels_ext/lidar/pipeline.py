@@ -2,9 +2,9 @@
 (``frame_loader``), the optimisation in the calling thread, writing on writer threads or
 processes (``frame_writer``; see :func:`run_pipeline`).
 
-Memory stays flat: frames are read at most one chunk ahead (:class:`FrameLoader`), dropped once
-behind the current window, and results wait in a bounded queue (the optimiser blocks when the
-writer is behind).
+Memory stays flat: frames are read at most ``READ_AHEAD`` frames ahead of the scans the method
+asks for (:class:`FrameLoader`, :class:`ChunkScans`), dropped once behind the current window,
+and results wait in a bounded queue (the optimiser blocks when the writer is behind).
 
 Windows and time offsets are exactly those of a serial run: the scans handed to the method are
 those of frames ``[lo, hi)`` of each chunk, an unreadable frame an empty scan in its place, all
@@ -13,8 +13,10 @@ moved into one world frame re-centred on the first readable frame of the chunk.
 
 from __future__ import annotations
 
+import bisect
 import inspect
 import sys
+import threading
 import time
 
 import numpy as np
@@ -28,19 +30,23 @@ from floxels_ext.lidar.frame_writer import WriterPool
 # back sooner (bench/RESULTS.md, floxels run section); None leaves Python's setting alone.
 GIL_SWITCH_INTERVAL: float | None = 0.0005
 
-__all__ = ["plan_chunks", "run_pipeline", "EstimationError"]
+# Targets per method call by default. Long calls: each call starts and drains the method's
+# pipeline (estimate_sequence prepares the next batch while the device optimises one), which cost
+# ~3 ms a frame with calls of 8-64 frames on an H100 (bench/RESULTS.md). The bound: each call has
+# one world frame re-centred on its first frame, and 128 frames (12.8 s at 10 Hz, < 400 m at
+# 30 m/s) keep float32 coordinates within ~3e-5 m of exact.
+DEFAULT_CHUNK = 128
+# Frames read (and preprocessed) ahead of the scan the method asks for: memory stays flat
+# whatever the chunk, and the method never waits on a sequence the readers outpace.
+READ_AHEAD = 64
+
+__all__ = ["DEFAULT_CHUNK", "READ_AHEAD", "plan_chunks", "run_pipeline", "EstimationError"]
 
 
 def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
-    """Targets per method call. ``chunk``: fixed size; None: 8, 16, 32, then 64 (small first
-    calls start the device early while later frames are still being read)."""
-    out, k, size = [], 0, (chunk or 8)
-    while k < len(todo):
-        out.append(todo[k:k + size])
-        k += size
-        if chunk is None:
-            size = min(64, size * 2)
-    return out
+    """Targets per method call: ``chunk`` at a time (None: ``DEFAULT_CHUNK``)."""
+    size = chunk or DEFAULT_CHUNK
+    return [todo[k:k + size] for k in range(0, len(todo), size)]
 
 
 def _accepts_times(fn) -> bool:
@@ -62,6 +68,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
     Returns {"failed": {i: message}, "times": [s/frame], "delivered": count}; raises
     ``EstimationError`` (a ValueError/TypeError of the method before any frame was delivered)."""
     stages = loader.stages
+    stages.optimiser_thread = threading.get_ident()
     pad = num_scans - 1
     chunks = plan_chunks(todo, chunk)
     pass_times = times_s is not None and _accepts_times(method.estimate_sequence)
@@ -76,13 +83,19 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
     def window(c):
         return max(0, c[0] - pad), min(n, c[-1] + pad + 1)
 
+    # every frame some window reads, in order: the readers work through it READ_AHEAD frames
+    # ahead of the scan the method asks for (across chunk ends)
+    need = sorted({i for c in chunks for i in range(*window(c))})
+
+    def read_ahead(i: int) -> None:
+        k = bisect.bisect_left(need, i)
+        loader.prefetch(need[k:k + READ_AHEAD])
+
     try:
-        for ci, targets_all in enumerate(chunks):
-            lo, hi = window(targets_all)
+        for ci, targets in enumerate(chunks):
+            lo, hi = window(targets)
             loader.evict_below(lo)
-            loader.prefetch(range(lo, hi))
-            if ci + 1 < len(chunks):  # read the next chunk while this one is optimised
-                loader.prefetch(range(*window(chunks[ci + 1])))
+            read_ahead(lo)
             # the first readable frame of the chunk anchors its world frame (float32 precision)
             anchor = None
             for i in range(lo, hi):
@@ -90,28 +103,34 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                 if p is not None:
                     anchor = p.to_world[:3, 3].copy()
                     break
-            targets = []
-            for i in targets_all:
-                if loader.get(i) is None:
+            if anchor is None:  # nothing readable: every target fails with its file's error
+                for i in targets:
                     failed[i] = loader.errors.get(i, "unreadable")
                     on_written(i)
-                else:
-                    targets.append(i)
-            if not targets:
                 continue
-            scans = ChunkScans(loader, lo, hi, anchor)
+            # unreadable targets are found as the method reaches them (it gets an empty scan in
+            # their place, as for support scans): waiting for the whole chunk first held the
+            # device back by a chunk's reading time
+            scans = ChunkScans(loader, lo, hi, anchor, read_ahead=read_ahead)
             t_last = [time.perf_counter()]
+            seen: set[int] = set()
 
             def on_frame(f_local, flow_kept, lo=lo):
                 nonlocal delivered
                 i = lo + int(f_local)
+                seen.add(i)
                 now = time.perf_counter()
                 dt, t_last[0] = now - t_last[0], now
-                elapsed.append(dt)
-                flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)
-                writer.put(i, loader.get(i), flow_kept, dt, next_pose(i))
-                delivered += 1
+                p = loader.get(i)
+                if p is None:
+                    failed[i] = loader.errors.get(i, "unreadable")
+                else:
+                    elapsed.append(dt)
+                    flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)
+                    writer.put(i, p, flow_kept, dt, next_pose(i))
+                    delivered += 1
                 on_written(i)
+                loader.evict_below(i - pad)  # frames before this window: no later window reads them
 
             extra = {"times": list(times_s[lo:hi])} if pass_times else {}
             t0 = time.perf_counter()
@@ -122,14 +141,19 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                 if delivered == 0 and not failed:
                     raise EstimationError(str(e)) from None
                 for i in targets:
-                    failed.setdefault(i, f"estimation failed: {e}")
+                    failed.setdefault(i, loader.errors.get(i) or f"estimation failed: {e}")
                 loader.report(f"floxels: error: frames {loader.seq.frames[targets[0]].name}.."
                               f"{loader.seq.frames[targets[-1]].name}: {e}")
             except RuntimeError as e:  # e.g. out of GPU memory: lose this chunk, keep going
                 for i in targets:
-                    failed.setdefault(i, f"estimation failed: {e}")
+                    failed.setdefault(i, loader.errors.get(i) or f"estimation failed: {e}")
                 loader.report(f"floxels: error: frames {loader.seq.frames[targets[0]].name}.."
                               f"{loader.seq.frames[targets[-1]].name}: {e}")
+            else:
+                for i in targets:  # a method that skipped a target (e.g. an empty scan)
+                    if i not in seen and i not in failed:
+                        failed[i] = loader.errors.get(i, "the method returned no flow for this frame")
+                        on_written(i)
             finally:
                 stages.in_estimate = False
                 stages.add("estimate", time.perf_counter() - t0)

@@ -92,7 +92,7 @@ def add_parser(sub) -> None:
                         "(.npz with the sensor 'pose', as 'floxels simulate' writes); auto: world for a "
                         "'floxels simulate' directory (sequence.json present), else sensor")
     p.add_argument("--chunk", type=int, default=None, help="targets per method call (one re-centred world frame, "
-                   "shared distance transforms); default: 8, 16, 32, then 64 (the device starts early)")
+                   "shared distance transforms); default 128")
     p.add_argument("--force", action="store_true", help="recompute frames already written (also those written "
                    "with other settings)")
     p.add_argument("--dynamic-threshold", type=float, default=0.05, metavar="M",
@@ -103,7 +103,7 @@ def add_parser(sub) -> None:
     p.add_argument("--compress", action="store_true", help="zip-compress the outputs (smaller, slower)")
     p.add_argument("--summary", metavar="FILE", help="JSON summary of the run (default OUT_DIR/run_summary.json)")
     p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: the CPU "
-                   "cores, at most 4: more only contend for the GIL with the optimiser's host work)")
+                   "cores, at most 6)")
     p.add_argument("--writers", type=int, default=None, help="writer threads (default 2: an output is written "
                    "in ~5 ms, mostly without the GIL)")
     p.add_argument("--worker-kind", choices=["auto", "thread", "process"], default="auto",

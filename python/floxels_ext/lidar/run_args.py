@@ -140,15 +140,15 @@ def reader_plan(args, device: str) -> tuple[str | None, int, str, str]:
     its Python (bench/bench_run.py, bench/RESULTS.md; the GPU path, --preprocess-device cuda,
     launches ~30 small kernels and syncs from each thread). Readers and writers are threads
     unless ``--worker-kind process`` (measured slower on an H100 host: 26-33 frames/s against
-    75-83 with threads, bench/RESULTS.md). At most 4 readers by default: on a 16-core H100 host
-    4 gave 83 frames/s, 8 gave 78, 12 gave 72 (more threads take GIL turns from the optimiser's
-    host work). ``args.cpu_limit`` (set by a Ray task: the CPUs it was
+    75-83 with threads, bench/RESULTS.md). At most 6 readers by default: on a 16-core H100 host
+    6 gave 132/127 frames/s (KITTI/AV2 layout), 4 gave 119/117, 3 gave 125/109
+    (bench/RESULTS.md, floxels run). ``args.cpu_limit`` (set by a Ray task: the CPUs it was
     given) caps the default worker count."""
     cores = os.cpu_count() or 1
     limit = getattr(args, "cpu_limit", None)
     if limit:
         cores = min(cores, max(1, int(limit)))
     pre_dev = (device if device.startswith("cuda") else "cuda") if args.preprocess_device == "cuda" else None
-    workers = args.workers or max(1, min(4, cores))
+    workers = args.workers or max(1, min(6, cores))
     kind = "thread" if args.worker_kind == "auto" else args.worker_kind
     return pre_dev, workers, kind, kind

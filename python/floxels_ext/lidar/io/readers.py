@@ -188,6 +188,7 @@ def read_feather(path) -> LidarScan:
     """An Argoverse 2 sensor sweep: columns x, y, z in the ego-vehicle frame (plus intensity,
     laser_number, offset_ns). The sweep's timestamp (ns) is its file name, when numeric."""
     feather = require("pyarrow.feather", "av2", "pyarrow", "reading Argoverse 2 .feather files")
+    pa_types = require("pyarrow.types", "av2", "pyarrow", "reading Argoverse 2 .feather files")
     try:
         table = feather.read_table(str(path))
     except Exception as e:
@@ -196,7 +197,13 @@ def read_feather(path) -> LidarScan:
     missing = [c for c in "xyz" if c not in cols]
     if missing:
         raise _fail(path, f"no column(s) {missing} (columns: {cols})")
-    xyz = np.stack([table.column(c).to_numpy(zero_copy_only=False).astype(np.float64) for c in "xyz"], 1)
+    # straight into float32 rows (AV2 stores float16: exact; float64 rounds once, as before)
+    xyz = np.empty((table.num_rows, 3), np.float32)
+    for k, c in enumerate("xyz"):
+        col = table.column(c)
+        if not (pa_types.is_floating(col.type) or pa_types.is_integer(col.type)):
+            raise _fail(path, f"column {c!r} holds {col.type}, not numbers")
+        xyz[:, k] = col.to_numpy(zero_copy_only=False)
     extra = {c: table.column(c).to_numpy(zero_copy_only=False) for c in cols if c not in _XYZ}
     stem = Path(path).stem
     return _finish(path, xyz, extra, timestamp_ns=int(stem) if stem.isdigit() else None)

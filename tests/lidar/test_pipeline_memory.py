@@ -1,0 +1,49 @@
+"""``floxels run``'s pipeline keeps memory flat: frames are read a bounded number of frames ahead
+of the scan the method asks for, and dropped once behind its window, whatever the chunk size."""
+
+import numpy as np
+
+from floxels_ext import cli, methods
+from floxels_ext.lidar import frame_loader, pipeline
+from floxels_ext.lidar.outputs import read_flow_output
+
+
+def test_frames_held_stay_bounded_over_a_long_chunk(tmp_path, monkeypatch, capsys):
+    n = 40
+    g = np.random.default_rng(0)
+    d = tmp_path / "velodyne"
+    d.mkdir()
+    for i in range(n):
+        xy = g.uniform(-20, 20, (400, 2))
+        np.c_[xy, np.full(len(xy), -1.0), np.zeros(len(xy))].astype(np.float32).tofile(d / f"{i:06d}.bin")
+    (d / "000017.bin").write_bytes(b"\x00\x01\x02")  # corrupt, mid-chunk: fails alone
+    poses = np.tile(np.eye(4)[:3].reshape(1, 12), (n, 1))
+    poses[:, 3] = 0.5 * np.arange(n)
+    np.savetxt(tmp_path / "poses.txt", poses)
+
+    held = []
+
+    def est(scans, frames, device, options, callback, times=None):
+        for f in frames:  # asks for scans in order, like estimate_sequence
+            _ = scans[max(0, f - 1):f + 2]
+            callback(f, np.zeros((len(scans[f]), 3), np.float32))
+
+    real_prefetch = frame_loader.FrameLoader.prefetch
+
+    def prefetch(self, indices):
+        real_prefetch(self, indices)
+        held.append(len(self.done) + len(self.futures))
+
+    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
+    monkeypatch.setattr(pipeline, "READ_AHEAD", 4)
+    monkeypatch.setattr(frame_loader.ChunkScans, "TRANSFORM_AHEAD", 3)
+    monkeypatch.setattr(frame_loader.FrameLoader, "prefetch", prefetch)
+    rc = cli.main(["run", str(d), "--out", str(tmp_path / "out"), "--method", "fake", "--poses",
+                   str(tmp_path / "poses.txt"), "--scans", "3", "--device", "cpu", "--chunk", "64"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "000017.bin" in err
+    written = sorted(p.name for p in (tmp_path / "out").glob("*.npz"))
+    assert len(written) == n - 1 and "000017.npz" not in written
+    assert read_flow_output(tmp_path / "out" / "000018.npz")["flow"].shape[1] == 3
+    # READ_AHEAD ahead plus the window behind (scans - 1) and the transforms in flight
+    assert len(held) > n and max(held) <= 4 + 2 + 3, held
