@@ -5,7 +5,7 @@ scan's own sensor frame (``floxels_ext.lidar.preprocess``), bring the scans of i
 frame with the poses (ego-motion compensation), estimate the flow with the chosen method and
 write ``OUT_DIR/<frame name>.npz`` (see :data:`floxels_ext.lidar.outputs.OUTPUT`). Frames already
 written with the same settings are skipped, so an interrupted run continues where it stopped.
-Reading and preprocessing run ahead on worker threads and writing on a writer thread while the
+Reading and preprocessing run ahead on reader threads and writing on writer threads while the
 method optimises (:mod:`floxels_ext.lidar.pipeline`).
 
 Coordinates: the scans of a window are compensated in a world frame re-centred on the chunk
