@@ -162,7 +162,7 @@ def main() -> None:
     print(f"\nfloxels run end to end on {args.device} ({n} frames, {args.scans} scans; input+LABEL: with that "
           f"--variant's arguments)")
     hdr = ("input", "workers", "frames/s", "ms/frame", "read", "preproc", "transform", "estimate", "compute", "write",
-           "wait in", "idle dev", "host %", "vs ceiling")
+           "wait in", "deliver", "setup", "idle dev", "host %", "vs ceiling")
     print(" | ".join(f"{h:>9}" for h in hdr))
     # workers: N readers, t(hread)/p(rocess), where preprocessing ran, writers t/p
     for name, r in rows.items():
@@ -172,16 +172,18 @@ def main() -> None:
         r["ratio_to_ceiling"] = ceil["frames_per_s"] / r["frames_per_s"]
         sm = r["summary"]
         vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}/w{sm.get('writer_kind', 'thread')[0]}", f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
-            [f"{1e3 * st[k] / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute", "write",
-                                                 "wait_input")] + \
-            [f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
+            [f"{1e3 * st.get(k, 0.0) / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute",
+                                                          "write", "wait_input", "deliver")] + \
+            [f"{1e3 * (r['wall_s'] - st['wall']) / n:.1f}", f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
         print(" | ".join(f"{v:>9}" for v in vals))
     for name, r in rows.items():
         base = rows[name.split("+")[0]]
         if r is not base:
             print(f"{name}: {r['frames_per_s'] / base['frames_per_s']:.2f}x the default run of the same input")
     print("(stage columns: ms per frame; read/preproc/transform/write are summed over worker threads and overlap "
-          "the estimate; 'idle dev' = wall - compute: time the method was not computing)")
+          "the estimate; 'deliver': the optimiser thread handing results to the writers; 'setup': the command's "
+          "time outside the pipeline (arguments, finding frames and poses, summary); 'idle dev' = wall - compute: "
+          "time the method was not computing)")
     print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "
           f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
           f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (the CPU op, one thread)")

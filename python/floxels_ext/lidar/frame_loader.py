@@ -41,7 +41,8 @@ class PreparedFrame:
 class Stages:
     """Seconds per stage. read/preprocess/write: summed over worker threads (CPU time spent);
     wait_input: the optimiser waited for frames; estimate: inside the method; wait_writer: the
-    optimiser waited for the writer (queue full); wall: the whole pipeline. ``wait_input_in_estimate``:
+    optimiser waited for the writer (queue full); deliver: the optimiser handed results over (its
+    callback per frame, wait_writer included); wall: the whole pipeline. ``wait_input_in_estimate``:
     the part of wait_input spent inside the method (it asks for the scans lazily), so
     ``estimate - wait_input_in_estimate`` is the time the method actually computed."""
 
@@ -53,6 +54,7 @@ class Stages:
     wait_input: float = 0.0
     wait_input_in_estimate: float = 0.0
     wait_writer: float = 0.0
+    deliver: float = 0.0
     wall: float = 0.0
     in_estimate: bool = False  # set by the thread calling the method
     optimiser_thread: int | None = None  # its threading.get_ident(): only its waits count
@@ -74,7 +76,7 @@ class Stages:
     def as_dict(self) -> dict:
         d = {k: round(getattr(self, k), 6) for k in
              ("read", "preprocess", "transform", "estimate", "write", "wait_input", "wait_input_in_estimate",
-              "wait_writer", "wall")}
+              "wait_writer", "deliver", "wall")}
         # the method waits for nothing but its own work: the rest of the wall time is host-bound
         d["compute"] = round(max(0.0, self.estimate - self.wait_input_in_estimate - self.wait_writer), 6)
         d["outside_estimate"] = round(max(0.0, self.wall - self.estimate), 6)

@@ -40,7 +40,22 @@ DEFAULT_CHUNK = 128
 # whatever the chunk, and the method never waits on a sequence the readers outpace.
 READ_AHEAD = 64
 
-__all__ = ["DEFAULT_CHUNK", "READ_AHEAD", "plan_chunks", "run_pipeline", "EstimationError"]
+# Each chunk's world frame is re-centred on a point of this grid (m) near its first frame. Why a
+# grid: Floxels' voxel and distance-transform grids are aligned to the coordinates, so a shift by
+# anything but a multiple of their cells (0.5 m, 0.1 m) changes the estimate (by up to the
+# flow itself after a few iterations), and the flow of a frame would depend on where its chunk
+# started: on --chunk, --frames, a resumed run or a Ray task's split. 10 m is a multiple of
+# every cell size of 0.1, 0.2, 0.25, 0.5, 1, 2, 2.5 or 5 m.
+ANCHOR_GRID = 10.0
+
+__all__ = ["DEFAULT_CHUNK", "READ_AHEAD", "ANCHOR_GRID", "snap_anchor", "plan_chunks", "run_pipeline",
+           "EstimationError"]
+
+
+def snap_anchor(position) -> np.ndarray:
+    """The world-frame origin of a chunk whose first frame is at ``position`` (3,): the nearest
+    multiple of ``ANCHOR_GRID`` (so results do not depend on where chunks start)."""
+    return np.round(np.asarray(position, np.float64) / ANCHOR_GRID) * ANCHOR_GRID
 
 
 def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
@@ -101,7 +116,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
             for i in range(lo, hi):
                 p = loader.get(i)
                 if p is not None:
-                    anchor = p.to_world[:3, 3].copy()
+                    anchor = snap_anchor(p.to_world[:3, 3])
                     break
             if anchor is None:  # nothing readable: every target fails with its file's error
                 for i in targets:
@@ -131,6 +146,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                     delivered += 1
                 on_written(i)
                 loader.evict_below(i - pad)  # frames before this window: no later window reads them
+                stages.add("deliver", time.perf_counter() - now)
 
             extra = {"times": list(times_s[lo:hi])} if pass_times else {}
             t0 = time.perf_counter()

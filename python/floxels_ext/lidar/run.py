@@ -8,8 +8,9 @@ written with the same settings are skipped, so an interrupted run continues wher
 Reading and preprocessing run ahead on reader threads and writing on writer threads while the
 method optimises (:mod:`floxels_ext.lidar.pipeline`).
 
-Coordinates: the scans of a window are compensated in a world frame re-centred on the chunk
-being processed (world axes, so float32 stays precise with city-scale AV2 coordinates); the
+Coordinates: the scans of a window are compensated in a world frame re-centred near the chunk
+being processed (world axes, so float32 stays precise with city-scale AV2 coordinates; the
+origin on a 10 m grid, so the flow does not depend on where chunks start); the
 flow is then rotated into the target frame's *native* coordinates, those its file stores (the
 sensor frame for plain files, the ego frame for AV2, the world frame for a ``floxels simulate``
 sequence). Flow is ego-motion compensated: static points have zero flow. ``ego_motion`` holds
