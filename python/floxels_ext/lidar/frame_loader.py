@@ -91,7 +91,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
-    from floxels_ext.lidar.preprocess import host_rows, preprocess_mask, transform_points
+    from floxels_ext.lidar.preprocess import host_rows, preprocess_mask
     from floxels_ext.ops.lidar import lidar_select
 
     path = seq.frames[i].path

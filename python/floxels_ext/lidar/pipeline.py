@@ -107,7 +107,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
         loader.prefetch(need[k:k + READ_AHEAD])
 
     try:
-        for ci, targets in enumerate(chunks):
+        for targets in chunks:
             lo, hi = window(targets)
             loader.evict_below(lo)
             read_ahead(lo)

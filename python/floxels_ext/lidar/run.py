@@ -207,11 +207,11 @@ def run(args) -> int:
                             stamps=stamps, meta=meta, dynamic_threshold=args.dynamic_threshold,
                             compress=args.compress, self_contained=args.self_contained)
 
-    pre_dev, workers, kind, writer_kind = reader_plan(args, device)
+    pre_dev, workers, writers, kind = reader_plan(args, device)
     if kind == "process" and pre_dev is not None:
         raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
     stages = Stages()
-    writer = WriterPool(write_one, stages, workers=args.writers or 2, kind=writer_kind)
+    writer = WriterPool(write_one, stages, workers=writers, kind=kind)
     try:
         loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
                              keep_points=args.self_contained, stages=stages,
@@ -269,8 +269,8 @@ def run(args) -> int:
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
-               "stages_s": stages.as_dict(), "workers": workers, "writers": args.writers or 2, "worker_kind": kind,
-               "writer_kind": writer_kind, "preprocess_device": pre_dev or "cpu",
+               "stages_s": stages.as_dict(), "workers": workers, "writers": writers, "worker_kind": kind,
+               "writer_kind": kind, "preprocess_device": pre_dev or "cpu",
                "settings": json.loads(json.dumps(run_settings, default=str))}
     summary_path = Path(args.summary) if args.summary else out / "run_summary.json"
     try:

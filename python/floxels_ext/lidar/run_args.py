@@ -131,9 +131,9 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
     return todo
 
 
-def reader_plan(args, device: str) -> tuple[str | None, int, str, str]:
-    """(preprocessing device, None for the compiled CPU op; reader workers; reader kind, writer
-    kind: "thread"/"process").
+def reader_plan(args, device: str) -> tuple[str | None, int, int, str]:
+    """(preprocessing device, None for the compiled CPU op; readers; writers; "thread" or
+    "process", the kind of both).
 
     Cropping and ground removal run in the compiled CPU op by default: a few ms a 200k-point
     scan without the GIL, so reader threads overlap the optimiser instead of taking turns with
@@ -151,4 +151,4 @@ def reader_plan(args, device: str) -> tuple[str | None, int, str, str]:
     pre_dev = (device if device.startswith("cuda") else "cuda") if args.preprocess_device == "cuda" else None
     workers = args.workers or max(1, min(6, cores))
     kind = "thread" if args.worker_kind == "auto" else args.worker_kind
-    return pre_dev, workers, kind, kind
+    return pre_dev, workers, args.writers or 2, kind

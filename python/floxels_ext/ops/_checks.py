@@ -21,13 +21,21 @@ def require_tensors(**named) -> None:
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
 
 
-def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
+def check_point_rows(points: torch.Tensor, name: str = "points") -> torch.Tensor:
+    """``points`` if it is an (N, 3) float32/float64 tensor (any values, any strides), else the
+    TypeError/ValueError naming what is wrong."""
     if not isinstance(points, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(points).__name__}")
     if points.dim() != 2 or points.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
     if points.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"{name} must be float32 or float64, got {points.dtype}")
+    return points
+
+
+def as_points(points: torch.Tensor, name: str = "points") -> torch.Tensor:
+    """Points for the optimiser's ops: (N, 3) float32/float64, finite, contiguous."""
+    check_point_rows(points, name)
     if points.numel() and not bool(torch.isfinite(points).all()):
         bad = int((~torch.isfinite(points)).any(dim=1).sum())
         raise ValueError(f"{name} contains {bad} row(s) with NaN or inf coordinates")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from floxels_ext.ops._checks import check_point_rows
 from floxels_ext.ops._lib import ops_ns
 
 __all__ = ["lidar_keep_mask", "rigid_transform", "lidar_select", "frame_flow"]
@@ -41,12 +42,7 @@ def _fake_frame_flow(flow, mask, nonfinite, rotation, dynamic_threshold):
 
 
 def _host_points(points, name: str = "points") -> torch.Tensor:
-    if not isinstance(points, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(points).__name__}")
-    if points.dim() != 2 or points.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
-    if points.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"{name} must be float32 or float64, got {points.dtype}")
+    check_point_rows(points, name)  # NaN rows allowed: lidar files keep them
     if points.device.type != "cpu":
         raise ValueError(f"{name} must be on the CPU (a lidar pipeline op), got {points.device}")
     return points
