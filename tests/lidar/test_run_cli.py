@@ -168,6 +168,16 @@ def test_resume_skips_and_cleans_temp_files(seq, fake, tmp_path, capsys):
     assert rc == 0 and "2 frame(s) written" in cap.err
 
 
+def test_resume_with_the_poses_file_named_another_way(seq, fake, tmp_path, capsys, monkeypatch):
+    d = _write(seq, tmp_path / "in", "bin")
+    assert _run([d, "--out", tmp_path / "out", "--method", "fake", "--poses", tmp_path / "in_poses.txt",
+                 "--frames", "0:3"], capsys)[0] == 0
+    monkeypatch.chdir(tmp_path)  # the same poses file, now by a relative path
+    rc, cap = _run(["in", "--out", "out", "--method", "fake", "--poses", "in_poses.txt"], capsys)
+    assert rc == 0, cap.err
+    assert "3 already done, 2 to estimate" in cap.err
+
+
 def test_interrupt_leaves_only_complete_files(seq, fake, tmp_path, capsys):
     d = _write(seq, tmp_path / "in", "bin")
     rc, cap = _run([d, "--out", tmp_path / "out", "--method", "fake", "--poses", tmp_path / "in_poses.txt",

@@ -151,7 +151,13 @@ def settings_mismatch(recorded: dict, current: dict) -> list[str]:
     """Human-readable differences between two ``settings`` dicts (keys both know)."""
     cur = json.loads(json.dumps(current, default=str))  # same normal form as the recorded JSON
     return [f"{k}: {recorded[k]!r} (recorded) vs {cur[k]!r} (now)" for k in sorted(set(recorded) & set(cur))
-            if recorded[k] != cur[k]]
+            if recorded[k] != cur[k] and not _same_file(k, recorded[k], cur[k])]
+
+
+def _same_file(key: str, a, b) -> bool:
+    """Paths recorded before they were resolved (relative: against the working directory now)."""
+    return key == "pose_source" and isinstance(a, str) and isinstance(b, str) and \
+        os.path.realpath(a) == os.path.realpath(b)
 
 
 def run_outputs(run_dir) -> list[Path]:

@@ -181,7 +181,8 @@ def run(args) -> int:
         raise CLIError(str(e)) from None
     run_settings = {"method": args.method, "num_scans": args.scans, "options": options,
                     "preprocess": asdict(settings), "ego_motion": pose_mode,
-                    "pose_source": str(seq.pose_source) if seq.pose_source else None,
+                    # resolved: a resume names the same file by another path (relative, a link)
+                    "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
                     "dynamic_threshold": args.dynamic_threshold}
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
     todo = check_resume(out_path, selected, run_settings, args.force)
