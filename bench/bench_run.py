@@ -12,6 +12,7 @@ it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argove
 
     python bench/bench_run.py                             # GPU host: 64 frames, 128 beams
     python bench/bench_run.py --frames 16 --beams 32      # CPU-sized
+    python bench/bench_run.py --repeat 3 --variant "w4=--writers 4"   # medians of 3, a variant
 
 Prints a table and writes bench/results/bench_run_<device>.json.
 """
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -72,8 +74,9 @@ def run_cli(args_list: list[str]) -> tuple[float, dict]:
     return wall, json.loads((out / "run_summary.json").read_text())
 
 
-def ceiling(kitti: Path, scans_n: int, device: str, options: dict) -> dict:
-    """Serial host work per frame, then estimate_sequence on the prepared scans (one call)."""
+def ceiling(kitti: Path, scans_n: int, device: str, options: dict, repeat: int = 1) -> dict:
+    """Serial host work per frame, then estimate_sequence on the prepared scans (one call; the
+    median of ``repeat`` calls)."""
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.api import estimate_sequence
     from floxels_ext.lidar.io import read_points, read_poses
@@ -98,13 +101,17 @@ def ceiling(kitti: Path, scans_n: int, device: str, options: dict) -> dict:
     estimate_sequence(scans[:8], cfg, device=device, frames=[3])  # warm-up
     if device.startswith("cuda"):
         torch.cuda.synchronize()
-    t0 = time.perf_counter()
-    estimate_sequence(scans, cfg, device=device)
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-    est = time.perf_counter() - t0
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        estimate_sequence(scans, cfg, device=device)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    est = statistics.median(times)
     n = len(scans)
-    return {"frames": n, "estimate_s": est, "frames_per_s": n / est, "serial_read_ms": 1e3 * t_read / n,
+    return {"frames": n, "estimate_s": est, "frames_per_s": n / est, "repeats_frames_per_s": [n / t for t in times],
+            "serial_read_ms": 1e3 * t_read / n,
             "serial_preprocess_ms": 1e3 * t_pre / n, "kept_points_mean": int(np.mean([len(s) for s in scans]))}
 
 
@@ -120,6 +127,9 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=ARGS",
                     help="also time floxels run with these extra arguments (repeatable), e.g. "
                          "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run")
+    ap.add_argument("--repeat", type=int, default=1, metavar="R",
+                    help="time every run (and the ceiling) R times, interleaved; the table shows the median "
+                         "run of each (hosts vary by ~10%% from run to run)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gil-switch-interval", type=float, default=None, metavar="S",
                     help="floxels_ext.lidar.pipeline.GIL_SWITCH_INTERVAL for the runs (0 = Python's default, "
@@ -146,15 +156,21 @@ def main() -> None:
                  "--frames", "0:6", "--force", *common])
         rows = {}
         variants = [("", [])] + [(v.partition("=")[0], v.partition("=")[2].split()) for v in args.variant]
-        for label, extra in variants:
-            for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
-                               ("av2", [str(av2)])):
-                key = f"{name}+{label}" if label else name
-                wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{key}"), *common, *extra])
-                rows[key] = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ,
-                             "run_args": " ".join(common[4:] + extra)}
-                print(f"  {key}: {rows[key]['frames_per_s']:.1f} frames/s", flush=True)
-        ceil = ceiling(kitti, args.scans, args.device, options)
+        reps: dict[str, list] = {}
+        for rep in range(args.repeat):  # interleaved: a host's drift touches every variant alike
+            for label, extra in variants:
+                for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
+                                   ("av2", [str(av2)])):
+                    key = f"{name}+{label}" if label else name
+                    wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{key}_{rep}"), *common, *extra])
+                    r = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ,
+                         "run_args": " ".join(common[4:] + extra)}
+                    reps.setdefault(key, []).append(r)
+                    print(f"  {key} (run {rep + 1}): {r['frames_per_s']:.1f} frames/s", flush=True)
+        for key, runs in reps.items():  # the median run (an odd count: a real run)
+            order = sorted(runs, key=lambda r: r["frames_per_s"])
+            rows[key] = dict(order[(len(order) - 1) // 2], repeats_frames_per_s=[r["frames_per_s"] for r in runs])
+        ceil = ceiling(kitti, args.scans, args.device, options, repeat=args.repeat)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -176,6 +192,10 @@ def main() -> None:
                                                           "write", "wait_input", "deliver")] + \
             [f"{1e3 * (r['wall_s'] - st['wall']) / n:.1f}", f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
         print(" | ".join(f"{v:>9}" for v in vals))
+    if args.repeat > 1:
+        for name, r in rows.items():
+            print(f"{name}: frames/s of the {args.repeat} runs: " + ", ".join(f"{v:.1f}" for v in r["repeats_frames_per_s"])
+                  + f" (ceiling: " + ", ".join(f"{v:.1f}" for v in ceil["repeats_frames_per_s"]) + ")")
     for name, r in rows.items():
         base = rows[name.split("+")[0]]
         if r is not base:
@@ -188,7 +208,7 @@ def main() -> None:
           f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
           f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (the CPU op, one thread)")
     res = {"device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
-           "frames": n, "beams": args.beams, "gil_switch_interval": args.gil_switch_interval, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
+           "frames": n, "beams": args.beams, "repeat": args.repeat, "gil_switch_interval": args.gil_switch_interval, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
            "runs": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()}, "ceiling": ceil}
     path = Path(args.json or Path(__file__).parent / "results" / f"bench_run_{args.device.split(':')[0]}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
