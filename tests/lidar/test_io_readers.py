@@ -257,6 +257,12 @@ def test_unknown_extension_and_missing_file(tmp_path):
         read_points(tmp_path / "a.xyz")
     with pytest.raises(LidarFormatError, match=r"nope\.bin.*no such file"):
         read_points(tmp_path / "nope.bin")
+    (tmp_path / "dir.bin").mkdir()
+    with pytest.raises(LidarFormatError, match=r"dir\.bin.*not a regular file"):
+        read_points(tmp_path / "dir.bin")
+    pytest.importorskip("pyarrow")
+    with pytest.raises(LidarFormatError, match=r"1\.feather.*no such file"):
+        read_points(tmp_path / "1.feather")
     (tmp_path / "z.npy").write_bytes(b"\x93NUMPY garbage")
     with pytest.raises(LidarFormatError, match=r"z\.npy"):
         read_points(tmp_path / "z.npy")
