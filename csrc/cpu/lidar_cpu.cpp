@@ -9,6 +9,7 @@
 // without the GIL from start to end, whereas numpy takes it back between every call; the
 // thread driving the GPU waited for those threads (bench/RESULTS.md, floxels run). Each call is
 // single-threaded: the pipeline's threads are the parallelism.
+#include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
@@ -152,8 +153,7 @@ at::Tensor lidar_keep_mask_cpu(const at::Tensor& points_in, std::optional<double
     if (need_surface) build_ground(p, N, ground_cell, window_cells, max_rise, grid_distance, max_cells, g);
     keep_mask(p, N, rule, need_surface, g, keep);
   };
-  if (points.scalar_type() == at::kFloat) run(rows<float>(points));
-  else run(rows<double>(points));
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "lidar_keep_mask", [&] { run(rows<scalar_t>(points)); });
   return out;
 }
 
@@ -174,8 +174,8 @@ at::Tensor rigid_transform_cpu(const at::Tensor& points_in, const at::Tensor& tr
   auto run = [&](const auto& p, auto* o) {
     for (int64_t i = 0; i < N; ++i) lidar::transform(m, p.at(i, 0), p.at(i, 1), p.at(i, 2), o + 3 * i);
   };
-  if (points.scalar_type() == at::kFloat) run(rows<float>(points), out.mutable_data_ptr<float>());
-  else run(rows<double>(points), out.mutable_data_ptr<double>());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "rigid_transform",
+                             [&] { run(rows<scalar_t>(points), out.mutable_data_ptr<scalar_t>()); });
   return out;
 }
 
@@ -195,8 +195,7 @@ std::tuple<at::Tensor, at::Tensor> lidar_select_cpu(const at::Tensor& points, co
       K += !finite3(p.x(i), p.y(i), p.z(i));
     }
   };
-  if (points.scalar_type() == at::kFloat) count(rows<float>(points));
-  else count(rows<double>(points));
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "lidar_select", [&] { count(rows<scalar_t>(points)); });
   auto kept = at::empty({M, 3}, points.options());
   auto nonfinite = at::empty({K}, points.options().dtype(at::kLong));
   int64_t* nf = nonfinite.mutable_data_ptr<int64_t>();
@@ -207,8 +206,8 @@ std::tuple<at::Tensor, at::Tensor> lidar_select_cpu(const at::Tensor& points, co
       for (int k = 0; k < 3; ++k) *o++ = p.at(i, k);
     }
   };
-  if (points.scalar_type() == at::kFloat) fill(rows<float>(points), kept.mutable_data_ptr<float>());
-  else fill(rows<double>(points), kept.mutable_data_ptr<double>());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "lidar_select",
+                             [&] { fill(rows<scalar_t>(points), kept.mutable_data_ptr<scalar_t>()); });
   return {kept, nonfinite};
 }
 

@@ -42,19 +42,19 @@ def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
 
     from floxels_ext.ops.lidar import rigid_transform
 
-    p = np.asarray(points)
-    if p.dtype not in (np.float32, np.float64):
-        p = p.astype(np.float64)
-    out = rigid_transform(host_rows(p.reshape(-1, 3)), torch.from_numpy(np.asarray(T, np.float64)))
+    out = rigid_transform(host_rows(np.asarray(points).reshape(-1, 3)), torch.from_numpy(np.asarray(T, np.float64)))
     return out.numpy().astype(np.float32, copy=False)
 
 
 def host_rows(points: np.ndarray):
     """``points`` as a CPU tensor for the lidar ops, without a copy where torch can view it
-    (positive strides, writeable; the ops read any strides)."""
+    (float32/float64, positive strides, writeable; the ops read any strides); other dtypes
+    become float64."""
     import torch
 
-    p = points
+    p = np.asarray(points)
+    if p.dtype not in (np.float32, np.float64):
+        p = p.astype(np.float64)
     if not p.flags.writeable or any(s <= 0 or s % p.itemsize for s in p.strides):
         p = np.ascontiguousarray(p)
         if not p.flags.writeable:
@@ -242,10 +242,7 @@ def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess
         return preprocess_mask_torch(points_sensor, settings, device)
     from floxels_ext.ops.lidar import lidar_keep_mask
 
-    pts = np.asarray(points_sensor)
-    if pts.dtype not in (np.float32, np.float64):
-        pts = pts.astype(np.float64)
-    return lidar_keep_mask(host_rows(pts), **_op_arguments(settings)).numpy()
+    return lidar_keep_mask(host_rows(points_sensor), **_op_arguments(settings)).numpy()
 
 
 def _op_arguments(s: Preprocess) -> dict:
