@@ -7,7 +7,8 @@ it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argove
 * ``floxels run`` on each (after a short warm-up run: CUDA context, kernels), frames/s end to end
   and the per-stage breakdown the run records in ``run_summary.json``;
 * the ceiling: ``estimate_sequence`` on the same preprocessed, ego-motion-compensated scans,
-  already in memory (one call, all frames);
+  already in memory (one call, all frames), timed once in every repetition, after its runs
+  (``--repeat``: each run's ratio to the ceiling of its repetition; the table shows the median);
 * the serial host work per frame (read + preprocessing, the compiled CPU op, on one thread) for reference.
 
     python bench/bench_run.py                             # GPU host: 64 frames, 128 beams
@@ -74,19 +75,20 @@ def run_cli(args_list: list[str]) -> tuple[float, dict]:
     return wall, json.loads((out / "run_summary.json").read_text())
 
 
-def ceiling(kitti: Path, scans_n: int, device: str, options: dict, repeat: int = 1) -> dict:
-    """Serial host work per frame, then estimate_sequence on the prepared scans (one call; the
-    median of ``repeat`` calls)."""
-    from floxels_ext.estimator.config import FloxelsConfig
-    from floxels_ext.estimator.api import estimate_sequence
+def prepared_scans(kitti: Path) -> tuple[list, float, float]:
+    """The KITTI sequence's scans read, preprocessed (the CPU op) and moved into one world frame
+    on this thread, as ``floxels run`` hands them to the method (the same origin: the first
+    pose's position on the pipeline's anchor grid, so the same voxel and DT grids and the same
+    work); and the serial read and preprocessing seconds."""
     from floxels_ext.lidar.io import read_points, read_poses
+    from floxels_ext.lidar.pipeline import snap_anchor
 
     files = sorted((kitti / "velodyne").glob("*.bin"))
     poses = read_poses(kitti / "poses.txt")
     settings = Preprocess()
     t_read = t_pre = 0.0
     scans = []
-    anchor = poses[0][:3, 3]
+    anchor = snap_anchor(poses[0][:3, 3])
     for f, T in zip(files, poses):
         t0 = time.perf_counter()
         pts = read_points(f).points
@@ -97,22 +99,49 @@ def ceiling(kitti: Path, scans_n: int, device: str, options: dict, repeat: int =
         T = T.copy()
         T[:3, 3] -= anchor
         scans.append(transform_points(pts[m], T))
-    cfg = FloxelsConfig(**{"num_scans": scans_n, **options})
-    estimate_sequence(scans[:8], cfg, device=device, frames=[3])  # warm-up
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        estimate_sequence(scans, cfg, device=device)
-        if device.startswith("cuda"):
+    return scans, t_read, t_pre
+
+
+class Ceiling:
+    """``estimate_sequence`` on the prepared scans (warmed up at construction); ``time()`` is
+    one call's seconds, ``summary()`` the median of the calls so far."""
+
+    def __init__(self, kitti: Path, scans_n: int, device: str, options: dict) -> None:
+        from floxels_ext.estimator.config import FloxelsConfig
+        from floxels_ext.estimator.api import estimate_sequence
+
+        self.scans, self.t_read, self.t_pre = prepared_scans(kitti)
+        self.cfg = FloxelsConfig(**{"num_scans": scans_n, **options})
+        self.device, self.estimate, self.times = device, estimate_sequence, []
+        estimate_sequence(self.scans[:8], self.cfg, device=device, frames=[3])  # warm-up
+        self._sync()
+
+    def _sync(self) -> None:
+        if self.device.startswith("cuda"):
             torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-    est = statistics.median(times)
-    n = len(scans)
-    return {"frames": n, "estimate_s": est, "frames_per_s": n / est, "repeats_frames_per_s": [n / t for t in times],
-            "serial_read_ms": 1e3 * t_read / n,
-            "serial_preprocess_ms": 1e3 * t_pre / n, "kept_points_mean": int(np.mean([len(s) for s in scans]))}
+
+    def time(self) -> float:
+        t0 = time.perf_counter()
+        self.estimate(self.scans, self.cfg, device=self.device)
+        self._sync()
+        self.times.append(time.perf_counter() - t0)
+        return self.times[-1]
+
+    def summary(self) -> dict:
+        est, n = statistics.median(self.times), len(self.scans)
+        return {"frames": n, "estimate_s": est, "frames_per_s": n / est,
+                "repeats_frames_per_s": [n / t for t in self.times], "serial_read_ms": 1e3 * self.t_read / n,
+                "serial_preprocess_ms": 1e3 * self.t_pre / n,
+                "kept_points_mean": int(np.mean([len(s) for s in self.scans]))}
+
+
+def ceiling(kitti: Path, scans_n: int, device: str, options: dict, repeat: int = 1) -> dict:
+    """Serial host work per frame, then estimate_sequence on the prepared scans (one call; the
+    median of ``repeat`` calls)."""
+    c = Ceiling(kitti, scans_n, device, options)
+    for _ in range(repeat):
+        c.time()
+    return c.summary()
 
 
 def main() -> None:
@@ -157,6 +186,7 @@ def main() -> None:
         rows = {}
         variants = [("", [])] + [(v.partition("=")[0], v.partition("=")[2].split()) for v in args.variant]
         reps: dict[str, list] = {}
+        ceil_runs = Ceiling(kitti, args.scans, args.device, options)
         for rep in range(args.repeat):  # interleaved: a host's drift touches every variant alike
             for label, extra in variants:
                 for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
@@ -167,10 +197,18 @@ def main() -> None:
                          "run_args": " ".join(common[4:] + extra)}
                     reps.setdefault(key, []).append(r)
                     print(f"  {key} (run {rep + 1}): {r['frames_per_s']:.1f} frames/s", flush=True)
+            # the ceiling in the same repetition: each run's ratio to it is taken at the same time
+            c = args.frames / ceil_runs.time()
+            for runs in reps.values():
+                runs[-1]["ceiling_frames_per_s"] = c
+                runs[-1]["ratio_to_ceiling"] = c / runs[-1]["frames_per_s"]
+            print(f"  ceiling (run {rep + 1}): {c:.1f} frames/s", flush=True)
         for key, runs in reps.items():  # the median run (an odd count: a real run)
             order = sorted(runs, key=lambda r: r["frames_per_s"])
-            rows[key] = dict(order[(len(order) - 1) // 2], repeats_frames_per_s=[r["frames_per_s"] for r in runs])
-        ceil = ceiling(kitti, args.scans, args.device, options, repeat=args.repeat)
+            rows[key] = dict(order[(len(order) - 1) // 2], repeats_frames_per_s=[r["frames_per_s"] for r in runs],
+                             repeats_ratio_to_ceiling=[r["ratio_to_ceiling"] for r in runs],
+                             median_ratio_to_ceiling=statistics.median(r["ratio_to_ceiling"] for r in runs))
+        ceil = ceil_runs.summary()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -185,7 +223,8 @@ def main() -> None:
         st = r["summary"]["stages_s"]
         host_pct = 100 * (r["wall_s"] - st["compute"]) / r["wall_s"]  # everything but the method computing
         r["host_pct"] = host_pct
-        r["ratio_to_ceiling"] = ceil["frames_per_s"] / r["frames_per_s"]
+        # each run against the ceiling timed in its own repetition, the median of those ratios
+        r["ratio_to_ceiling"] = r["median_ratio_to_ceiling"]
         sm = r["summary"]
         vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}/w{sm.get('writer_kind', 'thread')[0]}", f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
             [f"{1e3 * st.get(k, 0.0) / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute",
@@ -195,7 +234,8 @@ def main() -> None:
     if args.repeat > 1:
         for name, r in rows.items():
             print(f"{name}: frames/s of the {args.repeat} runs: " + ", ".join(f"{v:.1f}" for v in r["repeats_frames_per_s"])
-                  + f" (ceiling: " + ", ".join(f"{v:.1f}" for v in ceil["repeats_frames_per_s"]) + ")")
+                  + " (ceiling: " + ", ".join(f"{v:.1f}" for v in ceil["repeats_frames_per_s"]) + "; ratios: "
+                  + ", ".join(f"{v:.2f}x" for v in r["repeats_ratio_to_ceiling"]) + ")")
     for name, r in rows.items():
         base = rows[name.split("+")[0]]
         if r is not base:
@@ -203,7 +243,8 @@ def main() -> None:
     print("(stage columns: ms per frame; read/preproc/transform/write are summed over worker threads and overlap "
           "the estimate; 'deliver': the optimiser thread handing results to the writers; 'setup': the command's "
           "time outside the pipeline (arguments, finding frames and poses, summary); 'idle dev' = wall - compute: "
-          "time the method was not computing)")
+          "time the method was not computing; 'vs ceiling': the median over repetitions of the ceiling timed in "
+          "that repetition / the run's frames/s)")
     print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "
           f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
           f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (the CPU op, one thread)")

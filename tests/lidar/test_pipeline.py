@@ -88,3 +88,40 @@ def test_run_flow_equals_estimate_sequence_on_the_reference_preprocessing(tmp_pa
             np.testing.assert_array_equal(o["mask"], masks[i])
             np.testing.assert_allclose(o["flow"][masks[i]], ref[i] @ fr.pose[:3, :3].astype(np.float32),
                                        atol=1e-4, rtol=0)  # float32 rounding of other origins
+
+
+def test_writers_drain_the_queue_on_more_threads_at_close():
+    """What is still queued when the run ends is written on up to ``drain`` threads, all of it."""
+    import threading
+    import time
+
+    from floxels_ext.lidar.frame_loader import Stages
+    from floxels_ext.lidar.frame_writer import WriterPool
+
+    names, lock = {}, threading.Lock()
+
+    def write_one(i, *rest):
+        time.sleep(0.05)
+        with lock:
+            names[i] = threading.current_thread().name
+
+    pool = WriterPool(write_one, Stages(), workers=1, drain=4)
+    for i in range(6):
+        pool.put(i, None, None, 0.0, None)
+    pool.close()
+    assert sorted(names) == list(range(6)) and pool.written == 6
+    assert len(set(names.values())) > 1  # the one writer was joined by others
+
+
+def test_sources_are_absolute_paths_of_the_frame_files(tmp_path, monkeypatch):
+    from floxels_ext.lidar.io.sources import discover_input
+    from floxels_ext.lidar.run import absolute_sources
+
+    d = tmp_path / "seq"
+    d.mkdir()
+    for i in range(3):
+        np.zeros((10, 4), np.float32).tofile(d / f"{i:06d}.bin")
+    monkeypatch.chdir(tmp_path)
+    seq = discover_input("seq", bin_columns=4, points_frame="sensor")
+    src = absolute_sources(seq, [0, 2])
+    assert src == {0: str(d.resolve() / "000000.bin"), 2: str(d.resolve() / "000002.bin")}

@@ -20,7 +20,13 @@ import numpy as np
 
 from floxels_ext.lidar.outputs import write_output
 
-__all__ = ["FrameOutput", "WriterPool"]
+__all__ = ["FrameOutput", "WriterPool", "DRAIN_WRITERS"]
+
+# Threads writing what is still queued when the run ends (``floxels run``: at most this many
+# and the cores it may use): the method is done then and the cores are free, while the run
+# waits for those writes (the last batch's frames; more writers during the run only slowed
+# the method, bench/RESULTS.md).
+DRAIN_WRITERS = 8
 
 
 @dataclasses.dataclass
@@ -77,8 +83,10 @@ class WriterPool:
     fails its frame (``failures``), not the run. Processes start at construction
     (:mod:`floxels_ext.lidar.worker_processes`)."""
 
-    def __init__(self, write_one, stages, *, depth: int = 32, workers: int = 4, kind: str = "thread") -> None:
+    def __init__(self, write_one, stages, *, depth: int = 32, workers: int = 4, kind: str = "thread",
+                 drain: int | None = None) -> None:
         self.write_one, self.stages, self.kind = write_one, stages, kind
+        self.drain = max(workers, drain or 0)  # threads writing what is queued at close
         self.failures: dict[int, str] = {}
         self.written = 0
         self._lock = threading.Lock()
@@ -140,10 +148,16 @@ class WriterPool:
             self.stages.add("write", time.perf_counter() - t0)
 
     def close(self) -> None:
-        """Write what is queued (finished results are not thrown away), then stop."""
+        """Write what is queued (finished results are not thrown away; on up to ``drain``
+        threads), then stop."""
         if self.kind == "process":
             self.pool.shutdown(wait=True)
             return
+        extra = min(self.q.qsize(), self.drain - len(self.threads))
+        for k in range(extra):
+            t = threading.Thread(target=self._loop, name=f"floxels-write-{len(self.threads)}", daemon=True)
+            t.start()
+            self.threads.append(t)
         for _ in self.threads:
             self.q.put(None)
         for t in self.threads:

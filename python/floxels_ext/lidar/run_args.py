@@ -131,6 +131,14 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
     return todo
 
 
+def host_cores(args) -> int:
+    """The cores this run may use: the host's, or fewer where ``args.cpu_limit`` says so (set
+    by a Ray task: the CPUs it was given)."""
+    cores = os.cpu_count() or 1
+    limit = getattr(args, "cpu_limit", None)
+    return min(cores, max(1, int(limit))) if limit else cores
+
+
 def reader_plan(args, device: str) -> tuple[str | None, int, int, str]:
     """(preprocessing device, None for the compiled CPU op; readers; writers; "thread" or
     "process", the kind of both).
@@ -144,10 +152,7 @@ def reader_plan(args, device: str) -> tuple[str | None, int, int, str]:
     6 gave 132/127 frames/s (KITTI/AV2 layout), 4 gave 119/117, 3 gave 125/109
     (bench/RESULTS.md, floxels run). ``args.cpu_limit`` (set by a Ray task: the CPUs it was
     given) caps the default worker count."""
-    cores = os.cpu_count() or 1
-    limit = getattr(args, "cpu_limit", None)
-    if limit:
-        cores = min(cores, max(1, int(limit)))
+    cores = host_cores(args)
     pre_dev = (device if device.startswith("cuda") else "cuda") if args.preprocess_device == "cuda" else None
     workers = args.workers or max(1, min(6, cores))
     kind = "thread" if args.worker_kind == "auto" else args.worker_kind
