@@ -106,7 +106,7 @@ def add_parser(sub) -> None:
     p.add_argument("--workers", type=int, default=None, help="reader/preprocessor threads (default: the CPU "
                    "cores, at most 6)")
     p.add_argument("--writers", type=int, default=None, help="writer threads (default 2: an output is written "
-                   "in ~5 ms, mostly without the GIL)")
+                   "in ~5 ms, mostly without the GIL; up to 8 write what is left once the method is done)")
     p.add_argument("--worker-kind", choices=["auto", "thread", "process"], default="auto",
                    help="readers/preprocessors and writers as threads or processes (CPU preprocessing only); "
                         "auto: threads (faster than processes on the hosts measured)")
