@@ -2,10 +2,10 @@
 ``.npz`` (layout: :data:`floxels_ext.lidar.outputs.OUTPUT`), :class:`WriterPool` runs it on
 writer threads or processes while the optimiser goes on.
 
-Why processes: ``np.savez`` goes through ``zipfile`` (Python code and many small numpy calls),
-so writer threads took the GIL dozens of times a frame, and every time the thread driving the
-GPU waited; a writer process has a GIL of its own. A frame crosses as ~1.5 MB (flow, mask) per
-write, pickled once. Outputs are identical either way.
+Threads by default: an output is written in a few ms, mostly without the GIL (the flow math in
+one op, the ``.npz`` written directly: :func:`floxels_ext.lidar.outputs.write_output`), and
+writer processes (``--worker-kind process``: a GIL of their own, each frame pickled across as
+~1.5 MB) were slower on the hosts measured (bench/RESULTS.md). Outputs are identical either way.
 """
 
 from __future__ import annotations
@@ -86,11 +86,11 @@ class WriterPool:
     def __init__(self, write_one, stages, *, depth: int = 32, workers: int = 4, kind: str = "thread",
                  drain: int | None = None) -> None:
         self.write_one, self.stages, self.kind = write_one, stages, kind
-        self.drain = max(workers, drain or 0)  # threads writing what is queued at close
         self.failures: dict[int, str] = {}
         self.written = 0
         self._lock = threading.Lock()
         workers = max(1, workers)
+        self.drain = max(workers, drain or 0)  # threads writing what is queued at close
         if kind == "process":
             from floxels_ext.lidar.worker_processes import process_pool
 

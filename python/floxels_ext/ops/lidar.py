@@ -1,7 +1,7 @@
 """The lidar pipeline's CPU ops (``floxels run``'s per-frame host work): fake registrations and
 wrappers. References: :func:`floxels_ext.lidar.preprocess.preprocess_mask_numpy` (cropping and
 ground removal), :func:`floxels_ext.lidar.preprocess.transform_points` and the numpy code in
-``tests/lidar/test_lidar_ops.py`` (flow back into a frame's rows).
+``tests/ops/test_lidar_ops.py`` (flow back into a frame's rows).
 
 Lidar rows may hold NaN/inf coordinates (kept so outputs line up with the file): these ops
 accept them (False in the mask, NaN after a transform) instead of refusing them like the
