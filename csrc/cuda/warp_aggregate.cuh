@@ -1,4 +1,5 @@
-// Warp-aggregated atomicAdd, shared by the trilinear scatter and the cluster reductions.
+// Warp-aggregated atomicAdd: the CUDA solver sums the shares of its cluster means with it
+// (64-bit integers on the deterministic path: order-independent; floats on the atomic path).
 //
 // Hot targets (voxels near the sensor, big clusters) make many lanes of a warp add to the same
 // address; serialising those on one atomic is slow. The lanes first find their peers with
