@@ -243,14 +243,25 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
           float* sg = P.seg_grad + 3 * int64_t(r[u].x);
           sg[0] = sg[1] = sg[2] = 0.0f;
         }
-        if (kCluster && r[u].z >= 0) {
+        if (!kDet && kCluster && r[u].z >= 0) {  // deterministic path: per cluster pair, below
           const float c = ccoef * __int_as_float(r[u].y);
-          if constexpr (kDet)
-            for (int k = 0; k < 3; ++k) gv[u][k] -= c * fixed::decode(uq[3 * r[u].z + k], fixed::kUnitScale);
-          else
-            for (int k = 0; k < 3; ++k) gv[u][k] -= c * ub[3 * r[u].z + k];
+          for (int k = 0; k < 3; ++k) gv[u][k] -= c * ub[3 * r[u].z + k];
         }
         for (int k = 0; k < 3; ++k) G[k] += gv[u][k];
+      }
+    }
+    if constexpr (kCluster && kDet) {
+      // The cluster term, per (vertex, cluster) pair rather than per entry: the entries of one
+      // cluster share its u sum U_c, and their coefficients summed are the pair's A_cv
+      // (pair_setup_kernel), so sum_e ccoef * a_e * U_c = ccoef * A_cv * U_c: a vertex has one
+      // or two clusters but up to hundreds of entries, and each U_c read is a fixed-point
+      // decode.
+      const int np = (has_v && !(skip & 32)) ? min(P.num_pairs[v], e_end - e_begin) : 0;
+      for (int j = sub; j < np; j += kLanesPerVertex) {
+        const int2 pr = P.pair[e_begin + j];
+        if (unsigned(pr.x) >= unsigned(P.num_clusters)) continue;
+        const float c = ccoef * __int_as_float(pr.y);
+        for (int k = 0; k < 3; ++k) G[k] -= c * fixed::decode(uq[3 * pr.x + k], fixed::kUnitScale);
       }
     }
     for (int c = 0; c < 3; ++c)

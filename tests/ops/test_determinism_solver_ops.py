@@ -104,12 +104,13 @@ def test_dt_loss_is_deterministic():
     pts = pr.points.cuda()
     dts = [d.cuda() for d in pr.dts]
     flow = 0.1 * torch.randn(pts.shape[0], 3, device="cuda")
+    origins = [float(v) for o in pr.origins for v in o]
 
     def run():
         f = flow.clone().requires_grad_(True)
-        loss = ops.dt_loss(pts, f, dts, pr.origins, cfg.dt_cell, pr.time_offsets, pr.weights)
+        loss = ops.dt_loss(pts, f, dts, origins, cfg.dt_cell, pr.time_offsets, pr.weights)
         loss.backward()
-        l2, g2 = ops.dt_loss_fwd_bwd(pts, flow, dts, pr.origins, cfg.dt_cell, pr.time_offsets, pr.weights)
+        l2, g2 = ops.dt_loss_fwd_bwd(pts, flow, dts, origins, cfg.dt_cell, pr.time_offsets, pr.weights)
         return loss.detach(), f.grad, l2, g2
 
     for a, b in zip(run(), run()):
