@@ -1,16 +1,19 @@
-"""Issue 31: the deterministic CUDA solver (default) against today's float atomics
-(``FLOXELS_SOLVER_ATOMIC=1``) in ONE run: speed of a whole frame and of sequences (the
-frame and sequence of ``bench/bench_speed.py``), and the run-to-run noise of each path
-(the same frame and sequence solved again: how many points differ, by how much).
+"""Issue 31: speed and run-to-run noise of the CUDA path on ``bench/bench_speed.py``'s whole
+frame and sequence: each is solved several times, timed, and every run's flow compared with
+the first run's (bit-identical? points that differ by > 1 cm, p99.9, max). The default path
+must show 0 differing points. ``--variant LABEL=NAME=VALUE ...`` adds paths that differ by
+environment variables, run interleaved with the default in the same process (a host's drift
+touches all alike), with their time ratio to the default.
 
     python bench/bench_determinism.py                      # GPU host: 128 beams, 500 iterations
     python bench/bench_determinism.py --quick              # small smoke run
-    python bench/bench_determinism.py --repeats 5 --seq-repeats 3
+    python bench/bench_determinism.py --variant "two-kernel=FLOXELS_SOLVER_PERSISTENT=0"
 
-The two paths run interleaved (det, atomic, det, atomic, ...), so a host's drift touches both
-alike; the table shows medians and the atomic/det time ratio. The deterministic path must
-show 0 differing points between runs. Prints a table and writes
-bench/results/determinism_<device>.json.
+The before/after table of issue 31 (bench/RESULTS.md, "Determinism") came from this script
+as it is at git tag ``det-with-atomic-switch`` (commit 89758de), whose build still had the
+former float atomics behind an environment switch and interleaved both paths by itself: build
+that commit and run ``python bench/bench_determinism.py`` there to measure them again. Prints a
+table and writes bench/results/determinism_<device>.json.
 """
 
 from __future__ import annotations
@@ -30,14 +33,22 @@ from bench_speed import _frames  # noqa: E402  (the same simulated frame and seq
 
 from floxels_ext import Floxels, FloxelsConfig, estimate_sequence  # noqa: E402
 
-MODES = {"det": None, "atomic": "1"}  # FLOXELS_SOLVER_ATOMIC per mode (None: unset)
+class _Env:
+    """The environment of one variant ({NAME: VALUE}) for the duration of a with block."""
 
+    def __init__(self, env):
+        self.env, self.saved = env, {}
 
-def _set_mode(mode):
-    if MODES[mode] is None:
-        os.environ.pop("FLOXELS_SOLVER_ATOMIC", None)
-    else:
-        os.environ["FLOXELS_SOLVER_ATOMIC"] = MODES[mode]
+    def __enter__(self):
+        self.saved = {k: os.environ.get(k) for k in self.env}
+        os.environ.update(self.env)
+
+    def __exit__(self, *exc):
+        for k, v in self.saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def _sync(dev):
@@ -72,8 +83,14 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seq-repeats", type=int, default=3, help="timed sequence passes per mode (median)")
     ap.add_argument("--quick", action="store_true", help="32 beams, 100 iterations, short sequence")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL=NAME=VALUE[,NAME=VALUE]",
+                    help="also run with these environment variables (repeatable)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    modes = {"default": {}}
+    for v in args.variant:
+        label, _, assigns = v.partition("=")
+        modes[label] = dict(a.split("=", 1) for a in assigns.split(",") if a)
     if args.quick:
         args.beams, args.azimuth_steps, args.iters, args.seq_frames, args.repeats, args.seq_repeats = \
             32, 512, 100, 8, 2, 2
@@ -83,63 +100,62 @@ def main() -> None:
     frame, target, seq = scans[:5], 2, scans[:args.seq_frames]
     print(f"frame: {args.scene}, {args.beams} beams, points per scan {[len(s) for s in frame]}, {args.iters} "
           f"iterations; sequence {len(seq)} frames, batch {args.batch}; device {dev}", flush=True)
-    for mode in MODES:  # warm-up of both variants' kernels
-        _set_mode(mode)
-        Floxels(cfg.replace(max_iters=60), dev).fit(frame, target)
-        estimate_sequence(seq[:6], cfg.replace(max_iters=20), device=dev, batch_size=args.batch)
-    frame_s = {m: [] for m in MODES}
-    frame_flow = {m: [] for m in MODES}
-    seq_s = {m: [] for m in MODES}
-    seq_flow = {m: [] for m in MODES}
-    try:
-        for _ in range(args.repeats):
-            for mode in MODES:
-                _set_mode(mode)
+    for mode, env in modes.items():  # warm-up of every variant's kernels
+        with _Env(env):
+            Floxels(cfg.replace(max_iters=60), dev).fit(frame, target)
+            estimate_sequence(seq[:6], cfg.replace(max_iters=20), device=dev, batch_size=args.batch)
+    frame_s = {m: [] for m in modes}
+    frame_flow = {m: [] for m in modes}
+    seq_s = {m: [] for m in modes}
+    seq_flow = {m: [] for m in modes}
+    for _ in range(args.repeats):
+        for mode, env in modes.items():
+            with _Env(env):
                 _sync(dev)
                 t0 = time.perf_counter()
                 res = Floxels(cfg, dev).fit(frame, target)
                 _sync(dev)
                 frame_s[mode].append(time.perf_counter() - t0)
                 frame_flow[mode].append(np.asarray(res.flow))
-        for _ in range(args.seq_repeats):
-            for mode in MODES:
-                _set_mode(mode)
+    for _ in range(args.seq_repeats):
+        for mode, env in modes.items():
+            with _Env(env):
                 _sync(dev)
                 t0 = time.perf_counter()
                 flows = estimate_sequence(seq, cfg, device=dev, batch_size=args.batch)
                 _sync(dev)
                 seq_s[mode].append(time.perf_counter() - t0)
                 seq_flow[mode].append([np.asarray(f) for f in flows])
-    finally:
-        os.environ.pop("FLOXELS_SOLVER_ATOMIC", None)
 
     out = {"device": dev, "gpu": torch.cuda.get_device_name() if dev.startswith("cuda") else "",
            "torch": torch.__version__, "points": [len(s) for s in frame], "iters": args.iters,
-           "seq_frames": len(seq), "batch": args.batch, "modes": {}}
-    for mode in MODES:
+           "seq_frames": len(seq), "batch": args.batch, "variants": {m: e for m, e in modes.items()}, "modes": {}}
+    for mode in modes:
         fn = [_noise(frame_flow[mode][0], f) for f in frame_flow[mode][1:]]
         sn = [_noise(seq_flow[mode][0][k], run[k]) for run in seq_flow[mode][1:] for k in range(len(seq))]
         out["modes"][mode] = {
             "frame_s": statistics.median(frame_s[mode]), "frame_runs_s": frame_s[mode],
             "seq_fps": len(seq) / statistics.median(seq_s[mode]), "seq_runs_s": seq_s[mode],
             "frame_noise": _worst(fn) if fn else None, "seq_noise": _worst(sn) if sn else None}
-    d, a = out["modes"]["det"], out["modes"]["atomic"]
-    out["frame_ratio_det_over_atomic"] = d["frame_s"] / a["frame_s"]
-    out["seq_ratio_atomic_over_det_fps"] = a["seq_fps"] / d["seq_fps"]
+    base = out["modes"]["default"]
+    for r in out["modes"].values():
+        r["frame_time_vs_default"] = r["frame_s"] / base["frame_s"]
+        r["seq_fps_vs_default"] = r["seq_fps"] / base["seq_fps"]
 
-    print(f"\n{out['gpu']}: deterministic sums (default) vs float atomics (FLOXELS_SOLVER_ATOMIC=1), one run, "
-          f"interleaved")
-    print(f"{'path':<8} {'frame ms':>9} {'seq fr/s':>9} | run-to-run noise (worst run vs the first): "
+    print(f"\n{out['gpu']}: the default path" + (" and the variants, interleaved" if len(modes) > 1 else ""))
+    print(f"{'path':<12} {'frame ms':>9} {'seq fr/s':>9} | run-to-run noise (worst run vs the first): "
           f"{'identical':>9} {'>1cm':>7} {'p99.9 m':>9} {'max m':>8}")
     for mode, r in out["modes"].items():
         for what in ("frame_noise", "seq_noise"):
             n = r[what] or {"bit_identical": True, "frac_over_1cm": 0.0, "p99_9_m": 0.0, "max_m": 0.0}
-            lead = (f"{mode:<8} {1e3 * r['frame_s']:>9.2f} {r['seq_fps']:>9.2f}" if what == "frame_noise"
-                    else " " * 28)
+            lead = (f"{mode:<12} {1e3 * r['frame_s']:>9.2f} {r['seq_fps']:>9.2f}" if what == "frame_noise"
+                    else " " * 32)
             print(f"{lead} | {what[:-6]:<5} {str(n['bit_identical']):>38} {100 * n['frac_over_1cm']:>6.2f}% "
                   f"{n['p99_9_m']:>9.4f} {n['max_m']:>8.4f}")
-    print(f"det / atomic: frame time x{out['frame_ratio_det_over_atomic']:.3f}, sequence frames/s "
-          f"x{1 / out['seq_ratio_atomic_over_det_fps']:.3f} (>3 % slower must be argued, issue 31)")
+    for mode, r in out["modes"].items():
+        if mode != "default":
+            print(f"{mode} ({', '.join(f'{k}={v}' for k, v in modes[mode].items())}) vs default: frame time "
+                  f"x{r['frame_time_vs_default']:.3f}, sequence frames/s x{r['seq_fps_vs_default']:.3f}")
     path = args.json or os.path.join(os.path.dirname(__file__), "results", f"determinism_{dev.split(':')[0]}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:

@@ -14,7 +14,7 @@ it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argove
     python bench/bench_run.py                             # GPU host: 64 frames, 128 beams
     python bench/bench_run.py --frames 16 --beams 32      # CPU-sized
     python bench/bench_run.py --repeat 3 --variant "w4=--writers 4"   # medians of 3, a variant
-    python bench/bench_run.py --repeat 3 --variant "atomic=FLOXELS_SOLVER_ATOMIC=1"   # an environment variant
+    python bench/bench_run.py --repeat 3 --variant "two-kernel=FLOXELS_SOLVER_PERSISTENT=0"   # an environment variant
 
 Prints a table and writes bench/results/bench_run_<device>.json.
 """
@@ -164,7 +164,7 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=ARGS",
                     help="also time floxels run with these extra arguments (repeatable), e.g. "
                          "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run. A NAME=VALUE "
-                         "word (upper case, e.g. FLOXELS_SOLVER_ATOMIC=1) is set in the environment for that "
+                         "word (upper case, e.g. FLOXELS_SOLVER_PERSISTENT=0) is set in the environment for that "
                          "variant's runs instead")
     ap.add_argument("--repeat", type=int, default=1, metavar="R",
                     help="time every run (and the ceiling) R times, interleaved; the table shows the median "

@@ -59,14 +59,6 @@ inline int solver_max_grid() {
 // overlap). Read on every solver_run call that takes the two-kernel iteration.
 inline bool solver_pdl() { return detail::flag("FLOXELS_SOLVER_PDL", true); }
 
-// FLOXELS_SOLVER_ATOMIC: "1" (any value but "0") makes the CUDA solver sum its cluster means,
-// unit-residual sums, losses and tile-crossing segment rows with float atomics, as before
-// issue 31: NOT deterministic (two identical runs can return different flow). Default off:
-// the deterministic sums (cuda/fixed_point.cuh, cuda/solver.cu's header). Kept to measure
-// the deterministic path against it in one run (bench/bench_speed.py, bench/bench_run.py).
-// Read on every solver_run and solver_loop_blocks call.
-inline bool solver_atomic() { return detail::flag("FLOXELS_SOLVER_ATOMIC", false); }
-
 // FLOXELS_SOLVER_TRACE (profiling builds only; always false otherwise): "1" (any value but
 // "0") launches the traced persistent loop kernel, which prints per-phase times per
 // iteration. Default off. Read on every solver_run call that takes the persistent loop.

@@ -30,8 +30,9 @@
 // point): warp and block partials in fixed order; segment rows with one writer (a segment
 // that crosses tiles: per-tile partial rows added by the vertex stage in tile order); the
 // cluster means, u sums and losses, which receive shares from many blocks, as fixed-point
-// 64-bit integers (cuda/fixed_point.cuh: scales, ranges, overflow guards). The float
-// atomics that preceded it stay behind FLOXELS_SOLVER_ATOMIC=1 (non-deterministic).
+// 64-bit integers (cuda/fixed_point.cuh: scales, ranges, overflow guards). Float atomics
+// there (before issue 31) were 1.6 % faster per frame and 2.4 % on sequences on an H200
+// (bench/RESULTS.md, "Determinism"): under the 3 % that would have kept them as an option.
 //
 // Files (no relocatable device code: each kernel file launches its own kernels):
 //   solver.cu            this launcher: workspace layout, the kernel parameters, the choice
@@ -91,7 +92,7 @@ Layout layout(const Args& a) {
     tiles += kWarps * point_blocks_for(a.problems[p].point_end - a.problems[p].point_begin);
   L.span_part = take(4 * 2 * kSegVals * tiles);  // written before read: not cleared
   L.seg_grad = take(4 * kSegVals * s);
-  L.mbuf = take(2 * 24 * c);  // (2, C, 3) 8-byte fixed point, or floats on the atomic path
+  L.mbuf = take(2 * 24 * c);  // (2, C, 3) 8-byte fixed point
   L.ubuf = take(2 * 24 * c);
   L.loss = take(8 * 2 * kMaxProblems);
   L.loss_flag = take(4 * 2 * kMaxProblems);
@@ -103,8 +104,8 @@ Layout layout(const Args& a) {
 // Blocks of the persistent loop kernel that can be resident at once, capped by
 // FLOXELS_SOLVER_MAX_GRID (tests: every block then walks many point and vertex blocks, as
 // with large batches), or 0 where the loop cannot be used (see loop_capacity).
-int persistent_grid(bool cluster, bool det, cudaStream_t stream) {
-  const int c = loop_capacity(cluster, det, stream);
+int persistent_grid(bool cluster, cudaStream_t stream) {
+  const int c = loop_capacity(cluster, stream);
   if (c <= 0) return 0;
   const int cap_blocks = env::solver_max_grid();
   return cap_blocks > 0 ? std::min(c, cap_blocks) : c;
@@ -115,7 +116,7 @@ int loop_blocks(int64_t pb, int64_t vb, bool cluster, cudaStream_t stream) {
   const env::Persistent mode = env::solver_persistent();
   if (mode == env::Persistent::kOff) return 0;
   const bool force = mode == env::Persistent::kOn;
-  const int grid = persistent_grid(cluster, !env::solver_atomic(), stream);
+  const int grid = persistent_grid(cluster, stream);
   if (grid <= 0 || (!force && pb > grid)) return 0;
   return int(std::min<int64_t>(grid, std::max(pb, vb)));
 }
@@ -205,9 +206,6 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   P.num_pairs = reinterpret_cast<int32_t*>(w + L.num_pairs);
   P.bias = reinterpret_cast<double*>(w + L.bias);
   P.seg_grad = reinterpret_cast<float*>(w + L.seg_grad);
-  P.mbuf = reinterpret_cast<float*>(w + L.mbuf);
-  P.ubuf = reinterpret_cast<float*>(w + L.ubuf);
-  P.loss = reinterpret_cast<double*>(w + L.loss);
   P.mfx = reinterpret_cast<unsigned long long*>(w + L.mbuf);
   P.ufx = reinterpret_cast<unsigned long long*>(w + L.ubuf);
   P.loss_fx = reinterpret_cast<unsigned long long*>(w + L.loss);
@@ -222,18 +220,17 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   if (err == cudaSuccess) err = cudaMemsetAsync(w + L.seg_grad, 0, L.snap - L.seg_grad, stream);  // seg_grad .. loss_flag
   if (err == cudaSuccess && M > 0) err = cudaMemsetAsync(P.num_pairs, 0, 4 * M, stream);
   if (err != cudaSuccess) return err;
-  const bool det = !env::solver_atomic();
   launch_setup(P, T, scans, S, M, cl, stream);
-  if (cl) launch_first_means(P, vb, det, stream);
+  if (cl) launch_first_means(P, vb, stream);
   if (const int grid = loop_blocks(pb, vb, cl, stream); grid > 0) {
     // Profiling builds only (constant false / 0 otherwise): the traced loop kernel, which
     // prints phase times, and FLOXELS_SOLVER_SKIP's parts left out (common/env_switches.h).
     const bool trace = env::solver_trace();
     P.debug_skip = env::solver_skip();
-    err = launch_loop(P, grid, num_iters, pb, vb, cl, det, trace, stream);
+    err = launch_loop(P, grid, num_iters, pb, vb, cl, trace, stream);
     return err == cudaSuccess ? cudaGetLastError() : err;
   }
-  err = launch_iterations(P, num_iters, pb, vb, cl, det, env::solver_pdl(), stream);
+  err = launch_iterations(P, num_iters, pb, vb, cl, env::solver_pdl(), stream);
   return err == cudaSuccess ? cudaGetLastError() : err;
 }
 

@@ -3,10 +3,9 @@
 //   points_body  stages 1-2 of one point block, a thread per point;
 //   vertex_body  stage 3 then 4 of one vertex block, a group of 8 lanes per vertex, then the
 //                vertices' shares of the next iteration's cluster means.
-// kDet: the deterministic sums (default: fixed-order segment sums, fixed-point integer
-// atomics for the cluster sums and the loss, cuda/fixed_point.cuh); false: today's float
-// atomics (FLOXELS_SOLVER_ATOMIC=1; the sums' last bits then depend on the order in which
-// blocks arrive, so two identical runs can differ).
+// Every sum is deterministic (issue 31): fixed-order warp and block sums, per-tile partial
+// rows for tile-crossing segments, and fixed-point integer atomics for the cluster sums and
+// the loss (cuda/fixed_point.cuh), so the same input gives the same bytes.
 // kDebug (profiling builds only, the traced loop): P.debug_skip leaves parts out
 // (FLOXELS_SOLVER_SKIP, common/env_switches.h); the results are then wrong. Release builds
 // cannot instantiate it. nvcc only.
@@ -30,7 +29,7 @@ namespace fixed = cuda_detail::fixed;
 // Stages 1-2 of point block `vb`, a thread per point, from its fixed data `fx` (load_fixed).
 // `clear`: also run clear_other_parity (the per-iteration kernel; the persistent loop clears
 // once per iteration instead).
-template <bool kCluster, bool kDet, bool kDebug = false>
+template <bool kCluster, bool kDebug = false>
 __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb, bool clear, PointSmem& sm,
                                             const PointFixed& fx) {
   static_assert(!kDebug || kProfiling, "the traced variant exists in profiling builds only");
@@ -45,13 +44,10 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   const int label = kCluster ? fx.label : -1;
   if constexpr (kCluster) {  // empty u-sum slots (the barrier below publishes them)
     sm.ukey[threadIdx.x] = -1;
-    if constexpr (kDet)
-      sm.usum.q[threadIdx.x][0] = sm.usum.q[threadIdx.x][1] = sm.usum.q[threadIdx.x][2] = 0ull;
-    else
-      sm.usum.f[threadIdx.x][0] = sm.usum.f[threadIdx.x][1] = sm.usum.f[threadIdx.x][2] = 0.0f;
+    sm.usum[threadIdx.x][0] = sm.usum[threadIdx.x][1] = sm.usum[threadIdx.x][2] = 0ull;
   }
   pdl_wait_previous();
-  if (clear) clear_other_parity<kCluster, kDet>(P, parity);
+  if (clear) clear_other_parity<kCluster>(P, parity);
   const int C3 = 3 * P.num_clusters;
   const double* st = P.state + p * kStateCols;
   if (vb == P.block_begin[p] && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
@@ -69,13 +65,8 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
         for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
       }
       if (kCluster && label >= 0) {
-        if constexpr (kDet) {
-          const unsigned long long* m = P.mfx + (parity ? C3 : 0) + 3 * label;
-          for (int c = 0; c < 3; ++c) mean[c] = fixed::decode(m[c], fixed::kMeanScale);
-        } else {
-          const float* m = P.mbuf + (parity ? C3 : 0) + 3 * label;
-          for (int c = 0; c < 3; ++c) mean[c] = m[c];
-        }
+        const unsigned long long* m = P.mfx + (parity ? C3 : 0) + 3 * label;
+        for (int c = 0; c < 3; ++c) mean[c] = fixed::decode(m[c], fixed::kMeanScale);
       }
     }
     float g[3] = {0.0f, 0.0f, 0.0f};
@@ -97,11 +88,10 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
     }
     // Segment sums of w_k * g_i, per warp: the run's last lane writes the row (plain stores:
     // one writer per segment), or, where the segment crosses tiles, its tile's partial row
-    // (deterministic path: span_part, summed by the vertex stage in tile order) or adds it
-    // (atomic path).
+    // (span_part, summed by the vertex stage in tile order).
     if (!(skip & 2)) {
       const WarpRuns runs = warp_runs(seg);
-      float* dst = P.seg_grad + int64_t(kSegVals) * seg;
+      float* dst = P.seg_grad + int64_t(kSegVals) * seg;  // (seg < 0: never written)
       // two halves of 4 corners: fewer values live at once (the loop kernel has 64 registers)
       for (int h = 0; h < 2; ++h) {
         float wg[kSegVals / 2];
@@ -112,12 +102,10 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
           if (!spans) {
             float4* d4 = reinterpret_cast<float4*>(dst + 12 * h);  // rows of 96 bytes: 16-byte aligned
             for (int j = 0; j < 3; ++j) d4[j] = make_float4(wg[4 * j], wg[4 * j + 1], wg[4 * j + 2], wg[4 * j + 3]);
-          } else if constexpr (kDet) {
+          } else {
             const int slot = runs.start == 0 ? 0 : 1;  // see span_sum
             float* sp = P.span_part + ((int64_t(vb) * kWarps + (threadIdx.x >> 5)) * 2 + slot) * kSegVals + 12 * h;
             for (int j = 0; j < 12; ++j) sp[j] = wg[j];
-          } else {
-            for (int j = 0; j < 12; ++j) atomicAdd(dst + 12 * h + j, wg[j]);  // cleared by its readers
           }
         }
       }
@@ -125,35 +113,26 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
     // Cluster u sums: per warp run, into the block's slot of the cluster (one atomic per
     // cluster and block below); a slot taken by another cluster (labels of one block more
     // than kThreads apart: not with sorted tables) adds to global memory directly.
-    // Deterministic path: each point's u clamped to [-1, 1] (NaN to 0: its loss is NaN
-    // anyway), the run sums (fixed order) converted to fixed point, integer atomics after.
+    // Each point's u clamped to [-1, 1] (NaN to 0: its loss is NaN anyway), the run sums
+    // (fixed order) converted to fixed point, integer atomics after (order-independent).
     if (kCluster && !(skip & 4)) {
       const int key = valid ? label : -1;
-      if constexpr (kDet)
-        for (int c = 0; c < 3; ++c) u[c] = fixed::clamp_finite(u[c], 1.0f);
+      for (int c = 0; c < 3; ++c) u[c] = fixed::clamp_finite(u[c], 1.0f);
       const WarpRuns runs = warp_runs(key);
       warp_run_sums(runs, u);
       if (runs.tail && key >= 0) {
         const int slot = key % kThreads;
         const int had = atomicCAS(&sm.ukey[slot], -1, key);
-        if constexpr (kDet) {
-          unsigned long long q[3];
-          for (int c = 0; c < 3; ++c) q[c] = fixed::encode(u[c], fixed::kUnitScale);
-          unsigned long long* ub = (had == -1 || had == key) ? sm.usum.q[slot] : P.ufx + (parity ? C3 : 0) + 3 * key;
-          for (int c = 0; c < 3; ++c) atomicAdd(ub + c, q[c]);
-        } else if (had == -1 || had == key) {
-          for (int c = 0; c < 3; ++c) atomicAdd(&sm.usum.f[slot][c], u[c]);
-        } else {
-          float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
-          for (int c = 0; c < 3; ++c) atomicAdd(ub + c, u[c]);
-        }
+        unsigned long long q[3];
+        for (int c = 0; c < 3; ++c) q[c] = fixed::encode(u[c], fixed::kUnitScale);
+        unsigned long long* ub = (had == -1 || had == key) ? sm.usum[slot] : P.ufx + (parity ? C3 : 0) + 3 * key;
+        for (int c = 0; c < 3; ++c) atomicAdd(ub + c, q[c]);
       }
     }
   }
-  // Loss: per warp (fixed order), then one atomic per block: fixed point on the
-  // deterministic path (fixed::add_loss), a double atomic on the atomic path (whose order
-  // across blocks varies between runs). A per-block table re-read by every vertex block cost
-  // more than the whole vertex gradient with 16 problems.
+  // Loss: per warp (fixed order), then one fixed-point atomic per block (fixed::add_loss). A
+  // per-block table re-read by every vertex block cost more than the whole vertex gradient
+  // with 16 problems.
   if (!(skip & 8)) {
     double dl = double(loss);
     for (int off = 16; off > 0; off >>= 1) dl += __shfl_xor_sync(0xffffffffu, dl, off);
@@ -164,30 +143,22 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   if constexpr (kCluster) {
     const int key = sm.ukey[threadIdx.x];
     if (key >= 0) {
-      if constexpr (kDet) {
-        unsigned long long* ub = P.ufx + (parity ? C3 : 0) + 3 * key;
-        for (int c = 0; c < 3; ++c) atomicAdd(ub + c, sm.usum.q[threadIdx.x][c]);
-      } else {
-        float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
-        for (int c = 0; c < 3; ++c) atomicAdd(ub + c, sm.usum.f[threadIdx.x][c]);
-      }
+      unsigned long long* ub = P.ufx + (parity ? C3 : 0) + 3 * key;
+      for (int c = 0; c < 3; ++c) atomicAdd(ub + c, sm.usum[threadIdx.x][c]);
     }
   }
   if (threadIdx.x == 0 && !(skip & 8)) {
     double total = 0.0;
     for (int k = 0; k < kWarps; ++k) total += sm.wloss[k];
     const int at = (parity ? kMaxProblems : 0) + p;
-    if constexpr (kDet)
-      fixed::add_loss(P.loss_fx + at, P.loss_flag + at, total, P.block_begin[p + 1] - P.block_begin[p]);
-    else if (total != 0.0)
-      atomicAdd(P.loss + at, total);
+    fixed::add_loss(P.loss_fx + at, P.loss_flag + at, total, P.block_begin[p + 1] - P.block_begin[p]);
   }
 }
 
 // Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
 // iteration's cluster means. kInitMeans: only the means, of the current parameters (once
 // per call, before the first iteration).
-template <bool kCluster, bool kInitMeans, bool kDet, bool kDebug = false>
+template <bool kCluster, bool kInitMeans, bool kDebug = false>
 __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm, int2 entries) {
   static_assert(!kDebug || kProfiling, "the traced variant exists in profiling builds only");
   const int skip = (kProfiling && kDebug) ? P.debug_skip : 0;
@@ -207,13 +178,12 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
       // the record.
       for (int c = 0; c < kStateCols; ++c) st[c] = P.snap[p * kStateCols + c];
       const int at = (parity ? kMaxProblems : 0) + p;
-      const double loss = kDet ? fixed::decode_loss(P.loss_fx[at], P.loss_flag[at]) : P.loss[at];
+      const double loss = fixed::decode_loss(P.loss_fx[at], P.loss_flag[at]);
       const bool keeper = vb == P.vblock_begin[p];
       control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias);
       if (keeper)
         for (int c = 0; c < kStateCols; ++c) P.state[p * kStateCols + c] = st[c];
     }
-    const float* ub = P.ubuf + (parity ? C3 : 0);
     const unsigned long long* uq = P.ufx + (parity ? C3 : 0);
     const float ccoef = P.cluster_coef[p];
     float G[3] = {0.0f, 0.0f, 0.0f};
@@ -234,23 +204,15 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
         // r.x < 0: invalid tables (validated in Python) or past the end: never read outside
         const float* sg = P.seg_grad + 3 * int64_t(max(r[u].x, 0));
         for (int c = 0; c < 3; ++c) gv[u][c] = r[u].x >= 0 ? sg[c] : 0.0f;
-        if (kDet && r[u].x >= 0 && r[u].w) span_sum(P, r[u].x, gv[u]);  // tables built elsewhere only
+        if (r[u].x >= 0 && r[u].w) span_sum(P, r[u].x, gv[u]);  // tables built elsewhere only
       }
 #pragma unroll
       for (int u = 0; u < kUnroll; ++u) {
         if (r[u].x < 0) continue;
-        if (!kDet && r[u].w) {  // summed by atomics: clear for the next iteration
-          float* sg = P.seg_grad + 3 * int64_t(r[u].x);
-          sg[0] = sg[1] = sg[2] = 0.0f;
-        }
-        if (!kDet && kCluster && r[u].z >= 0) {  // deterministic path: per cluster pair, below
-          const float c = ccoef * __int_as_float(r[u].y);
-          for (int k = 0; k < 3; ++k) gv[u][k] -= c * ub[3 * r[u].z + k];
-        }
         for (int k = 0; k < 3; ++k) G[k] += gv[u][k];
       }
     }
-    if constexpr (kCluster && kDet) {
+    if constexpr (kCluster) {
       // The cluster term, per (vertex, cluster) pair rather than per entry: the entries of one
       // cluster share its u sum U_c, and their coefficients summed are the pair's A_cv
       // (pair_setup_kernel), so sum_e ccoef * a_e * U_c = ccoef * A_cv * U_c: a vertex has one
@@ -290,15 +252,10 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     // while a big cluster's mean receives shares from hundreds of blocks, so one global
     // atomic per (block, cluster) instead of one per (warp, round, cluster) (those cost
     // 2.8 of 24.7 us per iteration at one frame on an H100). A slot taken by another
-    // cluster adds to global memory directly. Deterministic path: every share converted to
-    // fixed point first (parameters clamped to +-fixed::kParamLimit), integer sums after.
+    // cluster adds to global memory directly. Every share is converted to fixed point first
+    // (parameters clamped to +-fixed::kParamLimit), integer sums after: order-independent.
     sm.mkey[threadIdx.x] = -1;
-    for (int c = 0; c < 3; ++c) {
-      if constexpr (kDet)
-        sm.msum.q[3 * threadIdx.x + c] = 0ull;
-      else
-        sm.msum.f[3 * threadIdx.x + c] = 0.0f;
-    }
+    for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0ull;
     __syncthreads();
     const unsigned wbase = threadIdx.x & ~31u;
     for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
@@ -309,32 +266,20 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
         if (unsigned(pr.x) < unsigned(P.num_clusters)) {
           const float a = __int_as_float(pr.y);
           for (int c = 0; c < 3; ++c)
-            val[c] = kDet ? fixed::clamp_finite(a * fixed::clamp_finite(t[c], fixed::kParamLimit), fixed::kParamLimit)
-                          : a * t[c];
+            val[c] = fixed::clamp_finite(a * fixed::clamp_finite(t[c], fixed::kParamLimit), fixed::kParamLimit);
           const int s = pr.x % kThreads;
           const int had = atomicCAS(&sm.mkey[s], -1, pr.x);
           if (had == -1 || had == pr.x) slot = s; else spill = pr.x;
         }
       }
-      if constexpr (kDet) {
-        unsigned long long q[3];
-        for (int c = 0; c < 3; ++c) q[c] = fixed::encode(val[c], fixed::kMeanScale);
-        warp_add<unsigned long long>(sm.msum.q, slot, 3, 1, q, 1ull, 3, sm.scratch.q + wbase);
-        warp_add<unsigned long long>(P.mfx + next, spill, 3, 1, q, 1ull, 3, sm.scratch.q + wbase);
-      } else {
-        warp_add<float>(sm.msum.f, slot, 3, 1, val, 1.0f, 3, sm.scratch.f + wbase);
-        warp_add<float>(P.mbuf + next, spill, 3, 1, val, 1.0f, 3, sm.scratch.f + wbase);
-      }
+      unsigned long long q[3];
+      for (int c = 0; c < 3; ++c) q[c] = fixed::encode(val[c], fixed::kMeanScale);
+      warp_add<unsigned long long>(sm.msum, slot, 3, 1, q, 1ull, 3, sm.scratch + wbase);
+      warp_add<unsigned long long>(P.mfx + next, spill, 3, 1, q, 1ull, 3, sm.scratch + wbase);
     }
     __syncthreads();
-    if (const int key = sm.mkey[threadIdx.x]; key >= 0) {
-      for (int c = 0; c < 3; ++c) {
-        if constexpr (kDet)
-          atomicAdd(P.mfx + next + 3 * key + c, sm.msum.q[3 * threadIdx.x + c]);
-        else
-          atomicAdd(P.mbuf + next + 3 * key + c, sm.msum.f[3 * threadIdx.x + c]);
-      }
-    }
+    if (const int key = sm.mkey[threadIdx.x]; key >= 0)
+      for (int c = 0; c < 3; ++c) atomicAdd(P.mfx + next + 3 * key + c, sm.msum[3 * threadIdx.x + c]);
   }
 }
 

@@ -33,11 +33,6 @@ __device__ __forceinline__ int problem_of(int block, const int* begins, int num_
   return p;
 }
 
-__device__ __forceinline__ void zero_strided(float* a, int64_t n) {
-  for (int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; j < n; j += int64_t(gridDim.x) * blockDim.x)
-    a[j] = 0.0f;
-}
-
 __device__ __forceinline__ int warp_max(int x) {
   for (int off = 16; off > 0; off >>= 1) x = max(x, __shfl_xor_sync(0xffffffffu, x, off));
   return x;
@@ -91,27 +86,17 @@ __device__ __forceinline__ void warp_run_sums(const WarpRuns& r, float (&v)[K]) 
 }
 
 // Shared memory of one block of the iteration kernels (the persistent loop uses both parts).
-// The per-slot sums are floats on the atomic path and fixed-point integers on the
-// deterministic one (cuda/fixed_point.cuh), in the same bytes.
+// The per-slot sums are fixed-point integers (cuda/fixed_point.cuh).
 struct PointSmem {
-  int ukey[kThreads];  // cluster summed in u-sum slot (cluster % kThreads), -1 empty
-  union {
-    float f[kThreads][3];               // the block's u sums per slot (atomic path)
-    unsigned long long q[kThreads][3];  // the same, fixed point (deterministic path)
-  } usum;
-  double wloss[kWarps];  // loss per warp
+  int ukey[kThreads];                 // cluster summed in u-sum slot (cluster % kThreads), -1 empty
+  unsigned long long usum[kThreads][3];  // the block's u sums per slot
+  double wloss[kWarps];               // loss per warp
 };
 struct VertexSmem {
-  union {
-    float f[kThreads];
-    unsigned long long q[kThreads];
-  } scratch;  // warp_add's per-warp scratch
+  unsigned long long scratch[kThreads];  // warp_add's per-warp scratch
   double st[kStateCols];
-  int mkey[kThreads];  // cluster summed in mean slot (cluster % kThreads), -1 empty
-  union {
-    float f[kThreads * 3];
-    unsigned long long q[kThreads * 3];
-  } msum;  // the block's shares of the next means per slot
+  int mkey[kThreads];                    // cluster summed in mean slot (cluster % kThreads), -1 empty
+  unsigned long long msum[kThreads * 3];  // the block's shares of the next means per slot
 };
 
 __device__ __forceinline__ void zero_strided_u64(unsigned long long* a, int64_t n) {
@@ -121,25 +106,20 @@ __device__ __forceinline__ void zero_strided_u64(unsigned long long* a, int64_t 
 
 // Per iteration, by the whole grid: clear the other parity's means, u sums and losses (the
 // vertex stage of this iteration fills them for the next one).
-template <bool kCluster, bool kDet>
+template <bool kCluster>
 __device__ __forceinline__ void clear_other_parity(const KParams& P, int parity) {
   const int C3 = 3 * P.num_clusters;
   if constexpr (kCluster) {
-    if constexpr (kDet) {
-      zero_strided_u64(P.ufx + (parity ? 0 : C3), C3);
-      zero_strided_u64(P.mfx + (parity ? 0 : C3), C3);
-    } else {
-      zero_strided(P.ubuf + (parity ? 0 : C3), C3);
-      zero_strided(P.mbuf + (parity ? 0 : C3), C3);
-    }
+    zero_strided_u64(P.ufx + (parity ? 0 : C3), C3);
+    zero_strided_u64(P.mfx + (parity ? 0 : C3), C3);
   }
   if (blockIdx.x == 0 && threadIdx.x < kMaxProblems) {
-    P.loss[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0.0;  // also loss_fx's 0 (same bytes)
-    if constexpr (kDet) P.loss_flag[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0;
+    P.loss_fx[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0ull;
+    P.loss_flag[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0;
   }
 }
 
-// Deterministic path: the sum over a spanning segment's point tiles of its partial rows
+// The sum over a spanning segment's point tiles of its partial rows
 // (span_part, written by the point stage) for corner k, in tile order. `ent` = segment * 8 +
 // corner. Only tables built outside the package have such segments (the Python tables split
 // segments at tiles), so this slow path costs nothing there.

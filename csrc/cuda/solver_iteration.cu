@@ -12,20 +12,20 @@ namespace {
 
 using namespace solver_detail;
 
-template <bool kCluster, bool kDet>
+template <bool kCluster>
 __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant__ KParams P) {
   __shared__ PointSmem sm;
   pdl_allow_next();
   // fixed per-call data first (overlaps the previous kernel's tail under PDL)
   const PointFixed fx = load_fixed<kCluster>(P, int(blockIdx.x));
-  points_body<kCluster, kDet>(P, P.parity, int(blockIdx.x), true, sm, fx);
+  points_body<kCluster>(P, P.parity, int(blockIdx.x), true, sm, fx);
 }
 
-template <bool kCluster, bool kInitMeans, bool kDet>
+template <bool kCluster, bool kInitMeans>
 __global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
   __shared__ VertexSmem sm;
   pdl_allow_next();
-  vertex_body<kCluster, kInitMeans, kDet>(P, P.parity, int(blockIdx.x), sm, vertex_entries(P, int(blockIdx.x)));
+  vertex_body<kCluster, kInitMeans>(P, P.parity, int(blockIdx.x), sm, vertex_entries(P, int(blockIdx.x)));
 }
 
 // Launch with programmatic stream serialisation (PDL) when `pdl`; see pdl_wait_previous.
@@ -40,24 +40,14 @@ cudaError_t launch(void (*kernel)(const KParams), int blocks, cudaStream_t strea
 
 namespace solver_detail {
 
-void launch_first_means(const KParams& P, int vb, bool det, cudaStream_t stream) {
-  if (det)
-    vertex_kernel<true, true, true><<<unsigned(vb), kThreads, 0, stream>>>(P);
-  else
-    vertex_kernel<true, true, false><<<unsigned(vb), kThreads, 0, stream>>>(P);
+void launch_first_means(const KParams& P, int vb, cudaStream_t stream) {
+  vertex_kernel<true, true><<<unsigned(vb), kThreads, 0, stream>>>(P);
 }
 
-cudaError_t launch_iterations(KParams P, int num_iters, int pb, int vb, bool cluster, bool det, bool pdl,
+cudaError_t launch_iterations(KParams P, int num_iters, int pb, int vb, bool cluster, bool pdl,
                               cudaStream_t stream) {
-  void (*pk)(const KParams) = nullptr;
-  void (*vk)(const KParams) = nullptr;
-  if (cluster) {
-    pk = det ? points_kernel<true, true> : points_kernel<true, false>;
-    vk = det ? vertex_kernel<true, false, true> : vertex_kernel<true, false, false>;
-  } else {
-    pk = det ? points_kernel<false, true> : points_kernel<false, false>;
-    vk = det ? vertex_kernel<false, false, true> : vertex_kernel<false, false, false>;
-  }
+  void (*pk)(const KParams) = cluster ? points_kernel<true> : points_kernel<false>;
+  void (*vk)(const KParams) = cluster ? vertex_kernel<true, false> : vertex_kernel<false, false>;
   cudaError_t err = cudaSuccess;
   for (int it = 0; it < num_iters && err == cudaSuccess; ++it) {
     P.parity = it & 1;

@@ -88,7 +88,7 @@ struct LoopTrace<true> {
 // problem has stopped: the state rows are only written before a barrier, so all blocks
 // read the same rows after it and leave together.
 // `trace`: the traced variant (profiling builds only; see LoopTrace).
-template <bool kCluster, bool kDet, bool trace = false>
+template <bool kCluster, bool trace = false>
 __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant__ KParams P, int num_iters,
                                                         int point_blocks, int vertex_blocks) {
   static_assert(!trace || kProfiling, "the traced loop exists in profiling builds only");
@@ -116,13 +116,13 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
     if (!any_active) break;  // uniform over the grid (see above)
     const unsigned long long t0 = tr.now();
     const int parity = it & 1;
-    clear_other_parity<kCluster, kDet>(P, parity);
+    clear_other_parity<kCluster>(P, parity);
     // A block that walks several point or vertex blocks reuses its shared memory: the
     // barrier after each body keeps the next one from overwriting what a slower thread of
     // this one still reads (stage 3's state row in the vertex body).
     for (int b = int(blockIdx.x); b < point_blocks; b += int(gridDim.x)) {
       const PointFixed fx = cached ? pcache.get() : load_fixed<kCluster>(P, b);
-      points_body<kCluster, kDet, trace>(P, parity, b, false, psm, fx);
+      points_body<kCluster, trace>(P, parity, b, false, psm, fx);
       __syncthreads();
     }
     const unsigned long long t1 = tr.now();
@@ -130,7 +130,7 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
     const unsigned long long t2 = tr.now();
     for (int b = int(blockIdx.x); b < vertex_blocks; b += int(gridDim.x)) {
       const int2 entries = vcached ? ventries[threadIdx.x] : vertex_entries(P, b);
-      vertex_body<kCluster, false, kDet, trace>(P, parity, b, vsm, entries);
+      vertex_body<kCluster, false, trace>(P, parity, b, vsm, entries);
       __syncthreads();
     }
     const unsigned long long t3 = tr.now();
@@ -148,44 +148,39 @@ namespace solver_detail {
 // be used: a stream being captured into a CUDA graph (a graph replays fixed chunks; the
 // two-kernel iteration is the tested path there), or a device without cooperative launch.
 // (The launcher applies FLOXELS_SOLVER_MAX_GRID on top.)
-int loop_capacity(bool cluster, bool det, cudaStream_t stream) {
+int loop_capacity(bool cluster, cudaStream_t stream) {
   cudaStreamCaptureStatus cap = cudaStreamCaptureStatusNone;
   if (cudaStreamIsCapturing(stream, &cap) != cudaSuccess || cap != cudaStreamCaptureStatusNone) return 0;
   int dev = 0;
   if (cudaGetDevice(&dev) != cudaSuccess) return 0;
   // per device and variant; occupancy queries cost microseconds, a launch is ~10 us of work
-  static thread_local int cached[64][2][2] = {};
+  static thread_local int cached[64][2] = {};
   if (dev < 0 || dev >= 64) return 0;
-  int& c = cached[dev][cluster ? 1 : 0][det ? 1 : 0];
+  int& c = cached[dev][cluster ? 1 : 0];
   if (c == 0) {
     int coop = 0, sms = 0, per_sm = 0;
     cudaDeviceGetAttribute(&coop, cudaDevAttrCooperativeLaunch, dev);
     cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev);
-    const void* kernel = cluster ? (det ? reinterpret_cast<const void*>(loop_kernel<true, true>)
-                                        : reinterpret_cast<const void*>(loop_kernel<true, false>))
-                                 : (det ? reinterpret_cast<const void*>(loop_kernel<false, true>)
-                                        : reinterpret_cast<const void*>(loop_kernel<false, false>));
-    const cudaError_t e = cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, kernel, kThreads, 0);
+    const cudaError_t e = cluster
+        ? cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, loop_kernel<true>, kThreads, 0)
+        : cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, loop_kernel<false>, kThreads, 0);
     c = (coop && e == cudaSuccess && per_sm > 0) ? sms * per_sm : -1;
     cudaGetLastError();  // a failed query leaves no sticky error behind
   }
   return c > 0 ? c : 0;
 }
 
-cudaError_t launch_loop(const KParams& P, int grid, int num_iters, int pb, int vb, bool cluster, bool det,
-                        bool trace, cudaStream_t stream) {
+cudaError_t launch_loop(const KParams& P, int grid, int num_iters, int pb, int vb, bool cluster, bool trace,
+                        cudaStream_t stream) {
   cudaLaunchAttribute coop{};
   coop.id = cudaLaunchAttributeCooperative;
   coop.val.cooperative = 1;
 #if FLOXELS_PROFILING
-  auto* kernel = cluster ? (det ? (trace ? loop_kernel<true, true, true> : loop_kernel<true, true>)
-                                : (trace ? loop_kernel<true, false, true> : loop_kernel<true, false>))
-                         : (det ? (trace ? loop_kernel<false, true, true> : loop_kernel<false, true>)
-                                : (trace ? loop_kernel<false, false, true> : loop_kernel<false, false>));
+  auto* kernel = cluster ? (trace ? loop_kernel<true, true> : loop_kernel<true>)
+                         : (trace ? loop_kernel<false, true> : loop_kernel<false>);
 #else
   (void)trace;  // the launcher passes false: no traced variant in this build
-  auto* kernel = cluster ? (det ? loop_kernel<true, true> : loop_kernel<true, false>)
-                         : (det ? loop_kernel<false, true> : loop_kernel<false, false>);
+  auto* kernel = cluster ? loop_kernel<true> : loop_kernel<false>;
 #endif
   return launch_ex(kernel, grid, stream, &coop, P, num_iters, pb, vb);
 }

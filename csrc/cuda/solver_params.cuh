@@ -67,25 +67,20 @@ struct KParams {
   int32_t* seg_label;   // (S) cluster of the segment's points, -1 noise
   float* seg_wsum;      // (S, 8) sum over the segment's points of w_k
   int4* ent;            // (8S) per vertex entry: segment * 8 + corner, bits of seg_wsum / |cluster|,
-                        //      cluster, 1 if the segment spans two point tiles (its row is summed
-                        //      by atomics and cleared by its readers)
+                        //      cluster, 1 if the segment spans two point tiles (its tiles' partial
+                        //      rows are in span_part)
   int2* pair;           // (8S) per vertex, its clusters and summed coefficients A_cv (bits)
   int32_t* num_pairs;   // (M)
   double* bias;         // (max_iters, 2) Adam bias corrections (bias_corrections)
   // workspace, per iteration
   float* seg_grad;  // (S, 24) sum over the segment's points of w_k * g_i
-  // Cluster means, unit-residual sums and losses, by parity. The deterministic path (default)
-  // sums them as fixed-point integers (cuda/fixed_point.cuh): mfx, ufx (2, C, 3) and loss_fx
-  // (2, kMaxProblems), plus loss_flag (2, kMaxProblems); the atomic path
-  // (FLOXELS_SOLVER_ATOMIC=1) reads the same memory as floats mbuf, ubuf and doubles loss.
-  float* mbuf;
-  float* ubuf;
-  double* loss;
-  unsigned long long* mfx;
-  unsigned long long* ufx;
-  unsigned long long* loss_fx;
-  int* loss_flag;
-  // (point tiles, 2, 24) deterministic path: the partial row sums of segments that span
+  // Cluster means, unit-residual sums and losses, by parity, as fixed-point integers summed
+  // by integer atomics in any order (cuda/fixed_point.cuh): deterministic.
+  unsigned long long* mfx;      // (2, C, 3) cluster means
+  unsigned long long* ufx;      // (2, C, 3) sums of the unit residuals per cluster
+  unsigned long long* loss_fx;  // (2, kMaxProblems) each problem's loss (sum of its point blocks')
+  int* loss_flag;               // (2, kMaxProblems) fixed::kLossNaN / kLossOver, or 0
+  // (point tiles, 2, 24): the partial row sums of segments that span
   // point tiles (tables built elsewhere), per tile: slot 0 the run that holds the tile's
   // first point, slot 1 the run that holds its last; the vertex stage adds a segment's
   // partials tile by tile (fixed order) instead of float atomics.
@@ -96,8 +91,9 @@ struct KParams {
 // Points are summed per warp: a segment's sums are complete in one warp when its points lie
 // in one tile of 32 points (tiles start at the problem's first point), which the segment
 // tables built in Python guarantee (they split segments at tile boundaries). A segment that
-// crosses a tile anyway (tables built elsewhere) is summed by atomics and flagged in its
-// point records (kSpansBit of the segment id) and vertex entries (cleared by its readers).
+// crosses a tile anyway (tables built elsewhere) is flagged in its point records (kSpansBit of
+// the segment id) and vertex entries: its tiles' partial rows go to span_part, added by the
+// vertex stage in tile order (span_sum).
 constexpr int kTile = 32;
 constexpr int kSpansBit = 1 << 30;
 constexpr int kSegMask = kSpansBit - 1;
@@ -133,24 +129,22 @@ cudaError_t launch_ex(void (*kernel)(Params...), int blocks, cudaStream_t stream
 void launch_setup(const KParams& P, const ScanTable& T, Scan* scans, int64_t S, int64_t M, bool cluster,
                   cudaStream_t stream);
 
-// `det` below: the deterministic sums (default) or today's float atomics
-// (FLOXELS_SOLVER_ATOMIC=1, common/env_switches.h).
 // solver_iteration.cu: the first cluster means (vertex kernel, means only; vb vertex blocks),
 // once per call before the first iteration.
-void launch_first_means(const KParams& P, int vb, bool det, cudaStream_t stream);
+void launch_first_means(const KParams& P, int vb, cudaStream_t stream);
 // solver_iteration.cu: `num_iters` iterations of two kernels (pb point blocks, vb vertex
 // blocks), with programmatic dependent launch when `pdl`; P.parity is set per iteration.
-cudaError_t launch_iterations(KParams P, int num_iters, int pb, int vb, bool cluster, bool det, bool pdl,
+cudaError_t launch_iterations(KParams P, int num_iters, int pb, int vb, bool cluster, bool pdl,
                               cudaStream_t stream);
 
 // solver_loop.cu: blocks of the persistent loop kernel that can be resident at once on the
 // current device (cached per device and variant), or 0 where it cannot be used (a stream
 // being captured into a CUDA graph, no cooperative launch, a failed query).
-int loop_capacity(bool cluster, bool det, cudaStream_t stream);
+int loop_capacity(bool cluster, cudaStream_t stream);
 // solver_loop.cu: all `num_iters` iterations in one cooperative launch of `grid` blocks.
 // `trace` (profiling builds only; must be false otherwise): the traced variant, which prints
 // per-phase times and honours P.debug_skip.
-cudaError_t launch_loop(const KParams& P, int grid, int num_iters, int pb, int vb, bool cluster, bool det,
-                        bool trace, cudaStream_t stream);
+cudaError_t launch_loop(const KParams& P, int grid, int num_iters, int pb, int vb, bool cluster, bool trace,
+                        cudaStream_t stream);
 
 }  // namespace floxels::cuda::solver_detail

@@ -42,9 +42,6 @@ SWITCHES: tuple[Switch, ...] = (
            "caps the persistent kernel's grid, so that each block walks many point and vertex blocks (tests)"),
     Switch("FLOXELS_SOLVER_PDL", "1", "C++ solver launcher, every call",
            "programmatic dependent launch in the two-kernel iteration (sm_90); 0 = off (e.g. under ncu)"),
-    Switch("FLOXELS_SOLVER_ATOMIC", "0", "C++ solver launcher, every call",
-           "1 = the CUDA solver's cluster sums and losses by float atomics, as before issue 31: NOT "
-           "deterministic (two identical runs can differ); kept to measure the deterministic default against"),
     Switch("FLOXELS_CPU_DBSCAN", "0", "CUDA DBSCAN binding, once per process",
            "1 = DBSCAN of CUDA input runs on the CPU (escape hatch; same labels)"),
     # runtime, Python (measurement switches of optimisations that are on by default)

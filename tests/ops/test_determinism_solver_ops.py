@@ -204,16 +204,3 @@ def test_solver_segments_across_tiles_same_bytes(monkeypatch, persistent):
     for k in range(len(probs)):
         _assert_same_problem(a, k, b, k)
     _assert_same_problem(alone, 0, a, 1)
-
-
-def test_atomic_switch_still_runs(monkeypatch):
-    """FLOXELS_SOLVER_ATOMIC=1 (today's float atomics, for measurements) gives the same
-    outcome to float tolerance."""
-    probs, cfg = _problems(True, count=3)
-    det = _solve(probs, cfg)
-    monkeypatch.setenv("FLOXELS_SOLVER_ATOMIC", "1")
-    atom = _solve(probs, cfg)
-    for k in range(len(probs)):
-        la, lb = det.losses(k), atom.losses(k)
-        assert la[0] == pytest.approx(lb[0], rel=1e-5)
-        assert min(la) == pytest.approx(min(lb), rel=3e-2)

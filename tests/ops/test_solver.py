@@ -341,9 +341,8 @@ def test_cuda_persistent_matches_two_kernel(monkeypatch, cluster, max_grid):
 @pytest.mark.parametrize("persistent", ["1", "0"])
 def test_cuda_segments_across_tiles(monkeypatch, persistent):
     """Segment tables whose segments cross the 32-point tiles of the CUDA point phase (built
-    with tiles of 4096 points, as another caller might) take the per-tile partial rows (or,
-    with FLOXELS_SOLVER_ATOMIC=1, atomics): same losses as the tiled tables the estimator
-    builds, up to the order of the segment sums."""
+    with tiles of 4096 points, as another caller might) take the per-tile partial rows: same
+    losses as the tiled tables the estimator builds, up to the order of the segment sums."""
     monkeypatch.setenv("FLOXELS_SOLVER_PERSISTENT", persistent)
     cfg = FloxelsConfig(max_iters=40, patience=1000)
     P, sup = _scene(31, n=3000)
