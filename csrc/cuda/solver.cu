@@ -24,7 +24,7 @@
 // parameter): a point kernel reads one and clears the other, which the next kernel fills.
 // Nothing synchronises with the host, so any number of iterations can be captured into a
 // CUDA graph.
-// Determinism (issue 31): by default every sum is order-independent, so the same input
+// Determinism (issue 31): every sum is order-independent, so the same input
 // gives the same bytes run after run, in either launch mode, and whatever else is batched
 // with a problem (tiles, blocks and their partial sums are relative to the problem's first
 // point): warp and block partials in fixed order; segment rows with one writer (a segment

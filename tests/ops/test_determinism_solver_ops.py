@@ -25,13 +25,13 @@ def _same(a, b):
     assert torch.equal(a, b), "not bit-identical"
 
 
-def _hot_points(n, dtype, seed=0):
+def _hot_points(n, dtype, seed=0, device="cuda"):
     """Points piled up in a few voxels (as near the sensor), which makes float atomics add the
     same address from many threads in a varying order."""
     g = torch.Generator().manual_seed(seed)
     centres = torch.rand(5, 3, generator=g, dtype=torch.float64) * 4.0
     pts = centres[torch.randint(0, 5, (n,), generator=g)] + 0.05 * torch.rand(n, 3, generator=g, dtype=torch.float64)
-    return pts.to(dtype).cuda()
+    return pts.to(dtype).to(device)
 
 
 # --- ops with gradients ---------------------------------------------------------------------
@@ -204,3 +204,4 @@ def test_solver_segments_across_tiles_same_bytes(monkeypatch, persistent):
     for k in range(len(probs)):
         _assert_same_problem(a, k, b, k)
     _assert_same_problem(alone, 0, a, 1)
+
