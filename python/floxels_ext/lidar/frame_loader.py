@@ -146,10 +146,35 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     if len(nonfinite) == len(pts):
         out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
         return out
+    if settings is not None and kept.shape[0] == 0:
+        # nothing to optimise: an all-zero flow would pass for a real result (issue 30)
+        out["error"] = empty_crop_message(path, pts_sensor, settings, pose_mode)
+        out["empty_crop"] = True
+        return out
     out["preprocess"] = time.perf_counter() - t1
     out["frame"] = PreparedFrame(kept.numpy(), mask, nonfinite, np.asarray(to_world, np.float64),
                                  np.ascontiguousarray(pts) if keep_points else None)
     return out
+
+
+def empty_crop_message(path, pts_sensor: np.ndarray, settings, pose_mode: str) -> str:
+    """Why a frame with finite points has none left after cropping and ground removal, with
+    the likely mistake: points not in the frame the ranges are measured in (the sensor at the
+    origin), or a crop that removes the whole scan."""
+    p = np.asarray(pts_sensor, np.float64)
+    p = p[np.isfinite(p).all(axis=1)]
+    r = np.hypot(p[:, 0], p[:, 1])
+    lo, hi = float(r.min()), float(r.max())
+    crop = ", ".join(f"--{k.replace('_', '-')} {getattr(settings, k)}" for k in ("min_range", "max_range", "max_height")
+                     if getattr(settings, k) is not None)
+    msg = (f"{path}: no point left to optimise after cropping ({crop}) and ground removal; its {len(p)} finite "
+           f"points lie {lo:.1f} to {hi:.1f} m from the sensor origin (horizontally)")
+    if settings.max_range is not None and lo > settings.max_range:
+        return msg + (". Likely a wrong frame: ranges are measured from each scan's sensor origin, and points in a "
+                      "world/map frame need their sensor pose ('pose' in the file, --points-frame world" +
+                      ("; --no-ego-motion measures from the world origin" if pose_mode == "identity" else "") +
+                      "), or check --poses/--calib; else widen --max-range")
+    return msg + ". Likely a wrong crop: check --min-range/--max-range/--max-height and the ground settings"
 
 
 def finite_mask(rows) -> np.ndarray:
@@ -217,6 +242,7 @@ class FrameLoader:
         self.done: dict[int, PreparedFrame | None] = {}
         self.errors: dict[int, str] = {}
         self.nonfinite: dict[int, int] = {}
+        self.empty_crop: set[int] = set()  # frames with points but none left after cropping
         self._warned_no_pose = False
         self._lock = threading.Lock()
 
@@ -235,6 +261,8 @@ class FrameLoader:
             fr = res.get("frame")
             if "error" in res:
                 self.errors[i] = res["error"]
+                if res.get("empty_crop"):
+                    self.empty_crop.add(i)
             elif len(fr.nonfinite):
                 self.nonfinite[i] = len(fr.nonfinite)
             first_no_pose = res.get("warning") == "no_pose" and not self._warned_no_pose

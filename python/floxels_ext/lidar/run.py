@@ -280,6 +280,8 @@ def run(args) -> int:
                "frames": len(seq), "selected": len(selected), "written": written, "skipped": skipped,
                "failed": len(failed), "failures": [{"frame": seq.frames[i].name, "message": msgs[i]} for i in msgs],
                "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               # frames with points but none left to optimise (counted in "failed" too)
+               "no_points_after_crop": [seq.frames[i].name for i in sorted(loader.empty_crop)],
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
@@ -294,6 +296,8 @@ def run(args) -> int:
     except OSError as e:
         report(f"floxels: warning: cannot write the summary {summary_path}: {e}")
     line = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failed)} failed"
+    if loader.empty_crop:
+        line += f" ({len(loader.empty_crop)} with no point left after cropping)"
     if times:
         line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
                  f"{sum(times):.1f} s total")
