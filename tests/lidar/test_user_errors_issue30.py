@@ -68,3 +68,85 @@ def test_one_scan_beyond_max_range_fails_that_frame_only(seq, fake, tmp_path, ca
     rc, cap = _run([d, "--out", tmp_path / "out2", "--method", "fake", "--no-ego-motion", "--max-range", "none",
                     "--max-height", "none"], capsys)
     assert rc == 0, cap.err
+
+
+def _main(argv, capsys):
+    rc = cli.main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return rc, cap
+
+
+@pytest.fixture
+def run_dir(seq, fake, tmp_path, capsys):
+    d = _npy_dir(seq, tmp_path / "in")
+    rc, cap = _run([d, "--out", tmp_path / "out", "--method", "fake", "--no-ego-motion", "-q"], capsys)
+    assert rc == 0, cap.err
+    # -q prints the final summary its help promises, and nothing else
+    assert cap.err.startswith("done: 4 frame(s) written") and len(cap.err.strip().splitlines()) == 1
+    return tmp_path / "out"
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["show", "{run}", "--frame", "000001", "--png", "{dir}"], "--png"),
+    (["accumulate", "{run}", "000001", "--out", "{dir}"], "--out"),
+    (["eval", "{run}", "{run}", "--json", "{dir}"], "--json"),
+    (["demo", "--png", "{dir}", "--small", "--iters", "1"], "--png"),
+    (["run", "{inp}", "--out", "{tmp}/o2", "--method", "fake", "--no-ego-motion", "--summary", "{dir}"], "--summary"),
+])
+def test_existing_directory_as_output_file_is_refused_before_the_work(run_dir, tmp_path, capsys, argv, option):
+    target = tmp_path / "taken"
+    target.mkdir()
+    fill = dict(run=run_dir, dir=target, inp=tmp_path / "in", tmp=tmp_path)
+    rc, cap = _main([a.format(**fill) for a in argv], capsys)
+    assert rc == 2 and cap.err.startswith(f"floxels: error: {option} {target} is an existing directory"), cap.err
+    assert cap.out == ""  # nothing computed first
+    assert not list(target.iterdir()) and not list(tmp_path.glob(".*tmp*")) and not list(run_dir.glob(".*tmp*"))
+    assert not (tmp_path / "o2").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["show", "{run}", "--frame", "1", "--flow-scale", "nan"], "argument --flow-scale: must be a finite number"),
+    (["show", "{run}", "--frame", "1", "--extent", "inf"], "argument --extent: must be a finite number"),
+    (["show", "{run}", "--frame", "1", "--frame-period", "-1"], "argument --frame-period: must be a finite number > 0"),
+    (["show", "{run}", "--frame", "1", "--center", "nan,0"], "--center expects X,Y (two finite numbers)"),
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "-1"], "argument --radius: must be a finite "
+                                                                              "number > 0, got '-1'"),
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "nan"], "argument --radius: must be a finite"),
+    (["simulate", "{tmp}/s", "--small", "--range-noise", "nan"], "argument --range-noise: must be a finite number"),
+    (["simulate", "{tmp}/s", "--small", "--max-range", "inf"], "argument --max-range: must be a finite number"),
+    (["simulate", "{tmp}/s", "--small", "--seed", "-1"], "argument --seed: must be an integer >= 0"),
+    (["demo", "--seed", "-1"], "argument --seed: must be an integer >= 0"),
+    (["eval", "{run}", "{run}", "--eval-box", "nan"], "argument --eval-box: must be a finite number"),
+    (["run", "{run}", "--out", "{tmp}/x", "--ray", "--cpus-per-task", "nan"], "argument --cpus-per-task: must be a "
+                                                                             "finite number"),
+])
+def test_numeric_options_refuse_nan_inf_and_out_of_range(run_dir, tmp_path, capsys, argv, message):
+    try:
+        rc = cli.main([a.format(run=run_dir, tmp=tmp_path) for a in argv])
+    except SystemExit as e:  # refused by the parser (argparse exits 2)
+        rc = e.code
+    cap = capsys.readouterr()
+    assert rc == 2 and message in cap.err and "Traceback" not in cap.err, cap.err
+    assert not (tmp_path / "s").exists() and not (tmp_path / "a.ply").exists()
+
+
+def test_simulator_refuses_nan_settings_in_the_library_too():
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    with pytest.raises(ValueError, match="range_noise must be a finite number"):
+        simulate_sequence("crossing", 1, 0, small=True, range_noise=float("nan"))
+
+
+def test_show_refuses_a_changed_source_with_the_same_point_count(run_dir, tmp_path, capsys):
+    png = tmp_path / "f1.png"
+    rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
+    assert rc == 0 and png.is_file(), cap.err
+    src = tmp_path / "in" / "000001.npy"
+    p = np.load(src)
+    p[0, 0] += 0.25  # the same number of points, one moved
+    np.save(src, p)
+    png.unlink()
+    rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
+    assert rc == 2 and "changed since the run wrote this flow" in cap.err and "000001.npy" in cap.err
+    assert not png.exists()

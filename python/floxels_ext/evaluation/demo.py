@@ -16,7 +16,9 @@ def add_parser(sub) -> None:
     from floxels_ext.evaluation.sim.scenes import SCENES  # light: numpy only
 
     p.add_argument("--scene", default="crossing", choices=sorted(SCENES), help="simulated scene (default crossing)")
-    p.add_argument("--seed", type=int, default=0)
+    from floxels_ext.cli_types import nonnegative_int
+
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--scans", type=int, default=5, help="scans per window, target in the middle (default 5)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--iters", type=int, default=None, help="override the maximum number of iterations")
@@ -73,9 +75,9 @@ def run(args: argparse.Namespace) -> int:
     cfg = FloxelsConfig(num_scans=args.scans)
     if args.iters is not None:
         cfg = cfg.replace(max_iters=args.iters, patience=min(cfg.patience, args.iters))
-    png = Path(args.png)
-    if not png.parent.is_dir():
-        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
+    from floxels_ext.output_paths import check_output_file
+
+    png = check_output_file(args.png, "--png", "floxels_demo.png")
     t0 = time.perf_counter()
     scans, target, gt, dyn = prepare_demo_scans(args.scene, args.seed, args.scans, args.small)
     verbosity = getattr(args, "verbosity", 0)  # -q: the table only; -v: also the config

@@ -52,7 +52,9 @@ def add_parser(sub) -> None:
                         "out) or a JSON file {\"id\": \"car\"|...|null}; default: classes are meta-class ids "
                         "0..4 (or 'av2' if GT_DIR/sequence.json says \"dataset\": \"av2\")")
     box = p.add_mutually_exclusive_group()
-    box.add_argument("--eval-box", type=float, metavar="METRES",
+    from floxels_ext.cli_types import positive_float
+
+    box.add_argument("--eval-box", type=positive_float, metavar="METRES",
                      help="score only points with max(|x|,|y|) < METRES in their scan's frame "
                           "(default: 35 for AV2 categories, else off)")
     box.add_argument("--no-eval-box", action="store_true", help="score points at any distance")
@@ -318,12 +320,9 @@ def _check_json_path(spec: str | None) -> Path | None:
     """--json FILE, checked before any work (a directory or a missing parent: CLIError)."""
     if not spec:
         return None
-    path = Path(spec)
-    if path.is_dir():
-        raise CLIError(f"--json {path} is an existing directory; give a file name, e.g. {path / 'metrics.json'}")
-    if not path.parent.is_dir():
-        raise CLIError(f"cannot write --json {path}: directory {path.parent} does not exist")
-    return path
+    from floxels_ext.output_paths import check_output_file
+
+    return check_output_file(spec, "--json", "metrics.json")
 
 
 def _is_simulated(gt_dir) -> bool:
@@ -369,12 +368,13 @@ def run(args) -> int:
              not_optimised_count=info["not_optimised"], frame_points=info["points"])
     print(format_metrics(m))
     if json_path is not None:
-        tmp = json_path.with_name(f".{json_path.name}.{os.getpid()}.tmp")
+        from floxels_ext.output_paths import replace_atomically
+
+        text = json.dumps(_jsonable(m), indent=2) + "\n"
         try:
-            tmp.write_text(json.dumps(_jsonable(m), indent=2) + "\n")
-            os.replace(tmp, json_path)
+            replace_atomically(json_path.with_name(f".{json_path.name}.{os.getpid()}.tmp"), json_path,
+                               lambda t: t.write_text(text))
         except OSError as e:
-            tmp.unlink(missing_ok=True)
             raise CLIError(f"cannot write --json {json_path}: {e}") from None
         print(f"\nwrote {json_path}")
     return 0

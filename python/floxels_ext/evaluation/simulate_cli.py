@@ -16,14 +16,16 @@ def add_parser(sub) -> None:
                                    "(points, pose, flow, classes, instance, ground, dynamic).")
     p.add_argument("out_dir", metavar="OUT_DIR", help="output sequence directory")
     p.add_argument("--scene", choices=sorted(SCENES), default="urban")
-    p.add_argument("--seed", type=int, default=0)
+    from floxels_ext.cli_types import finite_float, nonnegative_float, nonnegative_int, positive_float, positive_int
+
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--frames", type=int, default=13, help="number of frames (default 13)")
     p.add_argument("--small", action="store_true", help="32 beams x 512 azimuth steps (fast)")
-    p.add_argument("--beams", type=int, help="number of lidar beams (default 64)")
-    p.add_argument("--azimuth-steps", type=int, help="firings per revolution (default 2048)")
-    p.add_argument("--max-range", type=float, help="metres (default 70)")
-    p.add_argument("--range-noise", type=float, help="range noise std-dev in metres (default 0.02; 0.015 with --boxes)")
-    p.add_argument("--dropout", type=float, help="probability of losing a return (default 0.05)")
+    p.add_argument("--beams", type=positive_int, help="number of lidar beams (default 64)")
+    p.add_argument("--azimuth-steps", type=positive_int, help="firings per revolution (default 2048)")
+    p.add_argument("--max-range", type=positive_float, help="metres (default 70)")
+    p.add_argument("--range-noise", type=nonnegative_float, help="range noise std-dev in metres (default 0.02; 0.015 with --boxes)")
+    p.add_argument("--dropout", type=finite_float, help="probability of losing a return (default 0.05)")
     p.add_argument("--boxes", "--no-vehicle-detail", dest="vehicle_detail", action="store_false",
                    help="vehicles as plain boxes, as the simulator made them before vehicle detail "
                         "(reproduces earlier output)")

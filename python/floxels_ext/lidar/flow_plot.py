@@ -222,11 +222,13 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
     if title:
         fig.suptitle(title, fontsize=11)
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, bbox_inches="tight")
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    from floxels_ext.output_paths import replace_atomically
+
+    try:
+        return replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp.png"), path,
+                                  lambda t: fig.savefig(t, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
 
 
 def _arrow_scale(g, pts, speed) -> float:

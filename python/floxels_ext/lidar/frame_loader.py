@@ -31,6 +31,7 @@ class PreparedFrame:
     nonfinite: np.ndarray    # indices of the rows with NaN/inf coordinates
     to_world: np.ndarray     # (4, 4) native -> world
     points: np.ndarray | None = None  # (N, 3) all rows, only when asked for (--self-contained)
+    crc: int | None = None   # outputs.points_crc32 of all rows: read-back checks (floxels show)
 
     @property
     def n(self) -> int:
@@ -91,6 +92,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
+    from floxels_ext.lidar.outputs import points_crc32
     from floxels_ext.lidar.preprocess import host_rows, preprocess_mask
     from floxels_ext.ops.lidar import lidar_select
 
@@ -153,7 +155,8 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
         return out
     out["preprocess"] = time.perf_counter() - t1
     out["frame"] = PreparedFrame(kept.numpy(), mask, nonfinite, np.asarray(to_world, np.float64),
-                                 np.ascontiguousarray(pts) if keep_points else None)
+                                 np.ascontiguousarray(pts) if keep_points else None,
+                                 None if keep_points else points_crc32(pts))
     return out
 
 
@@ -308,7 +311,9 @@ class FrameLoader:
                 del self.done[k]
 
     def close(self) -> None:
-        for fut in self.futures.values():
+        with self._lock:  # transform threads still pop finished loads from the dict
+            futures = list(self.futures.values())
+        for fut in futures:
             fut.cancel()
         self.tpool.shutdown(wait=True, cancel_futures=True)
         self.pool.shutdown(wait=True, cancel_futures=True)

@@ -175,6 +175,10 @@ def run(args) -> int:
     if len(seq) < 2:
         raise CLIError(f"{seq.root} holds {len(seq)} frame; scene flow needs at least 2")
     check_out_dir(out, seq)
+    if args.summary:  # checked before the work, like every output path
+        from floxels_ext.output_paths import check_output_file
+
+        check_output_file(args.summary, "--summary", "run_summary.json")
     selected = parse_frames(args.frames, len(seq))
     out.mkdir(parents=True, exist_ok=True)
     stale = cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
@@ -290,9 +294,11 @@ def run(args) -> int:
                "settings": json.loads(json.dumps(run_settings, default=str))}
     summary_path = Path(args.summary) if args.summary else out / "run_summary.json"
     try:
-        tmp = summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(summary, indent=2) + "\n")
-        os.replace(tmp, summary_path)
+        from floxels_ext.output_paths import replace_atomically
+
+        text = json.dumps(summary, indent=2) + "\n"
+        replace_atomically(summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp"), summary_path,
+                           lambda t: t.write_text(text))
     except OSError as e:
         report(f"floxels: warning: cannot write the summary {summary_path}: {e}")
     line = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failed)} failed"
@@ -301,8 +307,7 @@ def run(args) -> int:
     if times:
         line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
                  f"{sum(times):.1f} s total")
-    if verbosity >= 0:
-        print(line, file=sys.stderr)
+    print(line, file=sys.stderr)  # also with -q: its help promises the final summary
     if verbosity >= 1:
         st = stages.as_dict()
         print("stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()) + f"; summary: {summary_path}",

@@ -80,12 +80,14 @@ def add_parser(sub) -> None:
     p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
     p.add_argument("--frame", default="0", help="with a RUN_DIR: frame index (sorted order) or name (default 0)")
     p.add_argument("--png", metavar="FILE", help="output PNG (default <frame name>.png in the current directory)")
-    p.add_argument("--extent", type=float, default=40.0, help="half-width of the view in metres (default 40)")
-    p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1)")
+    from floxels_ext.cli_types import positive_float
+
+    p.add_argument("--extent", type=positive_float, default=40.0, help="half-width of the view in metres (default 40)")
+    p.add_argument("--resolution", type=positive_float, default=0.1, help="metres per pixel (default 0.1)")
     p.add_argument("--center", help="X,Y view centre (default: the sensor, else the points' median)")
-    p.add_argument("--flow-scale", type=float, default=1.0,
+    p.add_argument("--flow-scale", type=positive_float, default=1.0,
                    help="arrow length = flow x this (default 1; plain raster without matplotlib only)")
-    p.add_argument("--frame-period", type=float, default=None, metavar="S",
+    p.add_argument("--frame-period", type=positive_float, default=None, metavar="S",
                    help="seconds between frames, to label speeds in m/s (default: m/frame)")
     p.add_argument("--rerun", metavar="FILE.rrd", help="also save a rerun recording (needs rerun-sdk)")
     p.set_defaults(func=run)
@@ -159,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.viz import write_png
+    from floxels_ext.output_paths import check_output_file
 
     path = _resolve(args.target, args.frame)
     data = load_flow_output(path)
@@ -166,16 +169,14 @@ def run(args: argparse.Namespace) -> int:
     if args.center:
         try:
             center = tuple(float(v) for v in args.center.split(","))
-            assert len(center) == 2
+            assert len(center) == 2 and all(math.isfinite(v) for v in center)
         except (ValueError, AssertionError):
-            raise CLIError(f"--center expects X,Y, got {args.center!r}") from None
+            raise CLIError(f"--center expects X,Y (two finite numbers), got {args.center!r}") from None
     if not (args.extent > 0 and args.resolution > 0) or args.extent / args.resolution > 8000:
         raise CLIError("--extent and --resolution must be > 0 and give at most 16000 pixels across")
     if args.frame_period is not None and not args.frame_period > 0:
         raise CLIError(f"--frame-period must be > 0 seconds, got {args.frame_period}")
-    png = Path(args.png) if args.png else Path(f"{path.stem}.png")
-    if not png.parent.is_dir():
-        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
+    png = check_output_file(args.png if args.png else f"{path.stem}.png", "--png", f"{path.stem}.png")
     n_mov = int(data["dynamic"].sum())
     try:
         from floxels_ext.lidar.flow_plot import plot_flow_bev
