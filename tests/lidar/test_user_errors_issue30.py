@@ -150,3 +150,29 @@ def test_show_refuses_a_changed_source_with_the_same_point_count(run_dir, tmp_pa
     rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
     assert rc == 2 and "changed since the run wrote this flow" in cap.err and "000001.npy" in cap.err
     assert not png.exists()
+
+
+def test_a_stray_far_point_is_reported_with_its_cost(seq, fake, tmp_path, capsys):
+    # one return 1 km away with the range crop off: the scan's distance transform grows ~10x
+    d = _npy_dir(seq, tmp_path / "in", edit=lambda i, p: np.concatenate([p, [[1000.0, 0.0, 1.0]]]) if i == 2 else p)
+    rc, cap = _run([d, "--out", tmp_path / "out", "--method", "fake", "--no-ego-motion", "--max-range", "none",
+                    "--max-height", "none"], capsys)
+    assert rc == 0, cap.err
+    assert "floxels: warning: " in cap.err and "000002.npy: 1 point(s) lie far outside the rest of the scan" in cap.err
+    assert "GB instead of" in cap.err and "crop them (--max-range" in cap.err
+    summary = json.loads((tmp_path / "out" / "run_summary.json").read_text())
+    assert summary["far_outliers"] == ["000002"]
+    # the default crop removes it: no warning
+    rc, cap = _run([d, "--out", tmp_path / "out2", "--method", "fake", "--no-ego-motion"], capsys)
+    assert rc == 0 and "far outside" not in cap.err
+
+
+def test_simulate_refuses_a_size_beyond_its_memory_limit_before_any_work(tmp_path, capsys):
+    rc, cap = _main(["simulate", tmp_path / "big", "--beams", "100000"], capsys)
+    assert rc == 2 and cap.err.startswith("floxels: error: 100000 beams x 2048 azimuth steps")
+    assert "GB of memory" in cap.err and "--max-memory" in cap.err and "fewer --beams" in cap.err
+    assert not (tmp_path / "big").exists()
+    rc, cap = _main(["simulate", tmp_path / "s", "--small", "--frames", "2", "--max-memory", "0.1"], capsys)
+    assert rc == 2 and "above the limit of 0.1 GB (--max-memory)" in cap.err
+    rc, cap = _main(["-v", "simulate", tmp_path / "s", "--small", "--frames", "2"], capsys)
+    assert rc == 0 and "estimated 0.3 GB peak memory" in cap.out, cap.out

@@ -286,6 +286,8 @@ def run(args) -> int:
                "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
                # frames with points but none left to optimise (counted in "failed" too)
                "no_points_after_crop": [seq.frames[i].name for i in sorted(loader.empty_crop)],
+               # frames whose few far points blow up a distance transform (warned about once)
+               "far_outliers": [seq.frames[i].name for i in sorted(loader.stray)],
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
