@@ -160,6 +160,10 @@ def run(args) -> int:
             print(f"{name:<12} {get_method(name).description}")
         return 0
     device, options = check_args(args, torch)
+    if device == "cpu" and not getattr(args, "cpu_limit", None):  # a Ray task has its threads set
+        from floxels_ext.cpu_threads import apply_cpu_threads
+
+        apply_cpu_threads((lambda m: print(m, file=sys.stderr)) if verbosity > 0 else None)
     try:
         settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
                               remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
