@@ -75,18 +75,25 @@ def _default_center(points) -> tuple[float, float]:
 def add_parser(sub) -> None:
     p = sub.add_parser("show", help="bird's-eye-view PNG (and rerun recording) of a frame's points and flow",
                        description="Render one output of 'floxels run' (a .npz file, or RUN_DIR with --frame) as a "
-                                   "top-view PNG: points coloured by height, flow arrows coloured by direction "
-                                   "(legend wheel top right) with brightness by speed.")
+                                   "bird's-eye-view PNG. With matplotlib (pip install 'floxels_ext[viz]'): metres on "
+                                   "the axes and a scale bar, moving points coloured by direction (hue) and speed "
+                                   "(saturation; colour wheel), each moving object boxed and labelled with its median "
+                                   "speed, zoom panels with flow arrows on the largest ones, ground and cropped points "
+                                   "grey. Without matplotlib: a plain raster (points coloured by height, flow arrows "
+                                   "coloured by direction, legend wheel top right), sized by --extent/--resolution "
+                                   "and with arrows scaled by --flow-scale.")
     p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
     p.add_argument("--frame", default="0", help="with a RUN_DIR: frame index (sorted order) or name (default 0)")
     p.add_argument("--png", metavar="FILE", help="output PNG (default <frame name>.png in the current directory)")
     from floxels_ext.cli_types import positive_float
 
     p.add_argument("--extent", type=positive_float, default=40.0, help="half-width of the view in metres (default 40)")
-    p.add_argument("--resolution", type=positive_float, default=0.1, help="metres per pixel (default 0.1)")
+    p.add_argument("--resolution", type=positive_float, default=0.1,
+                   help="metres per pixel of the plain raster (default 0.1; the matplotlib picture has its own size)")
     p.add_argument("--center", help="X,Y view centre (default: the sensor, else the points' median)")
-    p.add_argument("--flow-scale", type=positive_float, default=1.0,
-                   help="arrow length = flow x this (default 1; plain raster without matplotlib only)")
+    p.add_argument("--flow-scale", type=positive_float, default=None,
+                   help="plain raster only: arrow length = flow x this (default 1); the matplotlib picture "
+                        "scales its zoom arrows to each object")
     p.add_argument("--frame-period", type=positive_float, default=None, metavar="S",
                    help="seconds between frames, to label speeds in m/s (default: m/frame)")
     p.add_argument("--rerun", metavar="FILE.rrd", help="also save a rerun recording (needs rerun-sdk)")
@@ -187,10 +194,13 @@ def run(args: argparse.Namespace) -> int:
         plot_flow_bev(png, data["points"], data["flow"], mask=data["mask"], view=view,
                       frame_period=args.frame_period, title=f"floxels show: {path}")
         size = "matplotlib"
+        if args.flow_scale is not None:
+            print("note: --flow-scale applies to the plain raster only; the matplotlib picture scales its arrows "
+                  "to each object")
     except MissingDependencyError as e:
         print(f"note: {e}; writing a plain raster instead")
         img = render_frame(data, extent=args.extent, resolution=args.resolution, center=center,
-                           flow_scale=args.flow_scale)
+                           flow_scale=1.0 if args.flow_scale is None else args.flow_scale)
         write_png(png, img)
         size = f"{img.shape[1]}x{img.shape[0]}"
     print(f"wrote {png} ({size}, {len(data['points'])} points, {n_mov} moving)")
