@@ -197,30 +197,39 @@ def maybe_run_dataset(args) -> int | None:
 
 
 def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
-    """One sequence after another in this process, each with its own progress bar."""
-    from floxels_ext.cli import CLIError
+    """Every sequence through one pipeline in this process (``dataset_worker.run_tasks``), with
+    one progress bar for the dataset."""
+    import time
 
+    from floxels_ext.lidar.dataset_worker import run_tasks
+    from floxels_ext.lidar.progress import DatasetProgress
+
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
     total = sum(len(t.names) for t in tasks)
     todo = sum(len(t.todo) for t in tasks)
-    print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done",
-          file=sys.stderr, flush=True)
-    failed: list[str] = []
-    ran = 0
-    for k, t in enumerate(tasks, 1):
-        if not t.todo and not args.force:
-            continue
-        print(f"[{k}/{len(tasks)}] {t.seq.path} -> {t.out_dir}", file=sys.stderr, flush=True)
-        remove_temps(t.out_dir)  # nothing else writes there now
-        res = floxels_task(task_job(t, common, args.device), quiet=False)
-        if res["rc"] == 2:
-            if ran == 0:
-                raise CLIError(res["error"])
-            failed.append(f"{t.seq.path}: {res['error']}")
-        elif res["rc"] != 0:
-            failed.append(f"{t.seq.path}: some frames failed (listed above)")
-        ran += 1
-    if failed:
-        print(f"dataset: {len(failed)} failure(s):\n  " + "\n  ".join(failed), file=sys.stderr)
+    if verbosity >= 0:
+        print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done",
+              file=sys.stderr, flush=True)
+    run = [t for t in tasks if t.todo]
+    bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
+    for _ in range(len(tasks) - len(run)):
+        bar.sequence("skipped")
+    t0 = time.perf_counter()
+    try:
+        res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
+                        on_sequence=lambda task, outcome, job: bar.sequence(outcome))
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    seqs = dict(res["sequences"])
+    seqs["skipped"] += len(tasks) - len(run)
+    print(f"dataset done: {n_sequences} sequences ({seqs['done']} done, {seqs['skipped']} skipped, {seqs['failed']} "
+          f"failed), {res['written']} frame(s) written in {wall:.1f} s"
+          + (f" ({res['written'] / wall:.2f} frames/s)" if wall > 0 and res["written"] else "")
+          + f", {len(res['failed'])} failure(s); outputs in {args.out}", file=sys.stderr)
+    if res["failed"]:
+        print("failed:", file=sys.stderr)
+        for line in res["failed"]:
+            print(f"  {line}", file=sys.stderr)
         return 1
-    print(f"dataset done: {n_sequences} sequences in {args.out}", file=sys.stderr)
     return 0
