@@ -217,7 +217,7 @@ def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
     t0 = time.perf_counter()
     try:
         res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
-                        on_sequence=lambda task, outcome, job: bar.sequence(outcome))
+                        on_sequence=lambda task, outcome, job, lines: bar.sequence(outcome))
     finally:
         bar.close()
     wall = time.perf_counter() - t0

@@ -72,33 +72,43 @@ class SeqJob:
 
 
 class Ahead:
-    """An iterator that computes its next item on a thread of its own while the current one is
-    used (opening the next sequence overlaps the end of this one). ``ready()``: whether the
-    next item is there already (never waits)."""
+    """An iterator whose next item is computed on a thread of its own, from when :meth:`start`
+    asks for it (the stream asks when its read-ahead nears the end of what it has: opening the
+    next sequence overlaps the end of this one, and a Ray worker leases its next task only
+    then, so the last tasks of a job are spread over the workers). ``ready()``: whether the
+    next item is there (never waits)."""
 
     _END = object()
 
     def __init__(self, items: Iterator) -> None:
         self._it = iter(items)
         self._ex = ThreadPoolExecutor(max_workers=1, thread_name_prefix="floxels-open")
-        self._next = self._ex.submit(next, self._it, self._END)
+        self._next = None
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        with self._lock:
+            if self._next is None:
+                self._next = self._ex.submit(next, self._it, self._END)
 
     def ready(self) -> bool:
-        return self._next.done()
+        return self._next is not None and self._next.done()
 
     def __iter__(self):
         return self
 
     def __next__(self):
+        self.start()
         item = self._next.result()
+        with self._lock:
+            self._next = None
         if item is self._END:
-            self._ex.shutdown(wait=False)
             raise StopIteration
-        self._next = self._ex.submit(next, self._it, self._END)
         return item
 
     def close(self) -> None:
-        self._next.cancel()
+        if self._next is not None:
+            self._next.cancel()
         self._ex.shutdown(wait=True, cancel_futures=True)
 
 
@@ -145,8 +155,10 @@ class _Layout:
         """Adds the next job's segments; False when there is none (now, unless ``block``)."""
         with self._lock:
             while not self.exhausted:
-                if not block and not self.source.ready():
-                    return False
+                if not block:
+                    self.source.start()
+                    if not self.source.ready():
+                        return False
                 try:
                     job = next(self.source)
                 except StopIteration:

@@ -18,13 +18,15 @@ __all__ = ["run_tasks"]
 
 def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
               on_frame: Callable[[object, int], None] = lambda job, i: None,
-              on_sequence: Callable[[object, str, object], None] = lambda task, outcome, job: None) -> dict:
+              on_sequence: Callable[[object, str, object, list], None] = lambda task, outcome, job, lines: None
+              ) -> dict:
     """Runs every task of ``tasks`` (an iterable; it may wait for the next task) and returns
     {"written", "failed": [lines], "sequences": {outcome: count}, "stages"}.
 
     ``on_frame(job, i)``: frame ``i`` of ``job`` written or failed; ``on_sequence(task, outcome,
-    job)``: a task ended, ``outcome`` "done", "failed" (``job`` None when it could not be opened)
-    or "skipped" (nothing to do). Both may run on the pipeline's threads."""
+    job, lines)``: a task ended, ``outcome`` "done", "failed" (``job`` None when it could not be
+    opened; ``lines`` name the failures) or "skipped" (nothing to do). Both may run on the
+    pipeline's threads."""
     import threading
 
     import torch
@@ -61,7 +63,7 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
             result["failed"] += list(lines)
             if job is not None:
                 result["written"] += job.written
-        on_sequence(task, outcome, job)
+        on_sequence(task, outcome, job, list(lines))
 
     pools = LoaderPools(workers, kind)
     try:
