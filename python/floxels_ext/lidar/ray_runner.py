@@ -79,12 +79,17 @@ def _resources(ray, args) -> tuple[float, float, str]:
                        else "--device cuda contradicts --gpus-per-task 0")
     if gpus > 1 and gpus != int(gpus):
         raise CLIError(f"--gpus-per-task above 1 must be a whole number, got {gpus}")
-    if task_slots(nodes, gpus, args.cpus_per_task) == 0:
+    cpus = args.cpus_per_task
+    if cpus is None:  # a GPU node's CPUs shared by the workers it holds (readers and writers need them)
+        shares = [r.get("CPU", 0.0) / math.floor(r["GPU"] / gpus + 1e-9) for r in nodes
+                  if gpus > 0 and r.get("GPU", 0.0) >= gpus]
+        cpus = max(1.0, math.floor(min(shares))) if shares else 1.0
+    if task_slots(nodes, gpus, cpus) == 0:
         have = ", ".join(f"{r.get('CPU', 0):g} CPU + {r.get('GPU', 0):g} GPU" for r in nodes) or "no live node"
-        raise CLIError(f"no node of the Ray cluster can hold a task of {gpus:g} GPU + {args.cpus_per_task:g} CPU "
+        raise CLIError(f"no node of the Ray cluster can hold a worker of {gpus:g} GPU + {cpus:g} CPU "
                        f"(nodes: {have}); change --gpus-per-task / --cpus-per-task")
     device = "cuda" if gpus > 0 else "cpu"  # a worker sees only the GPUs Ray gave it, as cuda:0...
-    return gpus, args.cpus_per_task, device
+    return gpus, cpus, device
 
 
 def _count_written(task, since: float | None) -> int:
