@@ -170,6 +170,7 @@ def main() -> None:
     if "long" in args.modes:
         run_job(long_argv(warm) + flags, tmp / "warm_long")
         long = record("long", run_job(long_argv(data) + flags, tmp / "out_long"), gpus=1)
+        shutil.rmtree(tmp / "out_long", ignore_errors=True)  # outputs are GBs at full size
     if "local" in args.modes:
         run_job(["run", str(warm), *sel, *flags], tmp / "warm_local")
         local = record("local", run_job(["run", str(data), *sel, *flags], tmp / "out_local"), gpus=1)
@@ -189,6 +190,7 @@ def main() -> None:
             row = record(f"ray{k}", run_job(["run", str(data), *sel, *flags, *extra], out), gpus=k, ray_init_s=init_s)
             if local is not None:
                 row.update(compare(out, tmp / "out_local", [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
+            shutil.rmtree(out, ignore_errors=True)
             if base is None:
                 base = row
             row["efficiency"] = row["fps"] / (k * base["fps"] / base["gpus"])
