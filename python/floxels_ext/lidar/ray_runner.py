@@ -297,6 +297,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
                 name, actor = workers.pop(ref)
                 try:
                     results.append(ray.get(ref))
+                    ray.kill(actor)  # its GPU is free for the next job at once
                 except ray.exceptions.RayError as e:
                     if isinstance(getattr(e, "cause", None), CLIError):
                         raise e.cause from None  # a mistake in the common options: every worker would fail
@@ -326,7 +327,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
                 left, _ = ray.wait(list(workers), num_returns=len(workers), timeout=30.0)
                 for ref in left:
                     results.append(ray.get(ref))
-                    workers.pop(ref)
+                    ray.kill(workers.pop(ref)[1])
                 for ref, (_, actor) in list(workers.items()):
                     ray.kill(actor)
                 workers.clear()
