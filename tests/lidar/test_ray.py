@@ -107,11 +107,27 @@ class _Killer(threading.Thread):
             self._watch()
             if self.killed is None:
                 pids = [int(p) for p in os.listdir("/proc")
-                        if p.isdigit() and _cmdline(p).startswith("ray::FloxelsWorker")]
+                        if p.isdigit() and _cmdline(p).startswith("ray::FloxelsWorker") and _ours(int(p))]
                 if pids and self.inodes:
                     os.kill(pids[0], signal.SIGKILL)
                     self.killed = pids[0]
             time.sleep(0.01)
+
+
+def _ours(pid: int) -> bool:
+    """Whether the process descends from this one (a worker of this test's cluster, whose raylet
+    this process started; other jobs on the machine may run Ray workers too)."""
+    for _ in range(6):
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                pid = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            return False
+        if pid == os.getpid():
+            return True
+        if pid <= 1:
+            return False
+    return False
 
 
 def _cmdline(pid: str) -> str:
