@@ -89,7 +89,7 @@ def compare(out: Path, ref: Path, rels: list[str]) -> dict:
                 diffs.append(d[np.isfinite(d)])
                 n += 1
     d = np.concatenate(diffs) if diffs else np.zeros(0)
-    # on CUDA two runs differ a little (float atomics): the distribution says whether Ray changed anything
+    # the distribution, not only the maximum, says whether Ray changed anything (on the CPU: 0)
     return dict(compared_frames=n, max_flow_diff=float(d.max()) if d.size else 0.0,
                 frac_over_1cm=float((d > 0.01).mean()) if d.size else 0.0, masks_equal=masks)
 
