@@ -21,7 +21,7 @@ import numpy as np
 
 from floxels_ext.lidar.preprocess import transform_points
 
-__all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "FrameLoader", "ChunkScans"]
+__all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "LoaderPools", "FrameLoader", "ChunkScans"]
 
 
 @dataclass
@@ -261,28 +261,56 @@ def _process_load(i: int) -> dict:
     return load_frame(i, **_WORKER["kwargs"])
 
 
-class FrameLoader:
-    """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
-    processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
-    host work; started at construction, see :mod:`floxels_ext.lidar.worker_processes`)."""
+def _process_load_kw(i: int, kwargs: dict) -> dict:
+    return load_frame(i, **kwargs)
 
-    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
-                 pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn) -> None:
-        self.seq, self.report, self.warn = seq, report, warn
-        self.stages = stages or Stages()
-        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+
+class LoaderPools:
+    """The reader threads (or processes) and the two transform threads of a run; a dataset's
+    loaders share one set, so the readers of the next sequence are the same warm threads and
+    start while the method still works on the current one. ``init_kwargs``: processes hold
+    one sequence's reading arguments (the plain run); without them each read carries its own."""
+
+    def __init__(self, workers: int, kind: str = "thread", init_kwargs: dict | None = None) -> None:
         workers = max(1, workers)
+        self.kind, self.fixed = kind, init_kwargs is not None
         if kind == "process":
             from floxels_ext.lidar.worker_processes import process_pool
 
-            self.pool = process_pool(workers, _init_process, (self.kwargs,))
-            self._submit = lambda i: self.pool.submit(_process_load, i)
+            self.read = process_pool(workers, _init_process, (init_kwargs,))
         else:
-            self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
-            self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
+            self.read = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
         # transforms wait for loads: a pool of their own, so they never queue behind later loads;
         # two threads: a transform is one op call of ~1 ms (more threads only contend for the GIL)
-        self.tpool = ThreadPoolExecutor(max_workers=min(workers, 2), thread_name_prefix="floxels-move")
+        self.move = ThreadPoolExecutor(max_workers=min(workers, 2), thread_name_prefix="floxels-move")
+
+    def close(self) -> None:
+        self.move.shutdown(wait=True, cancel_futures=True)
+        self.read.shutdown(wait=True, cancel_futures=True)
+
+
+class FrameLoader:
+    """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
+    processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
+    host work; started at construction, see :mod:`floxels_ext.lidar.worker_processes`).
+    ``pools``: shared :class:`LoaderPools` (a dataset's sequences), which :meth:`close` leaves open."""
+
+    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
+                 pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn,
+                 pools: LoaderPools | None = None) -> None:
+        self.seq, self.report, self.warn = seq, report, warn
+        self.stages = stages or Stages()
+        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+        self._own_pools = pools is None
+        if pools is None:
+            pools = LoaderPools(workers, kind, self.kwargs if kind == "process" else None)
+        self.pools, self.pool, self.tpool = pools, pools.read, pools.move
+        if pools.kind == "process" and pools.fixed:
+            self._submit = lambda i: self.pool.submit(_process_load, i)
+        elif pools.kind == "process":
+            self._submit = lambda i: self.pool.submit(_process_load_kw, i, self.kwargs)
+        else:
+            self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
         self.futures: dict = {}
         self.done: dict[int, PreparedFrame | None] = {}
         self.errors: dict[int, str] = {}
@@ -359,12 +387,13 @@ class FrameLoader:
                 del self.done[k]
 
     def close(self) -> None:
-        with self._lock:  # transform threads still pop finished loads from the dict
-            futures = list(self.futures.values())
-        for fut in futures:
-            fut.cancel()
-        self.tpool.shutdown(wait=True, cancel_futures=True)
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            for fut in self.futures.values():
+                fut.cancel()
+            self.futures.clear()
+            self.done.clear()
+        if self._own_pools:
+            self.pools.close()
 
 
 class ChunkScans(Sequence):
