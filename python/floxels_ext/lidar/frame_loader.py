@@ -31,6 +31,9 @@ class PreparedFrame:
     nonfinite: np.ndarray    # indices of the rows with NaN/inf coordinates
     to_world: np.ndarray     # (4, 4) native -> world
     points: np.ndarray | None = None  # (N, 3) all rows, only when asked for (--self-contained)
+    # points per preprocess class (kept, ground, outlier, cropped: non-finite rows included);
+    # None without preprocessing
+    counts: dict | None = None
 
     @property
     def n(self) -> int:
@@ -91,7 +94,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
-    from floxels_ext.lidar.preprocess import host_rows, preprocess_mask
+    from floxels_ext.lidar.preprocess import KEPT, host_rows, preprocess_classes
     from floxels_ext.ops.lidar import lidar_select
 
     path = seq.frames[i].path
@@ -125,6 +128,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     out["read"] = t1 - t0
     rows = host_rows(pts)  # the file's x y z columns, viewed (the ops read any strides)
     pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
+    classes = None
     try:
         if settings is None:
             mask = finite_mask(rows)
@@ -135,9 +139,11 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
             if getattr(_TLS, "stream", None) is None:
                 _TLS.stream = torch.cuda.Stream(device=pre_device)
             with torch.cuda.stream(_TLS.stream):
-                mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+                classes = preprocess_classes(pts_sensor, settings, device=pre_device)
         else:
-            mask = preprocess_mask(pts_sensor, settings)  # the compiled CPU op: no GIL while it runs
+            classes = preprocess_classes(pts_sensor, settings)  # the compiled CPU op: no GIL while it runs
+        if classes is not None:
+            mask = classes == KEPT
     except ValueError as e:
         out["error"] = f"{path}: preprocessing failed: {e}"
         return out
@@ -147,8 +153,12 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
         out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
         return out
     out["preprocess"] = time.perf_counter() - t1
+    counts = None
+    if classes is not None:
+        n = np.bincount(classes, minlength=4)
+        counts = {"kept": int(n[1]), "ground": int(n[2]), "outlier": int(n[3]), "cropped": int(n[0])}
     out["frame"] = PreparedFrame(kept.numpy(), mask, nonfinite, np.asarray(to_world, np.float64),
-                                 np.ascontiguousarray(pts) if keep_points else None)
+                                 np.ascontiguousarray(pts) if keep_points else None, counts)
     return out
 
 
@@ -217,6 +227,7 @@ class FrameLoader:
         self.done: dict[int, PreparedFrame | None] = {}
         self.errors: dict[int, str] = {}
         self.nonfinite: dict[int, int] = {}
+        self.counts: dict[int, dict] = {}  # frame -> PreparedFrame.counts (run summary)
         self._warned_no_pose = False
         self._lock = threading.Lock()
 
@@ -235,8 +246,11 @@ class FrameLoader:
             fr = res.get("frame")
             if "error" in res:
                 self.errors[i] = res["error"]
-            elif len(fr.nonfinite):
-                self.nonfinite[i] = len(fr.nonfinite)
+            else:
+                if len(fr.nonfinite):
+                    self.nonfinite[i] = len(fr.nonfinite)
+                if fr.counts is not None:
+                    self.counts[i] = fr.counts
             first_no_pose = res.get("warning") == "no_pose" and not self._warned_no_pose
             self._warned_no_pose |= first_no_pose
             self.done[i] = fr

@@ -85,6 +85,11 @@ def add_parser(sub) -> None:
                    "still ground (default 0.3)")
     p.add_argument("--ground-window", type=float, default=8.0, help="m, morphological window (default 8)")
     p.add_argument("--ground-cell", type=float, default=0.5, help="m, ground grid cell (default 0.5)")
+    p.add_argument("--outlier-below", type=_opt_float, default=1.0,
+                   help="m under the robust ground reference: deeper points are outliers (multipath), removed "
+                   "and counted in the summary (default 1; 'none')")
+    p.add_argument("--outlier-above", type=_opt_float, default=20.0,
+                   help="m above the sensor: higher points are outliers (default 20; 'none')")
     p.add_argument("--bin-columns", type=int, choices=[3, 4, 5, 6], help="float32 columns of .bin frames "
                    "(default: from the file size; 4 KITTI, 5 nuScenes)")
     p.add_argument("--ext", help="frame extension to use when INPUT mixes formats")
@@ -163,7 +168,8 @@ def run(args) -> int:
     try:
         settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
                               remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
-                              ground_window=args.ground_window, ground_threshold=args.ground_threshold)
+                              ground_window=args.ground_window, ground_threshold=args.ground_threshold,
+                              outlier_below=args.outlier_below, outlier_above=args.outlier_above)
     except ValueError as e:
         raise CLIError(str(e)) from None
     out = Path(args.out)
@@ -280,6 +286,10 @@ def run(args) -> int:
                "frames": len(seq), "selected": len(selected), "written": written, "skipped": skipped,
                "failed": len(failed), "failures": [{"frame": seq.frames[i].name, "message": msgs[i]} for i in msgs],
                "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               # per estimated frame: points kept (optimised), removed as ground, removed as
+               # outliers (far below the ground / far above the sensor), cropped (or non-finite)
+               "point_classes": {seq.frames[i].name: c for i, c in sorted(loader.counts.items()) if i in set(todo)},
+               "outliers": sum(c["outlier"] for i, c in loader.counts.items() if i in set(todo)),
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
