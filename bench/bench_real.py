@@ -3,7 +3,7 @@ and the Argoverse 2 pair's comparison with scan 1's ground removed like scan 0's
 
     python bench/bench_real.py [--device cpu|cuda] [--frames A:B] [--scans 5] [--work DIR]
                                [--png-dir DIR] [--no-kitti] [--no-av2] [--av2-methods floxels2 zero ...]
-                               [--av2-max-points N] [--json PATH]
+                               [--av2-max-points N] [--data DIR] [--poses FILE] [--json PATH]
 
 KITTI: writes the sweeps of ``../shared/data/kitti_raw_13f`` as ``velodyne/NNNNNN.bin`` (the
 data README's recipe), runs ``floxels run velodyne --odometry kiss-icp --scans 5`` through the
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-SHARED = HERE.parent.parent / "shared" / "data"
+SHARED = HERE.parent.parent / "shared" / "data"  # --data overrides (a device machine's copy)
 sys.path.insert(0, str(HERE))
 
 
@@ -68,7 +68,8 @@ def kitti_report(args) -> dict:
     velo = write_kitti_bins(SHARED / "kitti_raw_13f" / "kitti_raw_2011_09_26_13f.npz", work / "kitti")
     out = work / "kitti_out"
     raw = _has_flag("--raw-flow")
-    argv = ["run", str(velo), "--out", str(out), "--odometry", "kiss-icp", "--scans", str(args.scans),
+    ego = ["--poses", str(Path(args.poses).resolve())] if args.poses else ["--odometry", "kiss-icp"]
+    argv = ["run", str(velo), "--out", str(out), *ego, "--scans", str(args.scans),
             "--device", args.device, "--force", "-q"]
     if args.frames:
         argv += ["--frames", args.frames]
@@ -171,7 +172,15 @@ def main(argv=None) -> int:
                     choices=["floxels2", "fastnsf", "nsfp", "zero"])
     ap.add_argument("--av2-max-points", type=int, default=0)
     ap.add_argument("--json", default=str(HERE / "results" / "bench_real.json"))
+    ap.add_argument("--poses", default=None, help="KITTI poses of the sweeps instead of KISS-ICP (e.g. "
+                    "bench/results/kitti_raw_13f_poses_kiss_icp.txt, written by a KISS-ICP run, for a machine "
+                    "without kiss-icp)")
+    ap.add_argument("--data", default=None, help="the shared data folder (default ../shared/data): holds "
+                    "kitti_raw_13f/ and av2_pair/")
     args = ap.parse_args(argv)
+    global SHARED
+    if args.data:
+        SHARED = Path(args.data).resolve()
     if not SHARED.is_dir():
         sys.exit(f"{SHARED} is absent: the real data lives there")
     tmp = None
