@@ -173,7 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--av2-max-points", type=int, default=0)
     ap.add_argument("--json", default=str(HERE / "results" / "bench_real.json"))
     ap.add_argument("--poses", default=None, help="KITTI poses of the sweeps instead of KISS-ICP (e.g. "
-                    "bench/results/kitti_raw_13f_poses_kiss_icp.txt, written by a KISS-ICP run, for a machine "
+                    "bench/kitti_raw_13f_poses_kiss_icp.txt, written by the KISS-ICP run of floxels run, for a machine "
                     "without kiss-icp)")
     ap.add_argument("--data", default=None, help="the shared data folder (default ../shared/data): holds "
                     "kitti_raw_13f/ and av2_pair/")
