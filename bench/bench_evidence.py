@@ -1,0 +1,195 @@
+"""Motion evidence (issue 29, ``FloxelsConfig.evidence``): what it does to the accuracy on the
+simulator, and what it costs per frame.
+
+    python bench/bench_evidence.py accuracy [--device cpu] [--scenes urban crossing highway]
+                                            [--seeds 0 1] [--frames 2] [--lidar small|full]
+    python bench/bench_evidence.py time --device cuda [--frames 48] [--repeats 5]
+
+``accuracy``: Floxels (5 scans, paper settings) on simulated sequences, evaluated
+(``evaluate_sequence``: point-weighted dynamic / static EPE) with the raw flow (the paper's
+output, ``evidence="off"``) and with the flow of unexplained groups zeroed, at the default
+margin/ratio and at a grid of other settings (recomputed from the same optimisation through the
+public API, :func:`floxels_ext.estimator.evidence.motion_evidence`, on the same distance
+transforms; the default row is checked against the estimator's own ``explained``).
+``time``: the same sequence estimated with ``evidence="off"`` and ``"zero"`` in alternating
+repetitions in one process (``estimate_sequence``, batches of 16 on CUDA; and single frames,
+``Floxels.fit``); prints the medians and the overhead in % of a frame's time.
+Both print a table and write JSON (``--json``, default bench_evidence_<mode>.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from compare import SCENE_SEED, load_sim_scene  # noqa: E402
+
+from floxels_ext import FloxelsConfig  # noqa: E402
+from floxels_ext.estimator.api import Floxels, estimate_sequence, window_for  # noqa: E402
+from floxels_ext.estimator.distance import build_dt  # noqa: E402
+from floxels_ext.estimator.evidence import group_ids, motion_evidence  # noqa: E402
+from floxels_ext.evaluation.metrics import evaluate_sequence  # noqa: E402
+
+GRID = [(m, r) for m in (0.02, 0.03, 0.05, 0.08) for r in (0.25, 0.33, 0.5)]
+
+
+def residuals(scans, frame, res, cfg, device):
+    """(groups, flow, dts...) for recomputing the evidence of ``frame`` at other settings."""
+    start, stop = window_for(frame, len(scans), cfg.num_scans)
+    pts = torch.as_tensor(scans[frame], device=device)
+    dts, origins, offsets, weights = [], [], [], []
+    for i in range(start, stop):
+        if i == frame:
+            continue
+        d = build_dt(torch.as_tensor(scans[i], device=device), cfg)
+        dts.append(d.values)
+        origins.append(d.origin)
+        offsets.append(float(i - frame))
+        weights.append(cfg.lambda_d * cfg.time_weight(i - frame))
+    groups = group_ids(pts, res.labels, cfg.voxel_size, res.grid_origin)
+    flow = torch.as_tensor(np.ascontiguousarray(res.flow), device=device)
+    return lambda margin, ratio: motion_evidence(pts, flow, groups, dts, origins, offsets, weights,
+                                                 dt_cell=cfg.dt_cell, truncation=cfg.truncation,
+                                                 margin=margin, ratio=ratio)
+
+
+def accuracy(args) -> dict:
+    cfg = FloxelsConfig(evidence="score")
+    rows, per_frame = [], []
+    preds: dict = {"raw": [], "default": [], **{f"{m}/{r}": [] for m, r in GRID}}
+    truths, mismatch, sizes = [], 0, []
+    for scene in args.scenes:
+        for seed in args.seeds:
+            n_frames = 2 * (cfg.num_scans // 2) + args.frames
+            scans, truth = load_sim_scene(scene, SCENE_SEED.get(scene, 0) + 100 * seed, n_frames, args.lidar, 35.0, 0, {})
+            frames = list(range(cfg.num_scans // 2, cfg.num_scans // 2 + args.frames))
+            got = {}
+            t0 = time.perf_counter()
+            estimate_sequence(scans, cfg, device=args.device, frames=frames, callback=lambda f, r: got.__setitem__(f, r))
+            secs = (time.perf_counter() - t0) / len(frames)
+            for f in frames:
+                res = got[f]
+                ev_of = residuals(scans, f, res, cfg, args.device)
+                ev = ev_of(cfg.evidence_margin, cfg.evidence_ratio)
+                mismatch += int((ev.explained.cpu().numpy() != res.explained).sum())
+                truths.append(truth[f])
+                preds["raw"].append(res.flow)
+                preds["default"].append(np.where(res.explained[:, None], res.flow, 0).astype(np.float32))
+                for m, r in GRID:
+                    e = ev_of(m, r).explained.cpu().numpy()
+                    preds[f"{m}/{r}"].append(np.where(e[:, None], res.flow, 0).astype(np.float32))
+                dyn = truth[f]["dynamic"]
+                per_frame.append(dict(scene=scene, seed=seed, frame=f, points=len(res.flow), s_per_frame=secs,
+                                      dynamic_points=int(dyn.sum()),
+                                      dynamic_unexplained=int((dyn & ~res.explained).sum()),
+                                      static_explained=int((~dyn & res.explained).sum())))
+                sizes.append(len(res.flow))
+            print(f"{scene} seed {seed}: {len(frames)} frames, {secs:.1f} s/frame", flush=True)
+    for key, P in preds.items():
+        m = evaluate_sequence(P, truths)
+        rows.append(dict(setting=key, dynamic_epe=m["dynamic_epe"], static_epe=m["static_epe"],
+                         dynamic_acc5=m["dynamic_acc5"], static_acc5=m["static_acc5"]))
+    # per scene, raw vs default
+    scenes = []
+    for scene in args.scenes:
+        idx = [k for k, r in enumerate(per_frame) if r["scene"] == scene]
+        for key in ("raw", "default"):
+            m = evaluate_sequence([preds[key][k] for k in idx], [truths[k] for k in idx])
+            scenes.append(dict(scene=scene, setting=key, dynamic_epe=m["dynamic_epe"], static_epe=m["static_epe"]))
+    base = rows[0]
+    print(f"\n{len(truths)} frames ({args.lidar} lidar, {statistics.mean(sizes):.0f} points/frame); "
+          f"default margin {cfg.evidence_margin} m, ratio {cfg.evidence_ratio}; "
+          f"estimator vs recomputed explained: {mismatch} points differ")
+    print(f"{'setting (margin/ratio)':<24}{'dyn EPE':>9}{'vs raw':>8}{'static EPE':>12}{'vs raw':>8}")
+    for r in rows:
+        print(f"{r['setting']:<24}{r['dynamic_epe']:>9.4f}{100 * (r['dynamic_epe'] / base['dynamic_epe'] - 1):>+7.1f}%"
+              f"{r['static_epe']:>12.4f}{100 * (r['static_epe'] / base['static_epe'] - 1):>+7.1f}%")
+    print(f"\n{'scene':<12}{'setting':<10}{'dyn EPE':>9}{'static EPE':>12}")
+    for r in scenes:
+        print(f"{r['scene']:<12}{r['setting']:<10}{r['dynamic_epe']:>9.4f}{r['static_epe']:>12.4f}")
+    return dict(rows=rows, scenes=scenes, frames=per_frame, mismatch=mismatch,
+                margin=cfg.evidence_margin, ratio=cfg.evidence_ratio)
+
+
+def timing(args) -> dict:
+    dev = args.device
+    n_frames = args.frames + 4
+    scans, _ = load_sim_scene("urban", 0, n_frames, args.lidar, 35.0, 0, {})
+    if dev.startswith("cuda"):
+        scans = [torch.as_tensor(s, device=dev) for s in scans]  # uploads out of the timing
+    frames = list(range(2, 2 + args.frames))
+    cfgs = {mode: FloxelsConfig(evidence=mode) for mode in ("off", "zero")}
+
+    def sync():
+        if dev.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    def run_seq(cfg):
+        sync()
+        t0 = time.perf_counter()
+        estimate_sequence(scans, cfg, device=dev, frames=frames)
+        sync()
+        return (time.perf_counter() - t0) / len(frames)
+
+    def run_one(cfg):
+        sync()
+        t0 = time.perf_counter()
+        Floxels(cfg, dev).fit(scans[:5], 2)
+        sync()
+        return time.perf_counter() - t0
+
+    for cfg in cfgs.values():  # warm-up
+        run_seq(cfg)
+        run_one(cfg)
+    seq = {m: [] for m in cfgs}
+    one = {m: [] for m in cfgs}
+    for _ in range(args.repeats):  # alternating, so drifts of the machine hit both
+        for m, cfg in cfgs.items():
+            seq[m].append(run_seq(cfg))
+            one[m].append(run_one(cfg))
+    out = {}
+    print(f"{'workload':<34}{'off ms/frame':>14}{'zero ms/frame':>15}{'overhead':>10}")
+    for name, d in (("estimate_sequence (batches)", seq), ("single frame (Floxels.fit)", one)):
+        a, b = statistics.median(d["off"]), statistics.median(d["zero"])
+        out[name] = dict(off_ms=1e3 * a, zero_ms=1e3 * b, overhead_pct=100 * (b / a - 1),
+                         off_all_ms=[1e3 * x for x in d["off"]], zero_all_ms=[1e3 * x for x in d["zero"]])
+        print(f"{name:<34}{1e3 * a:>14.2f}{1e3 * b:>15.2f}{100 * (b / a - 1):>+9.1f}%")
+    out["points_per_frame"] = float(np.mean([len(s) for s in scans]))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mode", choices=("accuracy", "time"))
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--scenes", nargs="+", default=["urban", "crossing", "highway"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    ap.add_argument("--frames", type=int, default=None, help="target frames per sequence (accuracy: 2; time: 48)")
+    ap.add_argument("--lidar", choices=("small", "full"), default=None,
+                    help="32 x 512 or 64 x 1024 simulated lidar (default: small on the CPU, full on CUDA)")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args(argv)
+    args.lidar = args.lidar or ("full" if args.device.startswith("cuda") else "small")
+    args.frames = args.frames or (2 if args.mode == "accuracy" else 48)
+    out = accuracy(args) if args.mode == "accuracy" else timing(args)
+    out.update(mode=args.mode, device=args.device, lidar=args.lidar, host=platform.node(), torch=torch.__version__,
+               gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None)
+    path = args.json or f"bench_evidence_{args.mode}.json"
+    with open(path, "w") as fh:
+        json.dump(out, fh, indent=1, default=float)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
