@@ -4,6 +4,7 @@ simulator, and what it costs per frame.
     python bench/bench_evidence.py accuracy [--device cpu] [--scenes urban crossing highway]
                                             [--seeds 0 1] [--frames 2] [--lidar small|full]
     python bench/bench_evidence.py time --device cuda [--frames 48] [--repeats 5]
+    python bench/bench_evidence.py real OUT_DIR     (outputs of floxels run ... --raw-flow)
 
 ``accuracy``: Floxels (5 scans, paper settings) on simulated sequences, evaluated
 (``evaluate_sequence``: point-weighted dynamic / static EPE) with the raw flow (the paper's
@@ -14,7 +15,15 @@ transforms; the default row is checked against the estimator's own ``explained``
 ``time``: the same sequence estimated with ``evidence="off"`` and ``"zero"`` in alternating
 repetitions in one process (``estimate_sequence``, batches of 16 on CUDA; and single frames,
 ``Floxels.fit``); prints the medians and the overhead in % of a frame's time.
-Both print a table and write JSON (``--json``, default bench_evidence_<mode>.json).
+``real``: label-free, on the outputs of a ``floxels run --raw-flow`` (e.g. the KITTI sweeps):
+per frame the share of moving points (|raw flow| > the run's dynamic threshold) whose group
+the evidence rejects (what the default zeroes), and an independent check of both outputs, the
+raw flow and the default (unexplained groups zeroed): per DBSCAN cluster of the frame's
+optimised points (eps 0.5, min 4; unclustered points alone), is the mean nearest-neighbour
+distance to the next frame's optimised points (moved into this frame with the poses) with the
+flow lower than with zero flow? The share of moving points in clusters where it is not (issue
+29's "~21 %" measure).
+All print a table and write JSON (``--json``, default bench_evidence_<mode>.json).
 """
 
 from __future__ import annotations
@@ -39,7 +48,7 @@ from floxels_ext.estimator.distance import build_dt  # noqa: E402
 from floxels_ext.estimator.evidence import group_ids, motion_evidence  # noqa: E402
 from floxels_ext.evaluation.metrics import evaluate_sequence  # noqa: E402
 
-GRID = [(m, r) for m in (0.02, 0.03, 0.05, 0.08) for r in (0.25, 0.33, 0.5)]
+GRID = [(m, r) for m in (0.02, 0.03, 0.05) for r in (0.15, 0.25, 0.33, 0.5)]
 
 
 def residuals(scans, frame, res, cfg, device):
@@ -167,9 +176,80 @@ def timing(args) -> dict:
     return out
 
 
+def next_scan_check(points, flow, moving, nxt, labels) -> int:
+    """Moving points in clusters whose flow does not bring them closer to the next scan
+    ``nxt`` (nearest-neighbour distance, cluster mean) than zero flow does."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(nxt)
+    d_flow = tree.query(points + flow)[0]
+    d_zero = tree.query(points)[0]
+    groups = np.where(labels >= 0, labels, labels.max() + 1 + np.arange(len(labels)))
+    _, g = np.unique(groups, return_inverse=True)
+    cnt = np.bincount(g)
+    worse = np.bincount(g, d_flow) / cnt >= np.bincount(g, d_zero) / cnt
+    return int((moving & worse[g]).sum())
+
+
+def real(args) -> dict:
+    from floxels_ext.lidar.outputs import read_flow_output, run_outputs
+    from floxels_ext.ops import dbscan
+
+    files = run_outputs(args.out_dir)
+    outs = [read_flow_output(f) for f in files]
+    rows = []
+    for k, d in enumerate(outs):
+        if d["explained"] is None:
+            raise SystemExit(f"{files[k]}: no motion evidence (run floxels run with --raw-flow, not evidence=off)")
+        if d["settings"].get("options", {}).get("evidence") != "score":
+            raise SystemExit(f"{files[k]}: written without --raw-flow (the raw flow is needed)")
+        m = d["mask"]
+        P, raw, ex = d["points"][m], d["flow"][m], d["explained"][m]
+        thr = float(d["settings"].get("dynamic_threshold", 0.05))
+        moving = np.linalg.norm(raw, axis=1) > thr
+        row = dict(frame=files[k].stem, optimised=int(m.sum()), moving=int(moving.sum()),
+                   moving_unexplained=int((moving & ~ex).sum()))
+        zeroed = np.where(ex[:, None], raw, 0)
+        moving_z = np.linalg.norm(zeroed, axis=1) > thr
+        row["moving_after"] = int(moving_z.sum())
+        if k + 1 < len(outs):
+            nd = outs[k + 1]
+            T = np.linalg.solve(d["pose"], nd["pose"])  # next frame -> this frame
+            q = nd["points"][nd["mask"]].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+            labels = dbscan(torch.as_tensor(P), 0.5, 4).numpy()
+            row["raw_not_better_than_zero"] = next_scan_check(P, raw, moving, q, labels)
+            row["default_not_better_than_zero"] = next_scan_check(P, zeroed, moving_z, q, labels)
+        rows.append(row)
+    tot = {key: sum(r.get(key, 0) for r in rows) for key in ("moving", "moving_unexplained", "moving_after")}
+    checked = [r for r in rows if "raw_not_better_than_zero" in r]
+    mv_c = sum(r["moving"] for r in checked)
+    mvz_c = sum(r["moving_after"] for r in checked)
+    raw_bad = sum(r["raw_not_better_than_zero"] for r in checked)
+    def_bad = sum(r["default_not_better_than_zero"] for r in checked)
+    print(f"{'frame':<10}{'optimised':>10}{'moving':>8}{'rejected':>10}{'moving after':>14}"
+          f"{'raw: next scan not better':>27}{'default: idem':>15}")
+    def pct(a, b):
+        return "" if a is None else f"{100 * a / max(b, 1):.1f}%"
+
+    for r in rows:
+        print(f"{r['frame']:<10}{r['optimised']:>10}{r['moving']:>8}{pct(r['moving_unexplained'], r['moving']):>10}"
+              f"{r['moving_after']:>14}{pct(r.get('raw_not_better_than_zero'), r['moving']):>27}"
+              f"{pct(r.get('default_not_better_than_zero'), r['moving_after']):>15}")
+    summary = dict(moving=tot["moving"], rejected_share=tot["moving_unexplained"] / max(tot["moving"], 1),
+                   moving_after=tot["moving_after"],
+                   raw_next_scan_not_better_share=raw_bad / max(mv_c, 1),
+                   default_next_scan_not_better_share=def_bad / max(mvz_c, 1))
+    print(f"all: {tot['moving']} moving points, {100 * summary['rejected_share']:.1f}% in groups the evidence "
+          f"rejects; next-scan check, moving points in clusters not closer than with zero flow: raw "
+          f"{100 * summary['raw_next_scan_not_better_share']:.1f}%, default (zeroed) "
+          f"{100 * summary['default_next_scan_not_better_share']:.1f}%")
+    return dict(frames=rows, summary=summary, out_dir=str(args.out_dir))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("accuracy", "time"))
+    ap.add_argument("mode", choices=("accuracy", "time", "real"))
+    ap.add_argument("out_dir", nargs="?", help="real: the OUT_DIR of a floxels run --raw-flow")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--scenes", nargs="+", default=["urban", "crossing", "highway"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
@@ -181,7 +261,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     args.lidar = args.lidar or ("full" if args.device.startswith("cuda") else "small")
     args.frames = args.frames or (2 if args.mode == "accuracy" else 48)
-    out = accuracy(args) if args.mode == "accuracy" else timing(args)
+    if args.mode == "real" and not args.out_dir:
+        ap.error("real needs the OUT_DIR of a floxels run --raw-flow")
+    out = {"accuracy": accuracy, "time": timing, "real": real}[args.mode](args)
     out.update(mode=args.mode, device=args.device, lidar=args.lidar, host=platform.node(), torch=torch.__version__,
                gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None)
     path = args.json or f"bench_evidence_{args.mode}.json"

@@ -14,9 +14,10 @@ distance transforms the loss used:
     gain   = R_zero - R_flow                                  (metres)
     explained  <=>  gain > max(margin, ratio * R_zero)
 
-``margin`` (metres; default 0.05 = half the 0.1 m DT sample spacing, the resolution of the
-residual) and ``ratio`` (the share of the zero-flow residual the flow must remove) are the
-same for all data. A rigid object moving 0.5 m a frame leaves R_zero of tens of centimetres
+``margin`` (metres; default 0.03: about the residual an object moving at the dynamic
+threshold, 0.05 m a frame, can remove, so slow pedestrians keep their flow) and ``ratio``
+(default 0.25: the share of the zero-flow residual the flow must remove; walls sliding along
+themselves remove ~5 %, rigid movers 40-90 %, bench/RESULTS.md) are the same for all data. A rigid object moving 0.5 m a frame leaves R_zero of tens of centimetres
 that its flow removes almost entirely; a wall sliding along itself has gain ~ 0. A group
 whose flow is ~0 has gain ~0 too and is "unexplained": zeroing its flow changes nothing.
 
@@ -67,7 +68,7 @@ def group_ids(points: torch.Tensor, labels: torch.Tensor | None, cell: float,
               cell_origin: Sequence[float] | None = None, presorted: bool = False) -> torch.Tensor:
     """(N,) int64 group of each point: its DBSCAN label (``labels`` >= 0), or for unclustered
     points (-1, or no labels) the cell of side ``cell`` metres it falls in (cells counted from
-    ``cell_origin``, default the points' minimum). Ids are dense-free: any value in [0, N).
+    ``cell_origin``, default the points' minimum). Ids are not dense: any values in [0, N).
     ``presorted``: points of one group are already contiguous (the solver's (cluster, cell)
     order with the same cells), so groups are runs and nothing is sorted."""
     n = points.shape[0]
@@ -92,8 +93,8 @@ def group_ids(points: torch.Tensor, labels: torch.Tensor | None, cell: float,
 
 def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tensor,
                     dts: Sequence[torch.Tensor], origins: Sequence[Sequence[float]], offsets: Sequence[float],
-                    weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.05,
-                    ratio: float = 0.5) -> MotionEvidence:
+                    weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.03,
+                    ratio: float = 0.25) -> MotionEvidence:
     """The motion evidence of ``flow`` (N, 3; metres per frame period) at ``points`` (N, 3,
     float32, finite) for the groups ``groups`` ((N,) int64 in [0, N), e.g. :func:`group_ids`).
 
