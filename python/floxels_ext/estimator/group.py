@@ -245,12 +245,12 @@ class Solving:
             corners = pr.problems[k].corners
             flow_s = F.corner_gather(solved[k], corners.corner_idx, corners.corner_w)
             if evidence is not None:
-                ev = problem_evidence(cfg, pr.problems[k], flow_s, pr.grids[k])
+                ev = problem_evidence(cfg, pr.problems[k], flow_s)
                 if cfg.evidence == "zero":
                     flow_s = ev.apply(flow_s)
-                ev_s = torch.stack([ev.score, ev.explained.to(torch.float32)], 1)
-                ev_k = torch.empty_like(ev_s)
-                ev_k[pr.orders[k]] = ev_s
+                ev_k = torch.empty(len(flow_s), 2, dtype=torch.float32, device=flow_s.device)
+                ev_k[pr.orders[k], 0] = ev.score
+                ev_k[pr.orders[k], 1] = ev.explained.to(torch.float32)
                 evidence.append(ev_k)
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
@@ -286,11 +286,13 @@ class Solving:
         return results
 
 
-def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Tensor, grid_origin) -> MotionEvidence:
+def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Tensor) -> MotionEvidence:
     """:func:`~floxels_ext.estimator.evidence.motion_evidence` of one solved problem (rows in
     the solver's order: sorted by (cluster, flow-grid cell), so the groups, clusters and the
     unclustered points' cells, are runs), on the distance transforms its loss used."""
-    groups = group_ids(problem.points, problem.labels, cfg.voxel_size, grid_origin, presorted=True)
+    # cells: the compact index of each point's lower flow-grid corner (one per cell)
+    groups = group_ids(problem.points, problem.labels, cfg.voxel_size, presorted=True,
+                       cells=problem.corners.corner_idx[:, 0])
     return motion_evidence(problem.points, flow, groups, problem.dts,
                            problem.origins, problem.time_offsets,
                            problem.weights, dt_cell=cfg.dt_cell, truncation=cfg.truncation,
