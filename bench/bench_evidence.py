@@ -48,11 +48,13 @@ from floxels_ext.estimator.distance import build_dt  # noqa: E402
 from floxels_ext.estimator.evidence import group_ids, motion_evidence  # noqa: E402
 from floxels_ext.evaluation.metrics import evaluate_sequence  # noqa: E402
 
-GRID = [(m, r) for m in (0.02, 0.03, 0.05) for r in (0.15, 0.25, 0.33, 0.5)]
+GRID = [(m, r) for m in (0.01, 0.02, 0.03, 0.05) for r in (0.05, 0.1, 0.15, 0.25, 0.33)]
 
 
-def residuals(scans, frame, res, cfg, device):
-    """(groups, flow, dts...) for recomputing the evidence of ``frame`` at other settings."""
+def residuals(scans, frame, res, cfg, device, presorted_groups=False):
+    """The evidence of ``frame`` as a function of (margin, ratio), on the result ``res`` and
+    the DTs of its support scans (rebuilt here: a bench). ``presorted_groups``: the group ids
+    computed once (timing the per-frame work of the estimator, whose points come sorted)."""
     start, stop = window_for(frame, len(scans), cfg.num_scans)
     pts = torch.as_tensor(scans[frame], device=device)
     dts, origins, offsets, weights = [], [], [], []
@@ -64,8 +66,20 @@ def residuals(scans, frame, res, cfg, device):
         origins.append(d.origin)
         offsets.append(float(i - frame))
         weights.append(cfg.lambda_d * cfg.time_weight(i - frame))
-    groups = group_ids(pts, res.labels, cfg.voxel_size, res.grid_origin)
-    flow = torch.as_tensor(np.ascontiguousarray(res.flow), device=device)
+    labels = res.labels
+    groups = group_ids(pts, labels, cfg.voxel_size, res.grid_origin)
+    flow = torch.as_tensor(np.ascontiguousarray(res.flow) if isinstance(res.flow, np.ndarray) else res.flow,
+                           device=device)
+    if presorted_groups:  # sorted by group, as the estimator's points are: group ids from runs
+        order = torch.argsort(groups)
+        pts, flow, labels = pts[order], flow[order], labels[order]
+        cells = group_ids(pts, None, cfg.voxel_size, res.grid_origin, presorted=False)
+
+        def ev(margin, ratio):
+            g = group_ids(pts, labels, cfg.voxel_size, presorted=True, cells=cells)
+            return motion_evidence(pts, flow, g, dts, origins, offsets, weights, dt_cell=cfg.dt_cell,
+                                   truncation=cfg.truncation, margin=margin, ratio=ratio)
+        return ev
     return lambda margin, ratio: motion_evidence(pts, flow, groups, dts, origins, offsets, weights,
                                                  dt_cell=cfg.dt_cell, truncation=cfg.truncation,
                                                  margin=margin, ratio=ratio)
@@ -75,7 +89,7 @@ def accuracy(args) -> dict:
     cfg = FloxelsConfig(evidence="score")
     rows, per_frame = [], []
     preds: dict = {"raw": [], "default": [], **{f"{m}/{r}": [] for m, r in GRID}}
-    truths, mismatch, sizes = [], 0, []
+    truths, mismatch, sizes, dumps = [], 0, [], {}
     for scene in args.scenes:
         for seed in args.seeds:
             n_frames = 2 * (cfg.num_scans // 2) + args.frames
@@ -96,6 +110,11 @@ def accuracy(args) -> dict:
                 for m, r in GRID:
                     e = ev_of(m, r).explained.cpu().numpy()
                     preds[f"{m}/{r}"].append(np.where(e[:, None], res.flow, 0).astype(np.float32))
+                if args.dump:
+                    dumps[f"{scene}_{seed}_{f}"] = dict(flow=res.flow, gt=truth[f]["flow"], dynamic=truth[f]["dynamic"],
+                                                         classes=truth[f]["classes"],
+                                                         rf=ev.residual_flow.cpu().numpy(),
+                                                         rz=ev.residual_zero.cpu().numpy())
                 dyn = truth[f]["dynamic"]
                 per_frame.append(dict(scene=scene, seed=seed, frame=f, points=len(res.flow), s_per_frame=secs,
                                       dynamic_points=int(dyn.sum()),
@@ -114,6 +133,8 @@ def accuracy(args) -> dict:
         for key in ("raw", "default"):
             m = evaluate_sequence([preds[key][k] for k in idx], [truths[k] for k in idx])
             scenes.append(dict(scene=scene, setting=key, dynamic_epe=m["dynamic_epe"], static_epe=m["static_epe"]))
+    if args.dump:
+        np.savez(args.dump, **{f"{k}/{n}": v for k, d in dumps.items() for n, v in d.items()})
     base = rows[0]
     print(f"\n{len(truths)} frames ({args.lidar} lidar, {statistics.mean(sizes):.0f} points/frame); "
           f"default margin {cfg.evidence_margin} m, ratio {cfg.evidence_ratio}; "
@@ -172,6 +193,17 @@ def timing(args) -> dict:
         out[name] = dict(off_ms=1e3 * a, zero_ms=1e3 * b, overhead_pct=100 * (b / a - 1),
                          off_all_ms=[1e3 * x for x in d["off"]], zero_all_ms=[1e3 * x for x in d["zero"]])
         print(f"{name:<34}{1e3 * a:>14.2f}{1e3 * b:>15.2f}{100 * (b / a - 1):>+9.1f}%")
+    # the evidence step alone on one frame (its DT look-ups and segment sums; CUDA events), as
+    # a share of the batched frame time above
+    from _timing import timeit
+
+    res = Floxels(cfgs["off"], dev).fit(scans[:5], 2)
+    ev_of = residuals(scans, 2, res, cfgs["off"], dev, presorted_groups=True)
+    ms = timeit(lambda: ev_of(0.03, 0.25), "cuda" if dev.startswith("cuda") else "cpu", repeats=20)
+    a = out["estimate_sequence (batches)"]["off_ms"]
+    out["evidence_step_ms"] = ms
+    out["evidence_step_pct_of_batched_frame"] = 100 * ms / a
+    print(f"{'evidence step alone (one frame)':<34}{ms:>14.3f} ms = {100 * ms / a:.1f}% of a batched frame")
     out["points_per_frame"] = float(np.mean([len(s) for s in scans]))
     return out
 
@@ -258,6 +290,7 @@ def main(argv=None) -> int:
                     help="32 x 512 or 64 x 1024 simulated lidar (default: small on the CPU, full on CUDA)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--dump", default=None, help="accuracy: NPZ of every frame's raw flow, truth and group residuals")
     args = ap.parse_args(argv)
     args.lidar = args.lidar or ("full" if args.device.startswith("cuda") else "small")
     args.frames = args.frames or (2 if args.mode == "accuracy" else 48)

@@ -74,9 +74,9 @@ class FloxelsConfig:
     # paper's output); "score": result.evidence / result.explained filled, flow untouched;
     # "zero": also the flow of unexplained groups set to 0 (floxels run's default).
     evidence: str = "off"
-    evidence_margin: float = 0.03    # metres of mean DT residual: about what an object moving at the
-                                     # dynamic threshold (0.05 m/frame) can remove
-    evidence_ratio: float = 0.25     # share of the zero-flow residual the flow must remove
+    evidence_margin: float = 0.02    # metres of mean DT residual the flow must remove (lidar range
+                                     # noise: a smaller gain is no evidence)
+    evidence_ratio: float = 0.05     # and this share of the zero-flow residual (far, sparse groups)
 
     def __post_init__(self) -> None:
         # types first, generically from the field annotations (fields added later are covered)
