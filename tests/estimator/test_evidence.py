@@ -146,3 +146,34 @@ def test_config_checks():
         with pytest.raises(ValueError, match="evidence"):
             FloxelsConfig(**bad)
     assert FloxelsConfig.from_strings({"evidence": "zero"}).evidence == "zero"
+
+
+@pytest.mark.cuda
+def test_cuda_matches_cpu_and_estimator_on_cuda():
+    scans, t = _scans(seed=5)
+    P = scans[t]
+    is_wall = np.abs(P[:, 1] - 6.0) < 0.1
+    labels = np.where(is_wall, 1, 0)
+    flow = np.where(is_wall[:, None], np.float32([0.3, 0, 0]), np.float32([0.5, 0, 0])).astype(np.float32)
+    cpu = _evidence(scans, t, flow, labels)
+    dev = torch.device("cuda")
+    pts = torch.as_tensor(P, device=dev)
+    dts, origins, offsets, weights = [], [], [], []
+    for k, s in enumerate(scans):
+        if k != t:
+            d = build_dt(torch.as_tensor(s, device=dev), CFG)
+            dts.append(d.values)
+            origins.append(d.origin)
+            offsets.append(float(k - t))
+            weights.append(CFG.time_weight(k - t))
+    groups = group_ids(pts, torch.as_tensor(labels, device=dev), CFG.voxel_size)
+    gpu = motion_evidence(pts, torch.as_tensor(flow, device=dev), groups, dts, origins, offsets, weights,
+                          dt_cell=CFG.dt_cell, truncation=CFG.truncation)
+    np.testing.assert_allclose(gpu.score.cpu().numpy(), cpu.score.numpy(), atol=1e-4)
+    assert np.array_equal(gpu.explained.cpu().numpy(), cpu.explained.numpy())
+    # the estimator on CUDA: device tensors in, device tensors out; numpy in, numpy out
+    res = Floxels(FloxelsConfig(evidence="zero", max_iters=50), "cuda").fit([torch.as_tensor(s, device=dev) for s in scans], t)
+    assert res.evidence.device.type == "cuda" and res.explained.dtype == torch.bool
+    assert (res.flow[~res.explained] == 0).all()
+    res = Floxels(FloxelsConfig(evidence="score", max_iters=50), "cuda").fit(scans, t)
+    assert isinstance(res.evidence, np.ndarray) and res.explained.dtype == bool
