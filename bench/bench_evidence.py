@@ -23,7 +23,7 @@ optimised points (eps 0.5, min 4; unclustered points alone), is the mean nearest
 distance to the next frame's optimised points (moved into this frame with the poses) with the
 flow lower than with zero flow? The share of moving points in clusters where it is not (issue
 29's "~21 %" measure).
-All print a table and write JSON (``--json``, default bench_evidence_<mode>.json).
+All print a table and write JSON (``--json``, default bench/results/bench_evidence_<mode>.json).
 """
 
 from __future__ import annotations
@@ -299,7 +299,9 @@ def main(argv=None) -> int:
     out = {"accuracy": accuracy, "time": timing, "real": real}[args.mode](args)
     out.update(mode=args.mode, device=args.device, lidar=args.lidar, host=platform.node(), torch=torch.__version__,
                gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None)
-    path = args.json or f"bench_evidence_{args.mode}.json"
+    path = args.json or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+                                     f"bench_evidence_{args.mode}.json")
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as fh:
         json.dump(out, fh, indent=1, default=float)
     print(f"wrote {path}")

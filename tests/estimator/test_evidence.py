@@ -177,3 +177,24 @@ def test_cuda_matches_cpu_and_estimator_on_cuda():
     assert (res.flow[~res.explained] == 0).all()
     res = Floxels(FloxelsConfig(evidence="score", max_iters=50), "cuda").fit(scans, t)
     assert isinstance(res.evidence, np.ndarray) and res.explained.dtype == bool
+
+
+def test_output_fields_round_trip(tmp_path):
+    from floxels_ext.lidar.frame_writer import evidence_rows
+    from floxels_ext.lidar.outputs import OutputError, read_flow_output, write_output
+
+    mask = np.array([True, False, True, True, False])
+    fields = evidence_rows(mask, {"evidence": np.float32([0.5, -0.01, 0.02]), "explained": np.array([1, 0, 0], bool)})
+    pts = np.arange(15, dtype=np.float32).reshape(5, 3)
+    flow = np.zeros((5, 3), np.float32)
+    write_output(tmp_path / "a.npz", flow=flow, mask=mask, points=pts, **fields)
+    d = read_flow_output(tmp_path / "a.npz")
+    np.testing.assert_array_equal(d["evidence"], np.float32([0.5, np.nan, -0.01, 0.02, np.nan]))
+    np.testing.assert_array_equal(d["explained"], [True, False, False, False, False])
+    assert d["evidence"].dtype == np.float32 and d["explained"].dtype == bool
+    write_output(tmp_path / "b.npz", flow=flow, mask=mask, points=pts)  # older outputs, other methods
+    d = read_flow_output(tmp_path / "b.npz")
+    assert d["evidence"] is None and d["explained"] is None
+    write_output(tmp_path / "c.npz", flow=flow, mask=mask, points=pts, evidence=np.zeros(4, np.float32))
+    with pytest.raises(OutputError, match="evidence"):
+        read_flow_output(tmp_path / "c.npz")
