@@ -25,7 +25,7 @@ from floxels_ext.ops.grid import grid_from_bounds, point_bounds
 from floxels_ext.ops.setup import problem_setup
 from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
 
-__all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack"]
+__all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack", "problem_evidence"]
 
 F = torch.ops.floxels
 
