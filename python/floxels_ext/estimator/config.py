@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from floxels_ext.estimator.config_fields import check_field_types
+from floxels_ext.estimator.evidence import EVIDENCE_MODES
 from floxels_ext.estimator.config_fields import parse_option_value as _parse_field
 from floxels_ext.ops.grid import DEFAULT_MAX_CELLS
 
@@ -136,7 +137,7 @@ class FloxelsConfig:
             raise ValueError(f"FloxelsConfig.lr_gamma must be a positive finite number, got {g!r}")
         if self.truncation_mode not in ("zero", "clamp"):
             raise ValueError(f"FloxelsConfig.truncation_mode must be 'zero' or 'clamp', got {self.truncation_mode!r}")
-        if self.evidence not in ("off", "score", "zero"):
+        if self.evidence not in EVIDENCE_MODES:
             raise ValueError(f"FloxelsConfig.evidence must be 'off', 'score' or 'zero', got {self.evidence!r}")
         em, er = self.evidence_margin, self.evidence_ratio
         if not (math.isfinite(em) and em >= 0):

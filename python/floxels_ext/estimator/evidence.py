@@ -14,15 +14,19 @@ distance transforms the loss used:
     gain   = R_zero - R_flow                                  (metres)
     explained  <=>  gain > max(margin, ratio * R_zero)
 
-``margin`` (metres; default 0.02, the range noise of automotive lidar: a smaller gain is no
-evidence) and ``ratio`` (default 0.05: the share of the zero-flow residual the flow must also
+A rigid object moving 0.5 m a frame leaves R_zero of tens of centimetres that its flow removes
+almost entirely; a wall sliding along itself has gain ~ 0; a group whose flow is ~0 has gain ~0
+too and is "unexplained" (zeroing its flow changes nothing).
+
+``margin`` (metres; default 0.02, about the range noise of automotive lidar: a smaller gain is
+no evidence) and ``ratio`` (default 0.05: the share of the zero-flow residual the flow must also
 remove, which matters for far, sparse or partly occluded groups whose residual is large) are
-the same for all data. They are deliberately permissive: a wall sliding along itself removes
-~0-3 % of its residual (gain < 1 cm), rigid movers 40-90 %, but slow or under-estimated movers
-(pedestrians, a long vehicle seen from the side) only 10-25 %, and zeroing those costs more
-dynamic EPE than it saves static EPE (bench/RESULTS.md, "Motion evidence"). A rigid object moving 0.5 m a frame leaves R_zero of tens of centimetres
-that its flow removes almost entirely; a wall sliding along itself has gain ~ 0. A group
-whose flow is ~0 has gain ~0 too and is "unexplained": zeroing its flow changes nothing.
+the same for all data. They are deliberately permissive: walls and facades sliding along
+themselves remove 0-9 % of their residual (gain < 1 cm), rigid movers 40-90 %, but slow or
+under-estimated movers (pedestrians, a long vehicle seen from its side) only 10-25 %, and
+zeroing those cost more dynamic EPE than it saved static EPE (bench/RESULTS.md, "Motion
+evidence"). Not caught: motion that does explain the scans, e.g. static structure following
+the sensor's ring pattern.
 
 Cost: one trilinear DT look-up of 2N points per support scan (the optimiser does one of N per
 scan and iteration) and segment sums over the groups; no host synchronisation (group ids come
