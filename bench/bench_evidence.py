@@ -78,7 +78,7 @@ def residuals(scans, frame, res, cfg, device, presorted_groups=False):
         def ev(margin, ratio):
             g = group_ids(pts, labels, cfg.voxel_size, presorted=True, cells=cells)
             return motion_evidence(pts, flow, g, dts, origins, offsets, weights, dt_cell=cfg.dt_cell,
-                                   truncation=cfg.truncation, margin=margin, ratio=ratio)
+                                   truncation=cfg.truncation, margin=margin, ratio=ratio, runs=True)
         return ev
     return lambda margin, ratio: motion_evidence(pts, flow, groups, dts, origins, offsets, weights,
                                                  dt_cell=cfg.dt_cell, truncation=cfg.truncation,

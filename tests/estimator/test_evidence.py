@@ -198,3 +198,16 @@ def test_output_fields_round_trip(tmp_path):
     write_output(tmp_path / "c.npz", flow=flow, mask=mask, points=pts, evidence=np.zeros(4, np.float32))
     with pytest.raises(OutputError, match="evidence"):
         read_flow_output(tmp_path / "c.npz")
+
+
+def test_run_sums_equal_index_add():
+    from floxels_ext.estimator.evidence import _run_sums
+
+    rng = np.random.default_rng(7)
+    groups = torch.as_tensor(np.sort(rng.integers(0, 40, 500)))
+    groups = torch.cumsum(torch.cat([torch.ones(1, dtype=torch.long), (groups[1:] != groups[:-1]).long()]), 0) - 1
+    vals = torch.as_tensor(rng.random((500, 3)), dtype=torch.float32)
+    ref = torch.zeros(500, 3, dtype=torch.float64).index_add_(0, groups, vals.double())[groups]
+    torch.testing.assert_close(_run_sums(vals, groups), ref)
+    one = torch.zeros(1, dtype=torch.long)
+    torch.testing.assert_close(_run_sums(vals[:1], one), vals[:1].double())

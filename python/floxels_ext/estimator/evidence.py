@@ -110,7 +110,7 @@ def group_ids(points: torch.Tensor, labels: torch.Tensor | None, cell: float,
 def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tensor,
                     dts: Sequence[torch.Tensor], origins: Sequence[Sequence[float]], offsets: Sequence[float],
                     weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.02,
-                    ratio: float = 0.05) -> MotionEvidence:
+                    ratio: float = 0.05, runs: bool = False) -> MotionEvidence:
     """The motion evidence of ``flow`` (N, 3; metres per frame period) at ``points`` (N, 3,
     float32, finite) for the groups ``groups`` ((N,) int64 in [0, N), e.g. :func:`group_ids`).
 
@@ -118,7 +118,10 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
     ((Z, Y, X) float32, sample spacing ``dt_cell``, sample (0,0,0) at the origin), their time
     offsets in frame periods and their weights in the loss (as the estimator builds them).
     Look-ups clamp at the DT border like the loss; values are capped at ``truncation``.
-    Without support scans every group is unexplained with score 0.
+    Without support scans every group is unexplained with score 0. ``runs``: the groups are
+    contiguous runs (``group_ids(..., presorted=True)``): the group sums are then prefix-sum
+    differences in float64, deterministic on every device (otherwise ``index_add_``, whose CUDA
+    atomics may change the last bits between runs).
 
     About 5 small kernels per support scan and 10 more (a frame's host cost on a GPU: tens of
     microseconds); no host synchronisation."""
@@ -137,10 +140,25 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
         q = torch.cat([torch.add(p, f, alpha=float(t)), p])  # one look-up for both residuals
         v = F.trilinear_gather(d[None], q, [float(x) for x in o], float(dt_cell)).view(-1)
         acc[:2 * n].add_(v.clamp_(max=float(truncation)), alpha=float(w) / wsum)
-    # group means: sums over an (N, 3) buffer (no host synchronisation for the group count)
-    sums = torch.zeros(n, 3, dtype=torch.float32, device=dev).index_add_(0, groups, acc.view(3, n).t())
-    m = sums[groups]
-    rf, rz = m[:, 0] / m[:, 2], m[:, 1] / m[:, 2]
+    m = _run_sums(acc.view(3, n).t(), groups) if runs else \
+        torch.zeros(n, 3, dtype=torch.float32, device=dev).index_add_(0, groups, acc.view(3, n).t())[groups]
+    rf, rz = (m[:, 0] / m[:, 2]).float(), (m[:, 1] / m[:, 2]).float()
     gain = rz - rf
     explained = gain > (rz * float(ratio)).clamp_(min=float(margin))
     return MotionEvidence(gain, explained, rf, rz)
+
+
+def _run_sums(values: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
+    """Per point, the sum of ``values`` (N, C) over its group, the groups being contiguous runs:
+    float64 prefix sums differenced at each run's first and last row (found with cummax /
+    cummin: no atomics, no host synchronisation)."""
+    n = values.shape[0]
+    v = values.double()
+    cs = torch.cumsum(v, 0)
+    pos = torch.arange(n, device=values.device)
+    start = torch.ones(n, dtype=torch.bool, device=values.device)
+    torch.ne(groups[1:], groups[:-1], out=start[1:])
+    first = torch.cummax(torch.where(start, pos, 0), 0).values
+    end = torch.roll(start, -1)  # a row is its run's last when the next row starts a run (or it is the last row)
+    last = torch.cummin(torch.where(end, pos, n).flip(0), 0).values.flip(0)
+    return cs[last] - cs[first] + v[first]

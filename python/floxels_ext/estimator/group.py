@@ -296,7 +296,7 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
     return motion_evidence(problem.points, flow, groups, problem.dts,
                            problem.origins, problem.time_offsets,
                            problem.weights, dt_cell=cfg.dt_cell, truncation=cfg.truncation,
-                           margin=cfg.evidence_margin, ratio=cfg.evidence_ratio)
+                           margin=cfg.evidence_margin, ratio=cfg.evidence_ratio, runs=True)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:
