@@ -14,6 +14,7 @@ it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argove
     python bench/bench_run.py                             # GPU host: 64 frames, 128 beams
     python bench/bench_run.py --frames 16 --beams 32      # CPU-sized
     python bench/bench_run.py --repeat 3 --variant "w4=--writers 4"   # medians of 3, a variant
+    python bench/bench_run.py --repeat 3 --variant "two-kernel=FLOXELS_SOLVER_PERSISTENT=0"   # an environment variant
 
 Prints a table and writes bench/results/bench_run_<device>.json.
 """
@@ -22,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import shutil
 import statistics
 import sys
@@ -34,6 +37,11 @@ import torch
 
 from floxels_ext import cli
 from floxels_ext.lidar.preprocess import Preprocess, preprocess_mask, transform_points
+
+
+def _is_env(word: str) -> bool:
+    """A --variant word that sets an environment variable (NAME=VALUE, NAME upper case)."""
+    return re.fullmatch(r"[A-Z][A-Z0-9_]*=.*", word) is not None
 
 
 def build(root: Path, frames: int, beams: int, azimuth: int, seed: int) -> tuple[Path, Path, int]:
@@ -156,7 +164,9 @@ def main() -> None:
     ap.add_argument("--run-args", default="", help="extra floxels run arguments (quoted)")
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=ARGS",
                     help="also time floxels run with these extra arguments (repeatable), e.g. "
-                         "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run")
+                         "'gpu-pre=--preprocess-device cuda'; rows are compared in the same run. A NAME=VALUE "
+                         "word (upper case, e.g. FLOXELS_SOLVER_PERSISTENT=0) is set in the environment for that "
+                         "variant's runs instead")
     ap.add_argument("--repeat", type=int, default=1, metavar="R",
                     help="time every run (and the ceiling) R times, interleaved; the table shows the median "
                          "run of each (hosts vary by ~10%% from run to run)")
@@ -193,7 +203,19 @@ def main() -> None:
                 for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
                                    ("av2", [str(av2)])):
                     key = f"{name}+{label}" if label else name
-                    wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{key}_{rep}"), *common, *extra])
+                    env = dict(w.split("=", 1) for w in extra if _is_env(w))
+                    cli_extra = [w for w in extra if not _is_env(w)]
+                    saved = {k: os.environ.get(k) for k in env}
+                    os.environ.update(env)
+                    try:
+                        wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{key}_{rep}"), *common,
+                                              *cli_extra])
+                    finally:
+                        for k, v in saved.items():
+                            if v is None:
+                                os.environ.pop(k, None)
+                            else:
+                                os.environ[k] = v
                     r = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ,
                          "run_args": " ".join(common[4:] + extra)}
                     reps.setdefault(key, []).append(r)

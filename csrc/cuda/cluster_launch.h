@@ -1,5 +1,7 @@
 // Plain launchers for the cluster CUDA kernels (no torch types). Labels outside [0, K) are
 // treated as noise (the Python wrappers reject them; checking here would need a host sync).
+// The per-cluster sums they read are formed by the binding (cluster_binding.cpp) in a fixed
+// order, so every result is deterministic.
 #pragma once
 #include <cuda_runtime.h>
 
@@ -7,18 +9,17 @@
 
 namespace floxels::cuda {
 
-// Scratch the launchers below need, in elements of T; the caller zeroes it.
-inline int64_t cluster_workspace_elems(int64_t K, int64_t C) { return 2 * K * C + K; }
-
-// out (K, C) = per-cluster mean of values (N, C); empty clusters give 0.
+// Per point i of flow (N, C) with cluster c = labels[i]: norms[i] (may be null) =
+// ||f_i - m_c|| (0 for noise) and, when u is given, u (N, C) = (f_i - m_c) / ||f_i - m_c||
+// (0 rows for noise and zero residuals), where m_c = sums[c] / counts[c].
 template <typename T>
-void cluster_mean(const T* values, const int64_t* labels, int64_t N, int64_t C, int64_t K, T* workspace, T* out,
-                  cudaStream_t s);
+void cluster_residuals(const T* flow, const int64_t* labels, int64_t N, int64_t C, int64_t K, const T* sums,
+                       const T* counts, T* norms, T* u, cudaStream_t s);
 
-// loss (zeroed scalar, may be null) += (1/N) sum_i ||f_i - m_c(i)||;
-// grad (N, C, may be null) = (*grad_scale or 1) * d loss / d flow.
+// In place on grad (N, C) holding the unit residuals: grad_i = (*grad_scale or 1) / N *
+// (u_i - usums[c] / counts[c]) for clustered points (noise rows stay 0).
 template <typename T>
-void cluster_consistency(const T* flow, const int64_t* labels, int64_t N, int64_t C, int64_t K, T* workspace,
-                         T* loss, T* grad, const T* grad_scale, cudaStream_t s);
+void cluster_grad(const int64_t* labels, int64_t N, int64_t C, int64_t K, const T* counts, const T* usums,
+                  const T* grad_scale, T* grad, cudaStream_t s);
 
 }  // namespace floxels::cuda

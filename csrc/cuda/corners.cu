@@ -1,4 +1,5 @@
-// CUDA compact corner gather/scatter (math in csrc/kernels/corners.h).
+// CUDA compact corner gather (math in csrc/kernels/corners.h). The scatter (its adjoint) is
+// formed deterministically by the binding with ATen (corners_binding.cpp).
 #include <cuda_runtime.h>
 
 #include "cuda/corners_launch.h"
@@ -29,19 +30,6 @@ __global__ void corner_gather_kernel(const T* __restrict__ params, const int32_t
   }
 }
 
-// One thread per (point, corner): 8 atomics per channel. Points sorted spatially by the
-// caller keep neighbouring threads on neighbouring rows.
-template <typename T>
-__global__ void corner_scatter_kernel(const T* __restrict__ values, const int32_t* __restrict__ idx,
-                                      const T* __restrict__ w, int64_t n, int64_t C, T* __restrict__ out) {
-  const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (k >= n * 8) return;
-  const int64_t i = k >> 3;
-  const T wk = w[k];
-  const int64_t row = int64_t(idx[k]) * C;
-  for (int64_t c = 0; c < C; ++c) atomicAdd(out + row + c, wk * values[i * C + c]);
-}
-
 inline unsigned blocks_for(int64_t work) { return unsigned((work + kThreads - 1) / kThreads); }
 
 }  // namespace
@@ -53,19 +41,8 @@ void corner_gather(const T* params, const int32_t* idx, const T* w, int64_t n, i
   corner_gather_kernel<T><<<blocks_for(n), kThreads, 0, stream>>>(params, idx, w, n, C, out);
 }
 
-template <typename T>
-void corner_scatter(const T* values, const int32_t* idx, const T* w, int64_t n, int64_t C, T* out,
-                    cudaStream_t stream) {
-  if (n == 0) return;
-  corner_scatter_kernel<T><<<blocks_for(n * 8), kThreads, 0, stream>>>(values, idx, w, n, C, out);
-}
-
 template void corner_gather<float>(const float*, const int32_t*, const float*, int64_t, int64_t, float*, cudaStream_t);
 template void corner_gather<double>(const double*, const int32_t*, const double*, int64_t, int64_t, double*,
                                     cudaStream_t);
-template void corner_scatter<float>(const float*, const int32_t*, const float*, int64_t, int64_t, float*,
-                                    cudaStream_t);
-template void corner_scatter<double>(const double*, const int32_t*, const double*, int64_t, int64_t, double*,
-                                     cudaStream_t);
 
 }  // namespace floxels::cuda

@@ -24,6 +24,15 @@
 // parameter): a point kernel reads one and clears the other, which the next kernel fills.
 // Nothing synchronises with the host, so any number of iterations can be captured into a
 // CUDA graph.
+// Determinism (issue 31): every sum is order-independent, so the same input
+// gives the same bytes run after run, in either launch mode, and whatever else is batched
+// with a problem (tiles, blocks and their partial sums are relative to the problem's first
+// point): warp and block partials in fixed order; segment rows with one writer (a segment
+// that crosses tiles: per-tile partial rows added by the vertex stage in tile order); the
+// cluster means, u sums and losses, which receive shares from many blocks, as fixed-point
+// 64-bit integers (cuda/fixed_point.cuh: scales, ranges, overflow guards). Float atomics
+// there (before issue 31) were 1.6 % faster per frame and 2.4 % on sequences on an H200
+// (bench/RESULTS.md, "Determinism"): under the 3 % that would have kept them as an option.
 //
 // Files (no relocatable device code: each kernel file launches its own kernels):
 //   solver.cu            this launcher: workspace layout, the kernel parameters, the choice
@@ -56,8 +65,8 @@ bool use_cluster(const Args& a) { return a.labels != nullptr && a.num_clusters >
 
 // Workspace pieces in order; offsets in bytes.
 struct Layout {
-  int64_t scans, rec, seg_corner, seg_label, seg_wsum, ent, pair, num_pairs, bias, seg_grad, mbuf, ubuf, loss,
-      snap, total;
+  int64_t scans, rec, seg_corner, seg_label, seg_wsum, ent, pair, num_pairs, bias, span_part, seg_grad, mbuf, ubuf,
+      loss, loss_flag, snap, total;
 };
 
 Layout layout(const Args& a) {
@@ -78,10 +87,15 @@ Layout layout(const Args& a) {
   L.pair = take(8 * 8 * s);
   L.num_pairs = take(4 * m);
   L.bias = take(16 * int64_t(a.hyper.max_iters));
+  int64_t tiles = 0;  // point tiles of the call (kWarps per point block)
+  for (int p = 0; p < a.num_problems; ++p)
+    tiles += kWarps * point_blocks_for(a.problems[p].point_end - a.problems[p].point_begin);
+  L.span_part = take(4 * 2 * kSegVals * tiles);  // written before read: not cleared
   L.seg_grad = take(4 * kSegVals * s);
-  L.mbuf = take(2 * 12 * c);
-  L.ubuf = take(2 * 12 * c);
+  L.mbuf = take(2 * 24 * c);  // (2, C, 3) 8-byte fixed point
+  L.ubuf = take(2 * 24 * c);
   L.loss = take(8 * 2 * kMaxProblems);
+  L.loss_flag = take(4 * 2 * kMaxProblems);
   L.snap = take(8 * kStateCols * int64_t(a.num_problems));
   L.total = off;
   return L;
@@ -192,16 +206,18 @@ cudaError_t solver_launch(const Args& a, int num_iters, void* workspace, cudaStr
   P.num_pairs = reinterpret_cast<int32_t*>(w + L.num_pairs);
   P.bias = reinterpret_cast<double*>(w + L.bias);
   P.seg_grad = reinterpret_cast<float*>(w + L.seg_grad);
-  P.mbuf = reinterpret_cast<float*>(w + L.mbuf);
-  P.ubuf = reinterpret_cast<float*>(w + L.ubuf);
-  P.loss = reinterpret_cast<double*>(w + L.loss);
+  P.mfx = reinterpret_cast<unsigned long long*>(w + L.mbuf);
+  P.ufx = reinterpret_cast<unsigned long long*>(w + L.ubuf);
+  P.loss_fx = reinterpret_cast<unsigned long long*>(w + L.loss);
+  P.loss_flag = reinterpret_cast<int*>(w + L.loss_flag);
+  P.span_part = reinterpret_cast<float*>(w + L.span_part);
   P.snap = reinterpret_cast<double*>(w + L.snap);
 
   // Points outside every segment (invalid tables) read segment -1: fill the records with
   // ones first. The per-iteration tables start at zero.
   const int64_t S = a.num_segments, M = a.num_vertices;
   cudaError_t err = cudaMemsetAsync(P.rec, 0xff, 16 * a.num_points, stream);
-  if (err == cudaSuccess) err = cudaMemsetAsync(w + L.seg_grad, 0, L.snap - L.seg_grad, stream);  // seg_grad .. loss
+  if (err == cudaSuccess) err = cudaMemsetAsync(w + L.seg_grad, 0, L.snap - L.seg_grad, stream);  // seg_grad .. loss_flag
   if (err == cudaSuccess && M > 0) err = cudaMemsetAsync(P.num_pairs, 0, 4 * M, stream);
   if (err != cudaSuccess) return err;
   launch_setup(P, T, scans, S, M, cl, stream);

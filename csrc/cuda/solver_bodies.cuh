@@ -3,6 +3,9 @@
 //   points_body  stages 1-2 of one point block, a thread per point;
 //   vertex_body  stage 3 then 4 of one vertex block, a group of 8 lanes per vertex, then the
 //                vertices' shares of the next iteration's cluster means.
+// Every sum is deterministic (issue 31): fixed-order warp and block sums, per-tile partial
+// rows for tile-crossing segments, and fixed-point integer atomics for the cluster sums and
+// the loss (cuda/fixed_point.cuh), so the same input gives the same bytes.
 // kDebug (profiling builds only, the traced loop): P.debug_skip leaves parts out
 // (FLOXELS_SOLVER_SKIP, common/env_switches.h); the results are then wrong. Release builds
 // cannot instantiate it. nvcc only.
@@ -11,6 +14,7 @@
 
 #include <cstdint>
 
+#include "cuda/fixed_point.cuh"
 #include "cuda/solver_device.cuh"
 #include "cuda/warp_aggregate.cuh"
 #include "kernels/cluster.h"
@@ -20,6 +24,7 @@
 namespace floxels::cuda::solver_detail {
 
 using cuda_detail::warp_add;
+namespace fixed = cuda_detail::fixed;
 
 // Stages 1-2 of point block `vb`, a thread per point, from its fixed data `fx` (load_fixed).
 // `clear`: also run clear_other_parity (the per-iteration kernel; the persistent loop clears
@@ -39,7 +44,7 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   const int label = kCluster ? fx.label : -1;
   if constexpr (kCluster) {  // empty u-sum slots (the barrier below publishes them)
     sm.ukey[threadIdx.x] = -1;
-    sm.usum[threadIdx.x][0] = sm.usum[threadIdx.x][1] = sm.usum[threadIdx.x][2] = 0.0f;
+    sm.usum[threadIdx.x][0] = sm.usum[threadIdx.x][1] = sm.usum[threadIdx.x][2] = 0ull;
   }
   pdl_wait_previous();
   if (clear) clear_other_parity<kCluster>(P, parity);
@@ -60,8 +65,8 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
         for (int c = 0; c < 3; ++c) f[c] += w[j] * row[c];
       }
       if (kCluster && label >= 0) {
-        const float* m = P.mbuf + (parity ? C3 : 0) + 3 * label;
-        for (int c = 0; c < 3; ++c) mean[c] = m[c];
+        const unsigned long long* m = P.mfx + (parity ? C3 : 0) + 3 * label;
+        for (int c = 0; c < 3; ++c) mean[c] = fixed::decode(m[c], fixed::kMeanScale);
       }
     }
     float g[3] = {0.0f, 0.0f, 0.0f};
@@ -82,10 +87,11 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
       }
     }
     // Segment sums of w_k * g_i, per warp: the run's last lane writes the row (plain stores:
-    // one writer per segment), or adds it where the segment crosses tiles.
+    // one writer per segment), or, where the segment crosses tiles, its tile's partial row
+    // (span_part, summed by the vertex stage in tile order).
     if (!(skip & 2)) {
       const WarpRuns runs = warp_runs(seg);
-      float* dst = P.seg_grad + int64_t(kSegVals) * seg;
+      float* dst = P.seg_grad + int64_t(kSegVals) * seg;  // (seg < 0: never written)
       // two halves of 4 corners: fewer values live at once (the loop kernel has 64 registers)
       for (int h = 0; h < 2; ++h) {
         float wg[kSegVals / 2];
@@ -97,7 +103,9 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
             float4* d4 = reinterpret_cast<float4*>(dst + 12 * h);  // rows of 96 bytes: 16-byte aligned
             for (int j = 0; j < 3; ++j) d4[j] = make_float4(wg[4 * j], wg[4 * j + 1], wg[4 * j + 2], wg[4 * j + 3]);
           } else {
-            for (int j = 0; j < 12; ++j) atomicAdd(dst + 12 * h + j, wg[j]);  // cleared by its readers
+            const int slot = runs.start == 0 ? 0 : 1;  // see span_sum
+            float* sp = P.span_part + ((int64_t(vb) * kWarps + (threadIdx.x >> 5)) * 2 + slot) * kSegVals + 12 * h;
+            for (int j = 0; j < 12; ++j) sp[j] = wg[j];
           }
         }
       }
@@ -105,24 +113,24 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
     // Cluster u sums: per warp run, into the block's slot of the cluster (one atomic per
     // cluster and block below); a slot taken by another cluster (labels of one block more
     // than kThreads apart: not with sorted tables) adds to global memory directly.
+    // Each point's u clamped to [-1, 1] (NaN to 0: its loss is NaN anyway), the run sums
+    // (fixed order) converted to fixed point, integer atomics after (order-independent).
     if (kCluster && !(skip & 4)) {
       const int key = valid ? label : -1;
+      for (int c = 0; c < 3; ++c) u[c] = fixed::clamp_finite(u[c], 1.0f);
       const WarpRuns runs = warp_runs(key);
       warp_run_sums(runs, u);
       if (runs.tail && key >= 0) {
         const int slot = key % kThreads;
         const int had = atomicCAS(&sm.ukey[slot], -1, key);
-        if (had == -1 || had == key) {
-          for (int c = 0; c < 3; ++c) atomicAdd(&sm.usum[slot][c], u[c]);
-        } else {
-          float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
-          for (int c = 0; c < 3; ++c) atomicAdd(ub + c, u[c]);
-        }
+        unsigned long long q[3];
+        for (int c = 0; c < 3; ++c) q[c] = fixed::encode(u[c], fixed::kUnitScale);
+        unsigned long long* ub = (had == -1 || had == key) ? sm.usum[slot] : P.ufx + (parity ? C3 : 0) + 3 * key;
+        for (int c = 0; c < 3; ++c) atomicAdd(ub + c, q[c]);
       }
     }
   }
-  // Loss: per warp, then one double atomic per block. The sum order across blocks varies
-  // between runs (last bits of the loss), like the float atomics of the other sums; a
+  // Loss: per warp (fixed order), then one fixed-point atomic per block (fixed::add_loss). A
   // per-block table re-read by every vertex block cost more than the whole vertex gradient
   // with 16 problems.
   if (!(skip & 8)) {
@@ -135,14 +143,15 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   if constexpr (kCluster) {
     const int key = sm.ukey[threadIdx.x];
     if (key >= 0) {
-      float* ub = P.ubuf + (parity ? C3 : 0) + 3 * key;
+      unsigned long long* ub = P.ufx + (parity ? C3 : 0) + 3 * key;
       for (int c = 0; c < 3; ++c) atomicAdd(ub + c, sm.usum[threadIdx.x][c]);
     }
   }
   if (threadIdx.x == 0 && !(skip & 8)) {
     double total = 0.0;
     for (int k = 0; k < kWarps; ++k) total += sm.wloss[k];
-    if (total != 0.0) atomicAdd(P.loss + (parity ? kMaxProblems : 0) + p, total);
+    const int at = (parity ? kMaxProblems : 0) + p;
+    fixed::add_loss(P.loss_fx + at, P.loss_flag + at, total, P.block_begin[p + 1] - P.block_begin[p]);
   }
 }
 
@@ -153,7 +162,6 @@ template <bool kCluster, bool kInitMeans, bool kDebug = false>
 __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm, int2 entries) {
   static_assert(!kDebug || kProfiling, "the traced variant exists in profiling builds only");
   const int skip = (kProfiling && kDebug) ? P.debug_skip : 0;
-  float* scratch = sm.scratch;
   double* st = sm.st;
   const int p = problem_of(vb, P.vblock_begin, P.num_problems);
   const int sub = threadIdx.x & (kLanesPerVertex - 1), lane = threadIdx.x & 31;
@@ -169,13 +177,14 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
       // decision; the others gather gradients meanwhile); the problem's first block keeps
       // the record.
       for (int c = 0; c < kStateCols; ++c) st[c] = P.snap[p * kStateCols + c];
-      const double loss = P.loss[(parity ? kMaxProblems : 0) + p];
+      const int at = (parity ? kMaxProblems : 0) + p;
+      const double loss = fixed::decode_loss(P.loss_fx[at], P.loss_flag[at]);
       const bool keeper = vb == P.vblock_begin[p];
       control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias);
       if (keeper)
         for (int c = 0; c < kStateCols; ++c) P.state[p * kStateCols + c] = st[c];
     }
-    const float* ub = P.ubuf + (parity ? C3 : 0);
+    const unsigned long long* uq = P.ufx + (parity ? C3 : 0);
     const float ccoef = P.cluster_coef[p];
     float G[3] = {0.0f, 0.0f, 0.0f};
     // kUnroll entries per lane at once: their loads are in flight together (a vertex near
@@ -195,19 +204,26 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
         // r.x < 0: invalid tables (validated in Python) or past the end: never read outside
         const float* sg = P.seg_grad + 3 * int64_t(max(r[u].x, 0));
         for (int c = 0; c < 3; ++c) gv[u][c] = r[u].x >= 0 ? sg[c] : 0.0f;
+        if (r[u].x >= 0 && r[u].w) span_sum(P, r[u].x, gv[u]);  // tables built elsewhere only
       }
 #pragma unroll
       for (int u = 0; u < kUnroll; ++u) {
         if (r[u].x < 0) continue;
-        if (r[u].w) {  // summed by atomics: clear for the next iteration
-          float* sg = P.seg_grad + 3 * int64_t(r[u].x);
-          sg[0] = sg[1] = sg[2] = 0.0f;
-        }
-        if (kCluster && r[u].z >= 0) {
-          const float c = ccoef * __int_as_float(r[u].y);
-          for (int k = 0; k < 3; ++k) gv[u][k] -= c * ub[3 * r[u].z + k];
-        }
         for (int k = 0; k < 3; ++k) G[k] += gv[u][k];
+      }
+    }
+    if constexpr (kCluster) {
+      // The cluster term, per (vertex, cluster) pair rather than per entry: the entries of one
+      // cluster share its u sum U_c, and their coefficients summed are the pair's A_cv
+      // (pair_setup_kernel), so sum_e ccoef * a_e * U_c = ccoef * A_cv * U_c: a vertex has one
+      // or two clusters but up to hundreds of entries, and each U_c read is a fixed-point
+      // decode.
+      const int np = (has_v && !(skip & 32)) ? min(P.num_pairs[v], e_end - e_begin) : 0;
+      for (int j = sub; j < np; j += kLanesPerVertex) {
+        const int2 pr = P.pair[e_begin + j];
+        if (unsigned(pr.x) >= unsigned(P.num_clusters)) continue;
+        const float c = ccoef * __int_as_float(pr.y);
+        for (int k = 0; k < 3; ++k) G[k] -= c * fixed::decode(uq[3 * pr.x + k], fixed::kUnitScale);
       }
     }
     for (int c = 0; c < 3; ++c)
@@ -228,7 +244,7 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     const int g0 = lane & ~(kLanesPerVertex - 1);
     const float t[3] = {__shfl_sync(0xffffffffu, mine, g0), __shfl_sync(0xffffffffu, mine, g0 + 1),
                         __shfl_sync(0xffffffffu, mine, g0 + 2)};
-    float* mdst = P.mbuf + ((kInitMeans || parity) ? 0 : C3);  // the means of the next iteration
+    const int next = (kInitMeans || parity) ? 0 : C3;  // the means of the next iteration
     const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
     const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
     const int rounds = (skip & 64) ? 0 : warp_max(mine_n);
@@ -236,11 +252,12 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     // while a big cluster's mean receives shares from hundreds of blocks, so one global
     // atomic per (block, cluster) instead of one per (warp, round, cluster) (those cost
     // 2.8 of 24.7 us per iteration at one frame on an H100). A slot taken by another
-    // cluster adds to global memory directly.
+    // cluster adds to global memory directly. Every share is converted to fixed point first
+    // (parameters clamped to +-fixed::kParamLimit), integer sums after: order-independent.
     sm.mkey[threadIdx.x] = -1;
-    for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0.0f;
+    for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0ull;
     __syncthreads();
-    float* wscratch = scratch + (threadIdx.x & ~31u);
+    const unsigned wbase = threadIdx.x & ~31u;
     for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
       int slot = -1, spill = -1;
       float val[3] = {0.0f, 0.0f, 0.0f};
@@ -248,18 +265,21 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
         const int2 pr = P.pair[e_begin + sub + r * kLanesPerVertex];
         if (unsigned(pr.x) < unsigned(P.num_clusters)) {
           const float a = __int_as_float(pr.y);
-          for (int c = 0; c < 3; ++c) val[c] = a * t[c];
+          for (int c = 0; c < 3; ++c)
+            val[c] = fixed::clamp_finite(a * fixed::clamp_finite(t[c], fixed::kParamLimit), fixed::kParamLimit);
           const int s = pr.x % kThreads;
           const int had = atomicCAS(&sm.mkey[s], -1, pr.x);
           if (had == -1 || had == pr.x) slot = s; else spill = pr.x;
         }
       }
-      warp_add<float>(sm.msum, slot, 3, 1, val, 1.0f, 3, wscratch);
-      warp_add<float>(mdst, spill, 3, 1, val, 1.0f, 3, wscratch);
+      unsigned long long q[3];
+      for (int c = 0; c < 3; ++c) q[c] = fixed::encode(val[c], fixed::kMeanScale);
+      warp_add<unsigned long long>(sm.msum, slot, 3, 1, q, 1ull, 3, sm.scratch + wbase);
+      warp_add<unsigned long long>(P.mfx + next, spill, 3, 1, q, 1ull, 3, sm.scratch + wbase);
     }
     __syncthreads();
     if (const int key = sm.mkey[threadIdx.x]; key >= 0)
-      for (int c = 0; c < 3; ++c) atomicAdd(mdst + 3 * key + c, sm.msum[3 * threadIdx.x + c]);
+      for (int c = 0; c < 3; ++c) atomicAdd(P.mfx + next + 3 * key + c, sm.msum[3 * threadIdx.x + c]);
   }
 }
 

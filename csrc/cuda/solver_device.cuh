@@ -33,11 +33,6 @@ __device__ __forceinline__ int problem_of(int block, const int* begins, int num_
   return p;
 }
 
-__device__ __forceinline__ void zero_strided(float* a, int64_t n) {
-  for (int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; j < n; j += int64_t(gridDim.x) * blockDim.x)
-    a[j] = 0.0f;
-}
-
 __device__ __forceinline__ int warp_max(int x) {
   for (int off = 16; off > 0; off >>= 1) x = max(x, __shfl_xor_sync(0xffffffffu, x, off));
   return x;
@@ -91,17 +86,23 @@ __device__ __forceinline__ void warp_run_sums(const WarpRuns& r, float (&v)[K]) 
 }
 
 // Shared memory of one block of the iteration kernels (the persistent loop uses both parts).
+// The per-slot sums are fixed-point integers (cuda/fixed_point.cuh).
 struct PointSmem {
-  int ukey[kThreads];       // cluster summed in u-sum slot (cluster % kThreads), -1 empty
-  float usum[kThreads][3];  // the block's u sums per slot
-  double wloss[kWarps];     // loss per warp
+  int ukey[kThreads];                 // cluster summed in u-sum slot (cluster % kThreads), -1 empty
+  unsigned long long usum[kThreads][3];  // the block's u sums per slot
+  double wloss[kWarps];               // loss per warp
 };
 struct VertexSmem {
-  float scratch[kThreads];
+  unsigned long long scratch[kThreads];  // warp_add's per-warp scratch
   double st[kStateCols];
-  int mkey[kThreads];        // cluster summed in mean slot (cluster % kThreads), -1 empty
-  float msum[kThreads * 3];  // the block's shares of the next means per slot
+  int mkey[kThreads];                    // cluster summed in mean slot (cluster % kThreads), -1 empty
+  unsigned long long msum[kThreads * 3];  // the block's shares of the next means per slot
 };
+
+__device__ __forceinline__ void zero_strided_u64(unsigned long long* a, int64_t n) {
+  for (int64_t j = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; j < n; j += int64_t(gridDim.x) * blockDim.x)
+    a[j] = 0ull;
+}
 
 // Per iteration, by the whole grid: clear the other parity's means, u sums and losses (the
 // vertex stage of this iteration fills them for the next one).
@@ -109,10 +110,38 @@ template <bool kCluster>
 __device__ __forceinline__ void clear_other_parity(const KParams& P, int parity) {
   const int C3 = 3 * P.num_clusters;
   if constexpr (kCluster) {
-    zero_strided(P.ubuf + (parity ? 0 : C3), C3);
-    zero_strided(P.mbuf + (parity ? 0 : C3), C3);
+    zero_strided_u64(P.ufx + (parity ? 0 : C3), C3);
+    zero_strided_u64(P.mfx + (parity ? 0 : C3), C3);
   }
-  if (blockIdx.x == 0 && threadIdx.x < kMaxProblems) P.loss[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0.0;
+  if (blockIdx.x == 0 && threadIdx.x < kMaxProblems) {
+    P.loss_fx[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0ull;
+    P.loss_flag[(parity ? 0 : kMaxProblems) + threadIdx.x] = 0;
+  }
+}
+
+// The sum over a spanning segment's point tiles of its partial rows
+// (span_part, written by the point stage) for corner k, in tile order. `ent` = segment * 8 +
+// corner. Only tables built outside the package have such segments (the Python tables split
+// segments at tiles), so this slow path costs nothing there.
+__device__ __forceinline__ void span_sum(const KParams& P, int ent, float (&out)[3]) {
+  out[0] = out[1] = out[2] = 0.0f;
+  const int s = ent >> 3, k = ent & 7;
+  int b = max(P.seg_ptr[s], 0), e = min(P.seg_ptr[s + 1], P.num_points);
+  int p = 0;
+  while (p + 1 < P.num_problems && b >= P.point_end[p]) ++p;
+  b = max(b, P.point_begin[p]);
+  e = min(e, P.point_end[p]);
+  if (b >= e) return;
+  const int base = P.point_begin[p];
+  const int t0 = (b - base) / kTile, t1 = (e - 1 - base) / kTile;
+  const int64_t tile0 = int64_t(P.block_begin[p]) * kWarps;
+  for (int t = t0; t <= t1; ++t) {
+    // the segment's run holds the tile's first point, except in its first tile when the
+    // segment starts inside it (then the run holds the tile's last point)
+    const int slot = (t == t0 && (b - base) % kTile != 0) ? 1 : 0;
+    const float* sp = P.span_part + ((tile0 + t) * 2 + slot) * kSegVals + 3 * k;
+    for (int c = 0; c < 3; ++c) out[c] += sp[c];
+  }
 }
 
 // The fixed per-call data of one point (the same in every iteration): its record (x, y, z,

@@ -46,16 +46,13 @@ void launch_first_means(const KParams& P, int vb, cudaStream_t stream) {
 
 cudaError_t launch_iterations(KParams P, int num_iters, int pb, int vb, bool cluster, bool pdl,
                               cudaStream_t stream) {
+  void (*pk)(const KParams) = cluster ? points_kernel<true> : points_kernel<false>;
+  void (*vk)(const KParams) = cluster ? vertex_kernel<true, false> : vertex_kernel<false, false>;
   cudaError_t err = cudaSuccess;
   for (int it = 0; it < num_iters && err == cudaSuccess; ++it) {
     P.parity = it & 1;
-    if (cluster) {
-      err = launch(points_kernel<true>, pb, stream, pdl, P);
-      if (err == cudaSuccess) err = launch(vertex_kernel<true, false>, vb, stream, pdl, P);
-    } else {
-      err = launch(points_kernel<false>, pb, stream, pdl, P);
-      if (err == cudaSuccess) err = launch(vertex_kernel<false, false>, vb, stream, pdl, P);
-    }
+    err = launch(pk, pb, stream, pdl, P);
+    if (err == cudaSuccess) err = launch(vk, vb, stream, pdl, P);
   }
   return err;
 }

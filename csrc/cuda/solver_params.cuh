@@ -67,24 +67,33 @@ struct KParams {
   int32_t* seg_label;   // (S) cluster of the segment's points, -1 noise
   float* seg_wsum;      // (S, 8) sum over the segment's points of w_k
   int4* ent;            // (8S) per vertex entry: segment * 8 + corner, bits of seg_wsum / |cluster|,
-                        //      cluster, 1 if the segment spans two point tiles (its row is summed
-                        //      by atomics and cleared by its readers)
+                        //      cluster, 1 if the segment spans two point tiles (its tiles' partial
+                        //      rows are in span_part)
   int2* pair;           // (8S) per vertex, its clusters and summed coefficients A_cv (bits)
   int32_t* num_pairs;   // (M)
   double* bias;         // (max_iters, 2) Adam bias corrections (bias_corrections)
   // workspace, per iteration
   float* seg_grad;  // (S, 24) sum over the segment's points of w_k * g_i
-  float* mbuf;      // (2, C, 3) cluster means, by parity
-  float* ubuf;      // (2, C, 3) sums of the unit residuals per cluster, by parity
-  double* loss;     // (2, kMaxProblems) each problem's loss (sum of its point blocks' atomics), by parity
+  // Cluster means, unit-residual sums and losses, by parity, as fixed-point integers summed
+  // by integer atomics in any order (cuda/fixed_point.cuh): deterministic.
+  unsigned long long* mfx;      // (2, C, 3) cluster means
+  unsigned long long* ufx;      // (2, C, 3) sums of the unit residuals per cluster
+  unsigned long long* loss_fx;  // (2, kMaxProblems) each problem's loss (sum of its point blocks')
+  int* loss_flag;               // (2, kMaxProblems) fixed::kLossNaN / kLossOver, or 0
+  // (point tiles, 2, 24): the partial row sums of segments that span
+  // point tiles (tables built elsewhere), per tile: slot 0 the run that holds the tile's
+  // first point, slot 1 the run that holds its last; the vertex stage adds a segment's
+  // partials tile by tile (fixed order) instead of float atomics.
+  float* span_part;
   double* snap;     // (B, kStateCols) state rows as the point kernel saw them
 };
 
 // Points are summed per warp: a segment's sums are complete in one warp when its points lie
 // in one tile of 32 points (tiles start at the problem's first point), which the segment
 // tables built in Python guarantee (they split segments at tile boundaries). A segment that
-// crosses a tile anyway (tables built elsewhere) is summed by atomics and flagged in its
-// point records (kSpansBit of the segment id) and vertex entries (cleared by its readers).
+// crosses a tile anyway (tables built elsewhere) is flagged in its point records (kSpansBit of
+// the segment id) and vertex entries: its tiles' partial rows go to span_part, added by the
+// vertex stage in tile order (span_sum).
 constexpr int kTile = 32;
 constexpr int kSpansBit = 1 << 30;
 constexpr int kSegMask = kSpansBit - 1;

@@ -1,13 +1,13 @@
-// CUDA trilinear gather / points gradient / scatter: one thread per point. The scatter uses
-// warp-aggregated atomics (warp_aggregate.cuh) because LiDAR points pile up in the voxels
-// near the sensor. Non-finite points: NaN gather rows, zero points-gradient rows, ignored by
-// the scatter (kernels/trilinear.h).
+// CUDA trilinear gather / points gradient / scatter terms: one thread per point. The scatter
+// is deterministic (issue 31): this file writes each point's 8 (voxel, weight) terms and the
+// binding sums them per voxel in index order (trilinear_binding.cpp), instead of float
+// atomics. Non-finite points: NaN gather rows, zero points-gradient rows, ignored by the
+// scatter (kernels/trilinear.h).
 #include <cuda_runtime.h>
 
 #include <cstdint>
 
 #include "cuda/trilinear_launch.h"
-#include "cuda/warp_aggregate.cuh"
 #include "kernels/trilinear.h"
 
 namespace floxels::cuda {
@@ -39,28 +39,22 @@ __global__ void points_grad_kernel(const T* __restrict__ grad_out, const T* __re
                          gp + 3 * i);
 }
 
-// No early return: every lane takes part in the warp-aggregated adds (out-of-range lanes
-// pass key -1).
+// Per point and corner: the voxel (vol for a non-finite point: a row the binding drops) and
+// the trilinear weight (0 there).
 template <typename T>
-__global__ void scatter_kernel(const T* __restrict__ values, int C, const T* __restrict__ points, int64_t N,
-                               TriGeom g, T* __restrict__ out) {
-  __shared__ T scratch[kBlock];
+__global__ void scatter_terms_kernel(const T* __restrict__ points, int64_t N, TriGeom g, int64_t* __restrict__ keys,
+                                     T* __restrict__ weights) {
   const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
-  bool valid = i < N;
-  tri::Cell<T> c{};
-  if (valid) {
-    c = cell_at(points, i, g);
-    valid = c.ok;  // a non-finite point is ignored (key -1 like an out-of-range lane)
-  }
-  const T* v = values + (valid ? i : 0) * C;
-  T* ws = scratch + (threadIdx.x & ~31);
+  if (i >= N) return;
+  const tri::Cell<T> c = cell_at(points, i, g);
   const int64_t vol = g.Z * g.Y * g.X;
+  int k = 0;
   for (int dz = 0; dz < 2; ++dz)
     for (int dy = 0; dy < 2; ++dy)
-      for (int dx = 0; dx < 2; ++dx) {
+      for (int dx = 0; dx < 2; ++dx, ++k) {
         const T w = (dz ? c.tz : T(1) - c.tz) * (dy ? c.ty : T(1) - c.ty) * (dx ? c.tx : T(1) - c.tx);
-        const int64_t key = valid ? c.base + dz * c.sz + dy * c.sy + dx * c.sx : int64_t(-1);
-        cuda_detail::warp_add(out, key, int64_t(1), vol, v, w, C, ws);
+        keys[8 * i + k] = c.ok ? c.base + dz * c.sz + dy * c.sy + dx * c.sx : vol;
+        weights[8 * i + k] = c.ok ? w : T(0);
       }
 }
 
@@ -73,10 +67,9 @@ void trilinear_gather(const T* grid, int64_t C, const T* points, int64_t N, TriG
 }
 
 template <typename T>
-void trilinear_scatter(const T* values, int64_t C, const T* points, int64_t N, TriGeom g, T* out,
-                       cudaStream_t s) {
-  if (N == 0 || C == 0) return;
-  scatter_kernel<T><<<blocks_for(N), kBlock, 0, s>>>(values, static_cast<int>(C), points, N, g, out);
+void trilinear_scatter_terms(const T* points, int64_t N, TriGeom g, int64_t* keys, T* weights, cudaStream_t s) {
+  if (N == 0) return;
+  scatter_terms_kernel<T><<<blocks_for(N), kBlock, 0, s>>>(points, N, g, keys, weights);
 }
 
 template <typename T>
@@ -88,7 +81,7 @@ void trilinear_points_grad(const T* grad_out, const T* grid, int64_t C, const T*
 
 #define FLX_INSTANTIATE(T)                                                                               \
   template void trilinear_gather<T>(const T*, int64_t, const T*, int64_t, TriGeom, T*, cudaStream_t);     \
-  template void trilinear_scatter<T>(const T*, int64_t, const T*, int64_t, TriGeom, T*, cudaStream_t);    \
+  template void trilinear_scatter_terms<T>(const T*, int64_t, TriGeom, int64_t*, T*, cudaStream_t);        \
   template void trilinear_points_grad<T>(const T*, const T*, int64_t, const T*, int64_t, TriGeom, T*,     \
                                          cudaStream_t);
 FLX_INSTANTIATE(float)

@@ -16,10 +16,11 @@ struct TriGeom {
 template <typename T>
 void trilinear_gather(const T* grid, int64_t C, const T* points, int64_t N, TriGeom g, T* out, cudaStream_t s);
 
-// out (C, Z, Y, X), already zeroed, += adjoint splat of values (N, C).
+// The terms of the adjoint splat (the scatter; summed per voxel by the binding): per point i
+// and corner k (z, y, x bits of k), keys[8i + k] = the corner's voxel (flat over Z, Y, X) and
+// weights[8i + k] = its trilinear weight; a non-finite point gets voxel Z * Y * X and weight 0.
 template <typename T>
-void trilinear_scatter(const T* values, int64_t C, const T* points, int64_t N, TriGeom g, T* out,
-                       cudaStream_t s);
+void trilinear_scatter_terms(const T* points, int64_t N, TriGeom g, int64_t* keys, T* weights, cudaStream_t s);
 
 // grad_points (N, 3) of sum(grad_out * gather(grid, points)).
 template <typename T>

@@ -1,4 +1,6 @@
-// Warp-aggregated atomicAdd, shared by the trilinear scatter and the cluster reductions.
+// Warp-aggregated atomicAdd: the CUDA solver sums the shares of its cluster means with it, as
+// 64-bit fixed-point integers (order-independent; use it with integers only: float atomics
+// make the sums depend on the order in which threads arrive).
 //
 // Hot targets (voxels near the sensor, big clusters) make many lanes of a warp add to the same
 // address; serialising those on one atomic is slow. The lanes first find their peers with

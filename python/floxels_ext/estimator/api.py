@@ -23,6 +23,7 @@ import torch
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DistanceTransform, DtStreams, WindowCache
 from floxels_ext.estimator.group import fit_group, pack, prepare_group, solve_group
+from floxels_ext.estimator.recentre import Recentring
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import check_times, frame_period_of, prepare_scans, resolve_device
 from floxels_ext.estimator.streams import serial_stages, side_stream
@@ -196,6 +197,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     cache: dict[int, DistanceTransform | None] = {}
     converted: dict = {}  # sequence index -> scan on the device (converted and NaN-checked once)
+    recentring = Recentring()  # one shift (far from the origin) for every window of the call
     # On CUDA, the next batch is prepared (scans, distance transforms, DBSCAN, sorting: mostly
     # host-bound work) on a side stream while the GPU optimises this one.
     # FLOXELS_PIPELINE=0 turns this off, FLOXELS_RAMP=0 the smaller first batches (measurements).
@@ -212,7 +214,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
             for f in batch:
                 start, stop = window_for(f, n, cfg.num_scans)
                 out.append((prepare_scans(scans[start:stop], f - start, device, converted, start,
-                                          times=None if times is None else times[start:stop], period=period),
+                                          times=None if times is None else times[start:stop], period=period,
+                                          recentring=recentring),
                             WindowCache(cache, start)))
             return out
         if side is None:

@@ -33,6 +33,8 @@ _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "
 def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     import textwrap
 
+    from floxels_ext.cli_types import finite_float
+
     g = p.add_argument_group("datasets and clusters", textwrap.fill(
         "INPUT may also be a dataset: a directory holding sequences at any depth (an Argoverse 2 split "
         "of log folders, KITTI odometry with sequences/NN/velodyne and poses/NN.txt, a directory of "
@@ -43,10 +45,10 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                    help="run as tasks on a Ray cluster (pip install 'floxels_ext[ray]'): 'auto' (the default "
                         "when the flag is bare) joins the cluster this machine belongs to or starts a local "
                         "one; ADDRESS is a head node (host:6379 or ray://host:10001)")
-    g.add_argument("--gpus-per-task", type=float, metavar="G",
+    g.add_argument("--gpus-per-task", type=finite_float, metavar="G",
                    help="GPUs a task asks Ray for; fractions pack several tasks on a GPU (default: 1 when the "
                         "cluster has GPUs and --device is not cpu, else 0 = CPU tasks)")
-    g.add_argument("--cpus-per-task", type=float, default=1.0, metavar="C",
+    g.add_argument("--cpus-per-task", type=finite_float, default=1.0, metavar="C",
                    help="CPUs a task asks Ray for (also its torch threads; default 1)")
     g.add_argument("--max-tasks", type=int, metavar="N", help="at most N tasks at once (default: as many as "
                    "the cluster's resources fit)")

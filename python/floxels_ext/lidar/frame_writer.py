@@ -56,6 +56,8 @@ class FrameOutput:
             extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)
         if self.self_contained:
             extra["points"] = p.points
+        if p.crc is not None:
+            extra["source_crc32"] = np.int64(p.crc)
         if self.stamps[i] is not None:
             extra["timestamp_ns"] = np.int64(self.stamps[i])
         if fields is not None:  # the motion evidence of the kept rows -> every row of the file
