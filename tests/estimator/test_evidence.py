@@ -208,6 +208,6 @@ def test_run_sums_equal_index_add():
     groups = torch.cumsum(torch.cat([torch.ones(1, dtype=torch.long), (groups[1:] != groups[:-1]).long()]), 0) - 1
     vals = torch.as_tensor(rng.random((500, 3)), dtype=torch.float32)
     ref = torch.zeros(500, 3, dtype=torch.float64).index_add_(0, groups, vals.double())[groups]
-    torch.testing.assert_close(_run_sums(vals, groups), ref)
+    torch.testing.assert_close(_run_sums(vals.t().contiguous(), groups), ref.t())  # (C, N) rows
     one = torch.zeros(1, dtype=torch.long)
-    torch.testing.assert_close(_run_sums(vals[:1], one), vals[:1].double())
+    torch.testing.assert_close(_run_sums(vals[:1].t().contiguous(), one), vals[:1].double().t())

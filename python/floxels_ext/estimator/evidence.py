@@ -140,25 +140,27 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
         q = torch.cat([torch.add(p, f, alpha=float(t)), p])  # one look-up for both residuals
         v = F.trilinear_gather(d[None], q, [float(x) for x in o], float(dt_cell)).view(-1)
         acc[:2 * n].add_(v.clamp_(max=float(truncation)), alpha=float(w) / wsum)
-    m = _run_sums(acc.view(3, n).t(), groups) if runs else \
-        torch.zeros(n, 3, dtype=torch.float32, device=dev).index_add_(0, groups, acc.view(3, n).t())[groups]
-    rf, rz = (m[:, 0] / m[:, 2]).float(), (m[:, 1] / m[:, 2]).float()
+    m = _run_sums(acc.view(3, n), groups) if runs else \
+        torch.zeros(n, 3, dtype=torch.float32, device=dev).index_add_(0, groups, acc.view(3, n).t())[groups].t()
+    rf, rz = (m[0] / m[2]).float(), (m[1] / m[2]).float()
     gain = rz - rf
     explained = gain > (rz * float(ratio)).clamp_(min=float(margin))
     return MotionEvidence(gain, explained, rf, rz)
 
 
 def _run_sums(values: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
-    """Per point, the sum of ``values`` (N, C) over its group, the groups being contiguous runs:
-    float64 prefix sums differenced at each run's first and last row (found with cummax /
-    cummin: no atomics, no host synchronisation)."""
-    n = values.shape[0]
+    """Per point, the sum of ``values`` (C, N) over its group, the groups being contiguous runs:
+    float64 prefix sums along each row, differenced at each run's first and last point (found
+    with cummax / cummin: no atomics, no host synchronisation). The scans run along the
+    innermost, contiguous dimension: an (N, C) scan along dim 0 with C = 3 runs as three
+    sequential threads on CUDA (6 ms for 100k points on an H200, more than the optimiser)."""
+    n = values.shape[1]
     v = values.double()
-    cs = torch.cumsum(v, 0)
+    cs = torch.cumsum(v, 1)
     pos = torch.arange(n, device=values.device)
     start = torch.ones(n, dtype=torch.bool, device=values.device)
     torch.ne(groups[1:], groups[:-1], out=start[1:])
     first = torch.cummax(torch.where(start, pos, 0), 0).values
     end = torch.roll(start, -1)  # a row is its run's last when the next row starts a run (or it is the last row)
     last = torch.cummin(torch.where(end, pos, n).flip(0), 0).values.flip(0)
-    return cs[last] - cs[first] + v[first]
+    return cs[:, last] - cs[:, first] + v[:, first]
