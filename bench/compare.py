@@ -21,7 +21,7 @@ centred on its frame. ``av2``: the real Argoverse 2 pair in ``../shared/data/av2
 with |x|, |y| < 35 m are evaluated (the AV2 protocol; AV2 categories mapped to the 2024
 meta-classes by ``floxels_ext.evaluation.protocol.AV2_CATEGORY_MAP``, the official evaluation's ignored
 categories left out), the estimators see non-ground points within 40 m (scan 1's ground: points
-within 0.15 m of a labelled ground point of scan 0).
+with the rule of ``ground_like_label``: at most 0.15 m above the labelled ground of scan 0 beside it).
 
 Metrics are point-weighted over all evaluated frames (``floxels_ext.evaluation.metrics.evaluate_sequence``).
 Time per frame is the wall time of the method's sequence runs divided by the number of
@@ -110,14 +110,12 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
 
 def load_av2_pair(path, max_points=0):
     """(scans [pc0, pc1 in pc0's frame], truth of pc0 (object motion), evaluation mask)."""
-    from scipy.spatial import cKDTree
-
     d = np.load(path)
     p0, p1 = d["pc0"].astype(np.float64), d["pc1"].astype(np.float64)
     T = np.linalg.inv(d["ego1_T_ego0"])  # ego1 -> ego0
     p1 = p1 @ T[:3, :3].T + T[:3, 3]
     g0 = d["is_ground0"].astype(bool)
-    g1 = cKDTree(p0[g0]).query(p1, distance_upper_bound=0.15)[0] < 0.15
+    g1 = ground_like_label(p0[g0], p1)
     box = lambda p, r: (np.abs(p[:, 0]) < r) & (np.abs(p[:, 1]) < r)  # noqa: E731
     k0 = box(p0, 40.0) & ~g0 & d["flow_valid"].astype(bool)
     k1 = box(p1, 40.0) & ~g1
@@ -133,6 +131,22 @@ def load_av2_pair(path, max_points=0):
         s0, truth = s0[i0], {k: v[i0] for k, v in truth.items()}
         s1 = s1[np.sort(rng.choice(len(s1), min(max_points, len(s1)), replace=False))]
     return [np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None]
+
+
+def ground_like_label(ground0, p1, above=0.15, radius=2.0, k=8):
+    """Scan 1's ground, removed like scan 0's labelled ground (issue 33; the 0.15 m
+    nearest-neighbour rule left ~7k ground points in scan 1): points at most ``above`` m over
+    the ground height beside them (median z of the ``k`` nearest labelled ground points of
+    scan 0 within ``radius`` m in x-y). On scan 0 itself the rule reproduces the label at
+    precision 0.96 / recall 0.99; it removes 17,520 points of scan 1 (scan 0: 17,374 labelled)."""
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(ground0[:, :2]).query(p1[:, :2], k=k, distance_upper_bound=radius)
+    z = np.where(np.isfinite(dist), ground0[:, 2][np.minimum(idx, len(ground0) - 1)], np.nan)
+    near = np.isfinite(dist).any(1)
+    h = np.full(len(p1), np.inf)
+    h[near] = np.nanmedian(z[near], 1)
+    return p1[:, 2] < h + above
 
 
 def run_rows(rows, data, dev, progress=True):
