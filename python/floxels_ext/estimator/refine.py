@@ -41,6 +41,8 @@ MAX_SPEED = 4.0
 SPEED_STEP = 0.1
 NUM_DIRECTIONS = 8
 SEARCH_POINTS = 64
+LOCAL_STEPS = 4    # local search steps SPEED_STEP, /2, /4, /8
+LOCAL_ROUNDS = 4   # moves per step at most
 # Evidence a cluster moves: its best velocity lowers the cluster's mean robust residual below
 # (1 - SEARCH_GAIN) times that of zero flow, and by at least SEARCH_MIN_DROP metres.
 SEARCH_GAIN = 0.3
@@ -189,18 +191,22 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
     zero = scores[0]
     best = cand[torch.arange(C, device=q.device), scores.argmin(0)]  # (C, 3)
     best_score = scores.min(0).values
-    # local refinement: 5 x 5 horizontal offsets, twice, at halving steps
-    step = SPEED_STEP / 2
-    off1 = torch.arange(-2, 3, device=q.device, dtype=q.dtype)
-    for _ in range(2):
-        gx, gy = torch.meshgrid(off1 * step, off1 * step, indexing="ij")
-        off = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros_like(gx.reshape(-1))], 1)
-        cand = best[:, None, :] + off[None]
-        s = _score(q, cid, cand, supports, C, tau)
-        k = s.argmin(0)
-        better = s.min(0).values < best_score
-        best = torch.where(better[:, None], cand[torch.arange(C, device=q.device), k], best)
-        best_score = torch.minimum(best_score, s.min(0).values)
+    # local refinement (pattern search): 3 x 3 horizontal offsets, repeated while a cluster
+    # still improves (at most LOCAL_ROUNDS times per step), at halving steps
+    off1 = torch.arange(-1, 2, device=q.device, dtype=q.dtype)
+    gx, gy = torch.meshgrid(off1, off1, indexing="ij")
+    unit = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros_like(gx.reshape(-1))], 1)
+    step = SPEED_STEP
+    for _ in range(LOCAL_STEPS):
+        for _ in range(LOCAL_ROUNDS):
+            cand = best[:, None, :] + step * unit[None]
+            s = _score(q, cid, cand, supports, C, tau)
+            smin, k = s.min(0)
+            better = smin < best_score
+            best = torch.where(better[:, None], cand[torch.arange(C, device=q.device), k], best)
+            best_score = torch.minimum(best_score, smin)
+            if not bool(better.any()):
+                break
         step /= 2
     moving = (best_score < (1 - SEARCH_GAIN) * zero) & (zero - best_score >= SEARCH_MIN_DROP)
     vel = torch.where(moving[:, None], best, torch.zeros_like(best))
@@ -226,9 +232,10 @@ def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
 def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
                  tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS) -> torch.Tensor:
     """The flow (n, 3) with every moving cluster (mean flow >= ``min_speed`` m/frame)
-    replaced by its best rigid motion (translation v and yaw rate w about the cluster's
-    centroid c: u(p) = v + w z x (p - c), per frame), found by Levenberg-Marquardt on the
-    robust squared DT residuals started from (mean flow, 0). A cluster keeps its Floxels
+    replaced by its best planar rigid motion (horizontal translation v and yaw rate w about
+    the cluster's centroid c: u(p) = v + w z x (p - c) per frame, the vertical velocity kept
+    at the flow's mean), found by Levenberg-Marquardt on the robust squared DT residuals
+    started from (mean flow, 0). A cluster keeps its Floxels
     flow unless the rigid motion explains the support scans clearly better than zero flow.
     (Not compared with the Floxels flow itself: a non-rigid flow fits one support scan
     better than the true rigid motion does, by sliding points onto surfaces.)"""
@@ -250,12 +257,15 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     q, cid = points[rows], lab[rows]
     cen = _cluster_mean(q.T, cid, C).T  # (C, 3)
     rel = q - cen[cid]
-    arm = torch.stack([-rel[:, 1], rel[:, 0], torch.zeros_like(rel[:, 0])], 1)  # z x (p - c)
-    theta = torch.cat([mean_flow, torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 4)
+    # planar rigid motion (vx, vy, yaw rate); the vertical velocity stays the flow's mean (the
+    # scans of vertical faces hardly constrain it, and road users move on the road)
+    theta = torch.cat([mean_flow[:, :2], torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 3)
+    vz = mean_flow[:, 2]
     wsum = sum(s.w for s in supports)
 
     def motion(th):
-        return th[cid, :3] + th[cid, 3:4] * arm
+        c = th[cid]
+        return torch.stack([c[:, 0] - c[:, 2] * rel[:, 1], c[:, 1] + c[:, 2] * rel[:, 0], vz[cid]], 1)
 
     def cost(th):  # per cluster: mean of the loss-weighted squared robust residuals
         u = motion(th)
@@ -267,21 +277,21 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
 
     cur = cost(theta)
     lam = torch.full((C,), 1e-2, dtype=dt, device=dev)
+    eye = torch.eye(3, dtype=dt, device=dev)
     for _ in range(iters):
         u = motion(theta)
-        H = torch.zeros(C, 4, 4, dtype=dt, device=dev)
-        b = torch.zeros(C, 4, dtype=dt, device=dev)
+        H = torch.zeros(C, 3, 3, dtype=dt, device=dev)
+        b = torch.zeros(C, 3, dtype=dt, device=dev)
         for s in supports:
             d, g = _lookup(s, q + s.t * u, grad=True)
             ok = (d < tau).to(dt) * (s.w / wsum)
-            J = s.t * torch.cat([g, (g * arm).sum(1, keepdim=True)], 1)  # (m, 4)
+            J = s.t * torch.stack([g[:, 0], g[:, 1], g[:, 1] * rel[:, 0] - g[:, 0] * rel[:, 1]], 1)  # (m, 3)
             H.index_add_(0, cid, ok[:, None, None] * J[:, :, None] * J[:, None, :])
             b.index_add_(0, cid, (ok * d)[:, None] * J)
         n = torch.zeros(C, dtype=dt, device=dev).index_add_(0, cid, torch.ones_like(cid, dtype=dt)).clamp_min(1)
         H, b = H / n[:, None, None], b / n[:, None]
         # Marquardt damping plus a small absolute term: unconstrained directions keep their value
-        A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) +
-                                      1e-3 * torch.eye(4, dtype=dt, device=dev))
+        A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-3 * eye)
         step = -torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
         step = torch.where(sel[:, None], step, torch.zeros_like(step))
         trial = theta + step
@@ -292,13 +302,16 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
         lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
+    vz_keep, vz = vz, torch.zeros_like(vz)
     zero_cost = cost(torch.zeros_like(theta))
+    vz = vz_keep
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     take = (lab >= 0) & accept[lab.clamp_min(0)]
     out = flow.clone()
     if bool(take.any()):
         cl = lab[take]
         rel_all = points[take] - cen[cl]
-        arm_all = torch.stack([-rel_all[:, 1], rel_all[:, 0], torch.zeros_like(rel_all[:, 0])], 1)
-        out[take] = theta[cl, :3] + theta[cl, 3:4] * arm_all
+        th = theta[cl]
+        out[take] = torch.stack([th[:, 0] - th[:, 2] * rel_all[:, 1], th[:, 1] + th[:, 2] * rel_all[:, 0],
+                                 vz[cl]], 1)
     return out
