@@ -192,7 +192,7 @@ class FloxelsConfig:
 # measures every entry of "accurate" alone and together).
 PRESETS: dict[str, dict] = {
     "paper": {},
-    "accurate": {"num_scans": 9, "velocity_search": True, "rigid_refine": True},
+    "accurate": {"num_scans": 9, "velocity_search": True, "rigid_refine": True, "evidence": "zero"},
 }
 
 

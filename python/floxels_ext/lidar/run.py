@@ -71,7 +71,7 @@ def add_parser(sub) -> None:
     p.add_argument("--list-methods", action="store_true", help="print the available methods and exit")
     p.add_argument("--scans", type=int, default=None,
                    help="scans per window, target in the middle (default: the preset's, paper 5, accurate 9)")
-    p.add_argument("--preset", default="paper", choices=("paper", "accurate"),
+    p.add_argument("--preset", default="paper",
                    help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
                         "9 scans, per-cluster velocity search and rigid refinement; README 'Beyond the paper')")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
