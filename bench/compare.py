@@ -165,14 +165,14 @@ def run_rows(rows, data, dev, progress=True):
         if (name, tuple(sorted(opts.items()))) not in warmed:
             scans, _, frames, _ = data[0]
             w = {**opts, "max_iters": 3}
-            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow: None)
+            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow, *extra: None)
             warmed.add((name, tuple(sorted(opts.items()))))
         out[key] = {}
         t_row = time.perf_counter()
         for scans, _truth, frames, scene in data:
             preds = {}
             t0 = time.perf_counter()
-            method.estimate_sequence(scans, frames, dev, opts, lambda f, flow: preds.__setitem__(f, flow))
+            method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: preds.__setitem__(f, flow))
             if dev.startswith("cuda"):
                 torch.cuda.synchronize()
             out[key][scene] = (time.perf_counter() - t0, preds)
