@@ -88,7 +88,9 @@ ABLATIONS = [
     # beyond the paper (issue 33): the "accurate" preset and each of its ingredients alone
     ("beyond", "paper", {}),
     ("beyond", "accurate (preset)", dict(PRESETS["accurate"])),
-    *[("beyond", f"only {k}={v}", {k: v}) for k, v in PRESETS["accurate"].items()],
+    *[("beyond-only", f"only {k}={v}", {k: v}) for k, v in PRESETS["accurate"].items()],
+    ("beyond-only", "only velocity_search=True (not in the preset)", {"velocity_search": True}),
+    ("beyond-only", "accurate + velocity_search", {**PRESETS["accurate"], "velocity_search": True}),
     *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk != k})
       for k in PRESETS["accurate"]],
 ]
@@ -331,7 +333,7 @@ def main(argv=None) -> int:
             rows.append((key, label, name, scaled(o, name, args.iters_scale, args.iter_caps), "main"))
     for group, label, opts in ABLATIONS:
         if group in args.ablations:
-            if two_scan and (group == "scans" or (group == "beyond" and "num_scans" in label)):
+            if two_scan and (group == "scans" or (group.startswith("beyond") and "num_scans" in label)):
                 continue  # (two-scan estimators: the window is the pair)
             o = {**opts, "num_scans": 2} if two_scan else opts
             rows.append((f"abl:{group}:{label}", label, "floxels", scaled(o, "floxels", args.iters_scale, args.iter_caps), group))

@@ -73,7 +73,7 @@ def add_parser(sub) -> None:
                    help="scans per window, target in the middle (default: the preset's, paper 5, accurate 9)")
     p.add_argument("--preset", default="paper",
                    help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
-                        "9 scans, per-cluster velocity search, rigid refinement, motion evidence; "
+                        "9 scans, rigid refinement of moving clusters, motion evidence; "
                         "README 'Beyond the paper')")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
