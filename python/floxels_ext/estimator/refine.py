@@ -1,5 +1,7 @@
 """Beyond the paper (issue 33, the ``accurate`` preset): per-cluster motion ingredients that use
-the support scans' distance transforms directly, before and after the grid optimisation.
+the support scans' distance transforms directly, before and after the grid optimisation. The
+preset uses :func:`rigid_refine`; :func:`cluster_velocity_search` (``velocity_search=True``) is
+left out of it (static highway barriers get the ego's speed: bench/RESULTS.md).
 
 * :func:`cluster_velocity_search`: for every DBSCAN cluster of the target, the constant
   horizontal velocity that best explains the support scans, searched over candidate
@@ -263,12 +265,12 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     vz = mean_flow[:, 2]
     wsum = sum(s.w for s in supports)
 
-    def motion(th):
+    def motion(th, vert=vz):
         c = th[cid]
-        return torch.stack([c[:, 0] - c[:, 2] * rel[:, 1], c[:, 1] + c[:, 2] * rel[:, 0], vz[cid]], 1)
+        return torch.stack([c[:, 0] - c[:, 2] * rel[:, 1], c[:, 1] + c[:, 2] * rel[:, 0], vert[cid]], 1)
 
-    def cost(th):  # per cluster: mean of the loss-weighted squared robust residuals
-        u = motion(th)
+    def cost(th, vert=vz):  # per cluster: mean of the loss-weighted squared robust residuals
+        u = motion(th, vert)
         total = torch.zeros(q.shape[0], dtype=dt, device=dev)
         for s in supports:
             d, _ = _lookup(s, q + s.t * u)
@@ -302,9 +304,7 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
         lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
-    vz_keep, vz = vz, torch.zeros_like(vz)
-    zero_cost = cost(torch.zeros_like(theta))
-    vz = vz_keep
+    zero_cost = cost(torch.zeros_like(theta), torch.zeros_like(vz))
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     take = (lab >= 0) & accept[lab.clamp_min(0)]
     out = flow.clone()
