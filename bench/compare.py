@@ -48,12 +48,13 @@ import numpy as np
 import torch
 
 from floxels_ext import methods
+from floxels_ext.estimator.config import PRESETS
 from floxels_ext.evaluation.metrics import evaluate_sequence
-from floxels_ext.evaluation.protocol import AV2_CATEGORY_MAP, map_categories, protocol_mask
+from floxels_ext.evaluation.protocol import AV2_CATEGORY_MAP, META_CLASSES, map_categories, protocol_mask
 from floxels_ext.evaluation.sim import simulate_sequence
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from compare_tables import ablation_table, fmt, main_table  # noqa: E402
+from compare_tables import ablation_table, beyond_table, fmt, main_table  # noqa: E402
 
 # Paper's baseline settings (appendix "Baseline details"): NSFP lr 0.0008, FastNSF lr 0.001,
 # no weight decay, patience 100, min delta 1e-4, at most 5000 iterations.
@@ -88,6 +89,14 @@ ABLATIONS = [
     ("port", "cluster loss over clustered points", {"cluster_loss_mean": "clustered"}),
     ("port", "all four port readings", PORT),
     ("port", "all four, - cluster loss", {**PORT, "cluster_loss": False}),
+    # beyond the paper (issue 33): the "accurate" preset and each of its ingredients alone
+    ("beyond", "paper", {}),
+    ("beyond", "accurate (preset)", dict(PRESETS["accurate"])),
+    *[("beyond-only", f"only {k}={v}", {k: v}) for k, v in PRESETS["accurate"].items()],
+    ("beyond-only", "only velocity_search=True (not in the preset)", {"velocity_search": True}),
+    ("beyond-only", "accurate + velocity_search", {**PRESETS["accurate"], "velocity_search": True}),
+    *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk != k})
+      for k in PRESETS["accurate"]],
 ]
 GROUPS = sorted({g for g, _, _ in ABLATIONS})
 MAX_WINDOW = 11
@@ -167,14 +176,14 @@ def run_rows(rows, data, dev, progress=True):
         if (name, tuple(sorted(opts.items()))) not in warmed:
             scans, _, frames, _ = data[0]
             w = {**opts, "max_iters": 3}
-            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow: None)
+            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow, *extra: None)
             warmed.add((name, tuple(sorted(opts.items()))))
         out[key] = {}
         t_row = time.perf_counter()
         for scans, _truth, frames, scene in data:
             preds = {}
             t0 = time.perf_counter()
-            method.estimate_sequence(scans, frames, dev, opts, lambda f, flow: preds.__setitem__(f, flow))
+            method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: preds.__setitem__(f, flow))
             if dev.startswith("cuda"):
                 torch.cuda.synchronize()
             out[key][scene] = (time.perf_counter() - t0, preds)
@@ -193,9 +202,25 @@ def evaluate_rows(records, preds_of, truth_of):
                 P.append(preds_of(r["key"], scene, f))
                 G.append(truth_of(scene, f))
         r["metrics"] = evaluate_sequence(P, G)
+        r["metrics"]["car_speed_ratio"] = car_speed_ratio(P, G)
         n = sum(len(v) for v in r["frames"].values())
         r["seconds_per_frame"] = sum(r["seconds"].values()) / max(n, 1)
     return records
+
+
+def car_speed_ratio(preds, truths) -> float:
+    """Median predicted / true speed over the evaluated dynamic car points (issue 33's
+    measure of speed shrinkage); NaN without any."""
+    r = []
+    for p, t in zip(preds, truths):
+        keep = t["dynamic"] & (np.asarray(t["classes"]) == META_CLASSES.index("car"))
+        if "ground" in t:
+            keep &= ~np.asarray(t["ground"], bool)
+        true = np.linalg.norm(t["flow"][keep], axis=1)
+        ok = true > 1e-6
+        r.append(np.linalg.norm(np.asarray(p, np.float64)[keep][ok], axis=1) / true[ok])
+    r = np.concatenate(r) if r else np.zeros(0)
+    return float(np.median(r)) if r.size else float("nan")
 
 
 def clean(o):
@@ -221,6 +246,9 @@ def parse_args(argv=None):
     ap.add_argument("--lidar", choices=("small", "full"), default=None, help="64 x 1024 (full, default) or 32 x 512")
     ap.add_argument("--max-range", type=float, default=None, help="protocol max range in m (default 50; quick 30)")
     ap.add_argument("--max-points", type=int, default=None, help="subsample each scan (0 = all; quick 1000)")
+    ap.add_argument("--seeds", nargs="+", type=int, default=None,
+                    help="simulator seed per scene (default urban 0, crossing 1, highway 2, parking 3; "
+                         "issue 33's held-out seeds: 10 11 12)")
     ap.add_argument("--sim", nargs="+", default=[], metavar="KEY=VALUE",
                     help="extra simulate_sequence options, e.g. vehicle_detail=False range_noise=0.015")
     ap.add_argument("--methods", nargs="*", default=None, choices=[k for k, *_ in METHODS],
@@ -290,12 +318,15 @@ def main(argv=None) -> int:
         log(f"av2 pair: {len(scans[0])} / {len(scans[1])} points, {int(truth[0]['dynamic'].sum())} dynamic")
     else:
         need = max([MAX_WINDOW if "scans" in args.ablations else 5] +
+                   [o.get("num_scans", 5) for g, _, o in ABLATIONS if g in args.ablations] +
                    [o.get("num_scans", 5) for k, _, n, o in METHODS if k in args.methods and n == "floxels"])
         half = need // 2
         num_frames = args.frames + 2 * half
         frames = list(range(half, half + args.frames))
-        for scene in args.scenes:
-            seed = SCENE_SEED.get(scene, 0)
+        if args.seeds is not None and len(args.seeds) != len(args.scenes):
+            raise SystemExit(f"--seeds needs one seed per scene ({len(args.scenes)}), got {len(args.seeds)}")
+        for i, scene in enumerate(args.scenes):
+            seed = SCENE_SEED.get(scene, 0) if args.seeds is None else args.seeds[i]
             scans, truth = load_sim_scene(scene, seed, num_frames, args.lidar, args.max_range, args.max_points, args.sim)
             data.append((scans, truth, frames, scene))
             log(f"scene {scene}: {num_frames} scans; frames {frames}: {[len(scans[f]) for f in frames]} points "
@@ -311,9 +342,9 @@ def main(argv=None) -> int:
             rows.append((key, label, name, scaled(o, name, args.iters_scale, args.iter_caps), "main"))
     for group, label, opts in ABLATIONS:
         if group in args.ablations:
-            if two_scan and group == "scans":
-                continue
-            o = {"num_scans": 2, **opts} if two_scan else opts
+            if two_scan and (group == "scans" or (group.startswith("beyond") and "num_scans" in label)):
+                continue  # (two-scan estimators: the window is the pair)
+            o = {**opts, "num_scans": 2} if two_scan else opts
             rows.append((f"abl:{group}:{label}", label, "floxels", scaled(o, "floxels", args.iters_scale, args.iter_caps), group))
 
     results = run_rows(rows, data, dev)
@@ -332,6 +363,9 @@ def main(argv=None) -> int:
         log(f"\n## Comparison ({title})\n\n{main_table(main_rows)}")
     if abl_rows:
         log(f"\n## Floxels ablations ({title})\n\n{ablation_table(abl_rows)}")
+    beyond = [r for r in records if r["group"].startswith("beyond")]
+    if beyond:
+        log(f"\n## Beyond the paper ({title})\n\n{beyond_table(beyond)}")
 
     here = os.path.dirname(os.path.abspath(__file__))
     part = args.part or f"{args.dataset}_{dev.split(':')[0]}"

@@ -33,6 +33,9 @@ for stage in "$@"; do
     ablations) cmp simC --methods --ablations loss scans voxel port ;;
     es) cmp simD --methods --ablations es ;;
     av2) cmp av2 --dataset av2 --av2 ../av2_pair.npz --methods floxels nsfp fastnsf --ablations loss port voxel ;;
+    # issue 33: the accurate preset and its ingredients, simulator on held-out seeds, AV2 pair
+    beyond) cmp beyond_sim --methods --ablations beyond beyond-only beyond-loo --seeds 10 11 12 ;;
+    beyondav2) cmp beyond_av2 --dataset av2 --av2 "${AV2:-../av2_pair.npz}" --methods --ablations beyond beyond-only beyond-loo ;;
     simnew) (cp python/floxels_ext/_C*.so pynew/floxels_ext/ && export PYTHONPATH=$PWD/pynew
              cmp simnew --methods floxels nsfp fastnsf --ablations none) ;;
     *) echo "unknown stage $stage"; exit 2 ;;

@@ -33,3 +33,21 @@ def ablation_table(rows) -> str:
         lines.append(f"| {r['group']} | {r['label']} | " + " | ".join(_cells(r["metrics"]))
                      + f" | {fmt(r['seconds_per_frame'], 3)} |")
     return "\n".join(lines)
+
+
+def beyond_table(rows) -> str:
+    """The ``accurate`` preset against ``paper`` (issue 33): the targets' columns, and each
+    row's ratio to the paper row's dynamic normalised EPE and time."""
+    ref = next((r for r in rows if r["label"] == "paper"), rows[0])
+    m0 = ref["metrics"]
+    lines = ["| setting | dyn EPE | static EPE | mean dyn norm EPE (bucketed) | x paper | car speed ratio (median) "
+             "| s/frame | x paper |", "|" + " --- |" * 8]
+    for r in rows:
+        m = r["metrics"]
+        a, b = m.get("mean_dynamic_normalized_epe"), m0.get("mean_dynamic_normalized_epe")
+        ratio = a / b if a is not None and b else float("nan")
+        tr = r["seconds_per_frame"] / ref["seconds_per_frame"] if ref["seconds_per_frame"] else float("nan")
+        lines.append(f"| {r['label']} | {fmt(m.get('dynamic_epe'))} | {fmt(m.get('static_epe'))} | "
+                     f"{fmt(a)} | {fmt(ratio, 2)} | {fmt(m.get('car_speed_ratio'), 2)} | "
+                     f"{fmt(r['seconds_per_frame'], 3)} | {fmt(tr, 2)} |")
+    return "\n".join(lines)

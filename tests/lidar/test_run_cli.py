@@ -335,3 +335,23 @@ def test_motion_evidence_fields_switch_and_resume(seq, tmp_path, capsys):
     assert rc == 2 and "--raw-flow contradicts" in cap.err
     rc, cap = _run([*args, "--out", out], capsys)
     assert rc == 0 and "2 already done" in cap.err
+
+
+def test_preset_accurate(seq, tmp_path, capsys, fake):
+    """--preset accurate: the preset's fields are the run's options, its 9-scan window unless
+    --scans is given; with another method it is a user error."""
+    save_sequence(tmp_path / "sim", seq)
+    args = [tmp_path / "sim", "--max-iters", "3", "--frames", "2:3", "--preset", "accurate"]
+    rc, cap = _run([*args, "--out", tmp_path / "acc"], capsys)
+    assert rc == 0, cap.err
+    d = read_flow_output(tmp_path / "acc" / "000002.npz")
+    assert d["settings"]["num_scans"] == 9
+    opts = d["settings"]["options"]
+    assert opts["rigid_refine"] is True and opts["evidence"] == "zero" and "velocity_search" not in opts
+    rc, cap = _run([*args, "--out", tmp_path / "acc3", "--scans", "3"], capsys)
+    assert rc == 0, cap.err
+    assert read_flow_output(tmp_path / "acc3" / "000002.npz")["settings"]["num_scans"] == 3
+    rc, cap = _run([*args, "--out", tmp_path / "f", "--method", "fake"], capsys)
+    assert rc == 2 and "--preset accurate sets Floxels options" in cap.err
+    rc, cap = _run([tmp_path / "sim", "--out", tmp_path / "p", "--preset", "fast"], capsys)
+    assert rc == 2 and "fast" in cap.err

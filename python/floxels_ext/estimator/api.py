@@ -40,10 +40,8 @@ class Floxels:
     >>> res = est.fit(scans, target=2)      # res.flow, res.losses, res.labels, res.grid, res.timings
     """
 
-    def __init__(self, config: FloxelsConfig | None = None, device=None) -> None:
-        if config is not None and not isinstance(config, FloxelsConfig):
-            raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
-        self.config = config or FloxelsConfig()
+    def __init__(self, config: FloxelsConfig | None = None, device=None, *, preset: str | None = None) -> None:
+        self.config = _config_of(config, preset)
         self.device = device
 
     # -- public -----------------------------------------------------------------------
@@ -81,9 +79,23 @@ class Floxels:
         return fit_group(self.config, [(p, {}) for p in preps])
 
 
+def _config_of(config: FloxelsConfig | None, preset: str | None) -> FloxelsConfig:
+    """The configuration of ``config=`` or ``preset=`` (one of them; neither: the paper's)."""
+    if config is not None and not isinstance(config, FloxelsConfig):
+        raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
+    if preset is None:
+        return config or FloxelsConfig()
+    if config is not None:
+        raise ValueError("give config= or preset=, not both (FloxelsConfig.preset(name, **changes) "
+                         "combines a preset with changes)")
+    if not isinstance(preset, str):
+        raise TypeError(f"preset must be a name (str), got {type(preset).__name__}")
+    return FloxelsConfig.preset(preset)
+
+
 def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None,
                   *, times: Sequence[float] | None = None, frame_period: float | None = None,
-                  flow_unit: str = "frame"):
+                  flow_unit: str = "frame", preset: str | None = None):
     """Flow of every point of ``scans[target]``.
 
     ``scans``: 2 to 13 (N_i, 3) float arrays/tensors in one ego-motion-compensated frame;
@@ -95,8 +107,10 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     step of ``times``. ``flow_unit``: ``"frame"`` (default: metres per frame period) or
     ``"m/s"`` (needs ``times`` or ``frame_period``). Returns (N_target, 3): numpy float32 for
     numpy input, else a tensor of the input's dtype on the input's device. Rows with NaN/inf
-    coordinates are dropped (with a warning) and get NaN flow.
+    coordinates are dropped (with a warning) and get NaN flow. ``preset``: ``"paper"`` (the
+    default configuration) or ``"accurate"`` (README "Beyond the paper"), instead of ``config``.
     """
+    config = _config_of(config, preset)
     if flow_unit not in ("frame", "m/s"):  # argument mistakes before any work
         raise ValueError(f"flow_unit must be 'frame' or 'm/s', got {flow_unit!r}")
     if flow_unit == "m/s" and times is None and frame_period is None:
@@ -135,7 +149,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
                       frames: Sequence[int] | None = None,
                       callback: Callable[[int, FloxelsResult], None] | None = None,
                       batch_size: int | None = None, *, times: Sequence[float] | None = None,
-                      frame_period: float | None = None, flow_unit: str = "frame") -> list:
+                      frame_period: float | None = None, flow_unit: str = "frame",
+                      preset: str | None = None) -> list:
     """Flow of every frame of a sequence (or of ``frames``) with a sliding window of
     ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
     every window that needs it (and freed once no later window does).
@@ -153,11 +168,10 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
 
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk), with
-    ``result.flow`` in ``flow_unit``.
+    ``result.flow`` in ``flow_unit``. ``preset``: a named configuration instead of ``config``
+    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 9-scan windows).
     """
-    if config is not None and not isinstance(config, FloxelsConfig):
-        raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
-    cfg = config or FloxelsConfig()
+    cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:
         raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
     if not isinstance(scans, collections.abc.Sequence):

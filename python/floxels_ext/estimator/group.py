@@ -17,6 +17,7 @@ import torch
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DtStreams, build_dt
 from floxels_ext.estimator.evidence import MotionEvidence, group_ids, motion_evidence
+from floxels_ext.estimator.refine import cluster_velocity_search, rigid_refine, supports_of, vertex_init
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
 from floxels_ext.estimator.solver_run import SolverRun
@@ -155,8 +156,21 @@ def solve_group(cfg: FloxelsConfig, prepared: Prepared, wait_for=None) -> Solvin
 def pack(cfg: FloxelsConfig, prepared: Prepared) -> list:
     """The solver calls of a prepared group: [(indices of its problems, PackedProblems)]."""
     live = [k for k, p in enumerate(prepared.problems) if p is not None]
-    return [(group, PackedProblems([prepared.problems[k] for k in group], cfg))
-            for group in _groups(live, prepared.problems)]
+    packs = [(group, PackedProblems([prepared.problems[k] for k in group], cfg))
+             for group in _groups(live, prepared.problems)]
+    if cfg.velocity_search:
+        for group, packed in packs:
+            for b, k in enumerate(group):
+                packed.theta[packed.vertex_ranges[b]:packed.vertex_ranges[b + 1]] = _searched_start(
+                    cfg, prepared.problems[k])
+    return packs
+
+
+def _searched_start(cfg: FloxelsConfig, p: SolverProblem) -> torch.Tensor:
+    """Grid parameters started from each cluster's searched velocity (refine.py)."""
+    sup = supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell)
+    vel = cluster_velocity_search(p.points, p.labels, sup)
+    return vertex_init(vel, p.corners.corner_idx, p.corners.corner_w, p.corners.num_params)
 
 
 def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=None):
@@ -244,6 +258,10 @@ class Solving:
                 continue
             corners = pr.problems[k].corners
             flow_s = F.corner_gather(solved[k], corners.corner_idx, corners.corner_w)
+            if cfg.rigid_refine:  # (before the evidence test, which then judges the refined flow)
+                p = pr.problems[k]
+                flow_s = rigid_refine(p.points, flow_s, p.labels,
+                                      supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell))
             if evidence is not None:
                 ev = problem_evidence(cfg, pr.problems[k], flow_s)
                 if cfg.evidence == "zero":

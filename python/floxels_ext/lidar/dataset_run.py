@@ -123,6 +123,9 @@ def maybe_run_dataset(args) -> int | None:
             return None
         specs = [SequenceSpec(Path(args.input).resolve(), Path("."),
                               Path(args.poses) if args.poses else None, Path(args.calib) if args.calib else None)]
+    from floxels_ext.lidar.run_args import resolve_preset
+
+    resolve_preset(args)  # --scans from the preset when not given
     if not 2 <= args.scans <= 13:
         raise CLIError(f"--scans must be in [2, 13], got {args.scans}")
     if args.chunk is not None and args.chunk < 1:

@@ -50,11 +50,31 @@ def parse_frames(text: str | None, n: int) -> list[int]:
     return list(range(start, stop))
 
 
+def resolve_preset(args) -> dict:
+    """``--preset``'s Floxels fields (besides the window) and ``args.scans`` set to the
+    preset's window when ``--scans`` was not given. Raises CLIError for a preset with
+    another method."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.estimator.config import PRESETS, FloxelsConfig
+
+    name = getattr(args, "preset", None) or "paper"
+    if name not in PRESETS:
+        raise CLIError(f"unknown --preset {name!r}; choose from {', '.join(PRESETS)}")
+    if name != "paper" and getattr(args, "method", "floxels") != "floxels":
+        raise CLIError(f"--preset {name} sets Floxels options; it does not apply to --method {args.method}")
+    fields = dict(PRESETS[name])
+    window = fields.pop("num_scans", FloxelsConfig.num_scans)
+    if getattr(args, "scans", None) is None:
+        args.scans = window
+    return fields
+
+
 def check_args(args, torch):
     """Validate the plain arguments; returns (device, options). Raises CLIError."""
     from floxels_ext.cli import CLIError
     from floxels_ext.methods import available_methods, get_method
 
+    preset_fields = resolve_preset(args)
     if not args.input or not args.out:
         raise CLIError("floxels run needs INPUT and --out OUT_DIR")
     if args.method not in available_methods():
@@ -88,7 +108,7 @@ def check_args(args, torch):
         # either way; a setting like the others (options, recorded, compared on resume)
         if raw and options.get("evidence") == "zero":
             raise CLIError("--raw-flow contradicts --option evidence=zero; give one of them")
-        options = {"num_scans": args.scans, "evidence": "score" if raw else "zero", **options}
+        options = {**preset_fields, "num_scans": args.scans, "evidence": "score" if raw else "zero", **options}
         from floxels_ext.estimator.config import FloxelsConfig  # fail fast on a bad option instead of after reading data
         try:
             FloxelsConfig(**options)

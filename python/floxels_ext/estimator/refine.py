@@ -1,0 +1,317 @@
+"""Beyond the paper (issue 33, the ``accurate`` preset): per-cluster motion ingredients that use
+the support scans' distance transforms directly, before and after the grid optimisation. The
+preset uses :func:`rigid_refine`; :func:`cluster_velocity_search` (``velocity_search=True``) is
+left out of it (static highway barriers get the ego's speed: bench/RESULTS.md).
+
+* :func:`cluster_velocity_search`: for every DBSCAN cluster of the target, the constant
+  horizontal velocity that best explains the support scans, searched over candidate
+  directions (the cluster's principal axis and its rotations by 45 degrees) and speeds, then
+  refined locally. The grid is started from it (:func:`vertex_init`). Why: with few support
+  scans the paper's loss has a shallow valley from zero to the true speed (a car's points
+  slide onto its own next-frame surface; the regularisers pull towards zero), so Adam from
+  zero stops short (bench/RESULTS.md: cars at ~0.5-0.6 of their speed on the AV2 pair).
+* :func:`rigid_refine`: each moving cluster is refined as a rigid body (translation and yaw
+  rate, constant over the window) by Levenberg-Marquardt on the distance transforms,
+  started from the cluster's mean Floxels flow. A DT-based ICP (point-to-surface distances
+  from the EDT, their gradients as normals): directions the scans do not constrain (a flat
+  side sliding along itself) have no gradient and keep the start value (damping).
+
+Both score a motion with the robust residual ``min(DT_t(p + t u), tau)`` over the loss's
+support scans, weighted like the loss (``w(t) = 1/t^2``); a cluster's result is kept only if it
+explains the scans better than the alternative by a margin. Everything is ordinary tensor
+work and ``floxels::trilinear_gather`` look-ups, so it runs on the CPU and CUDA alike.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["Support", "supports_of", "robust_residual", "cluster_velocity_search", "vertex_init", "rigid_refine"]
+
+F = torch.ops.floxels
+
+# Robust residual cap (m): a point whose warped position lies farther than this from the
+# support scan counts as unmatched (occlusion, scan edge) and costs tau, without gradient.
+TAU = 1.0
+# Velocity search: horizontal speeds 0.1 .. MAX_SPEED m/frame (4 m per 0.1 s = 144 km/h) in
+# SPEED_STEP steps along 8 directions, then a local search around the best; at most
+# SEARCH_POINTS points per cluster (evenly spread over the cluster's rows).
+MAX_SPEED = 4.0
+SPEED_STEP = 0.1
+NUM_DIRECTIONS = 8
+SEARCH_POINTS = 64
+LOCAL_STEPS = 4    # local search steps SPEED_STEP, /2, /4, /8
+LOCAL_ROUNDS = 4   # moves per step at most
+# Evidence a cluster moves: its best velocity lowers the cluster's mean robust residual below
+# (1 - SEARCH_GAIN) times that of zero flow, and by at least SEARCH_MIN_DROP metres.
+SEARCH_GAIN = 0.3
+SEARCH_MIN_DROP = 0.02
+MIN_CLUSTER_POINTS = 10
+# Rigid refinement: clusters whose mean flow is at least REFINE_MIN_SPEED m/frame, at most
+# REFINE_POINTS points each, REFINE_ITERS Levenberg-Marquardt steps.
+REFINE_MIN_SPEED = 0.1
+REFINE_POINTS = 256
+REFINE_ITERS = 10
+
+
+@dataclass
+class Support:
+    """One support scan as the ingredients see it: its DT (Z, Y, X), the DT's origin and
+    spacing, the time offset t (frames) and the loss weight w(t)."""
+
+    values: torch.Tensor
+    origin: list[float]
+    spacing: float
+    t: float
+    w: float
+
+
+def supports_of(dts, origins, offsets, weights, spacing: float) -> list[Support]:
+    return [Support(d, list(o), float(spacing), float(t), float(w))
+            for d, o, t, w in zip(dts, origins, offsets, weights)]
+
+
+def _lookup(s: Support, x: torch.Tensor, grad: bool = False):
+    """DT values (n,) at ``x`` (n, 3) and, with ``grad``, their gradients (n, 3)."""
+    grid = s.values.unsqueeze(0)
+    if not grad:
+        return F.trilinear_gather(grid, x.contiguous(), s.origin, s.spacing)[:, 0], None
+    with torch.enable_grad():
+        xg = x.detach().contiguous().requires_grad_(True)
+        d = F.trilinear_gather(grid, xg, s.origin, s.spacing)[:, 0]
+        (g,) = torch.autograd.grad(d.sum(), xg)
+    return d.detach(), g
+
+
+def robust_residual(points: torch.Tensor, motion: torch.Tensor, supports: list[Support], tau: float = TAU):
+    """Per point, the loss-weighted mean over support scans of ``min(DT_t(p + t u), tau)``
+    for per-frame motions ``motion`` (n, 3) (or broadcastable to ``points``)."""
+    total = torch.zeros(points.shape[0], dtype=points.dtype, device=points.device)
+    wsum = 0.0
+    for s in supports:
+        d, _ = _lookup(s, points + s.t * motion)
+        total += s.w * d.clamp_max(tau)
+        wsum += s.w
+    return total / max(wsum, 1e-12)
+
+
+def _cluster_index(labels: torch.Tensor, min_points: int):
+    """(cluster id per point (-1: not searched), number of clusters, points per cluster)."""
+    lab = labels.to(torch.int64)
+    C = int(lab.max()) + 1 if lab.numel() else 0
+    if C <= 0:
+        return lab, 0, lab.new_zeros(0)
+    counts = torch.zeros(C, dtype=torch.int64, device=lab.device).index_add_(
+        0, lab.clamp_min(0), (lab >= 0).to(torch.int64))
+    keep = counts >= min_points
+    lab = torch.where((lab >= 0) & keep[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
+    return lab, C, torch.where(keep, counts, torch.zeros_like(counts))
+
+
+def _subsample(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> torch.Tensor:
+    """Rows of at most ``k`` points per cluster, evenly spread over each cluster's rows
+    (deterministic)."""
+    valid = torch.nonzero(lab >= 0).squeeze(1)
+    if valid.numel() == 0:
+        return valid
+    cl = lab[valid]
+    order = torch.argsort(cl, stable=True)
+    rows, cl = valid[order], cl[order]
+    start = torch.zeros(C + 1, dtype=torch.int64, device=lab.device)
+    start[1:] = torch.cumsum(counts, 0)
+    rank = torch.arange(rows.numel(), device=lab.device) - start[cl]
+    n = counts[cl]
+    stride = torch.clamp((n + k - 1) // k, min=1)
+    keep = (rank % stride == 0)
+    return rows[keep]
+
+
+def _cluster_mean(values: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
+    """Mean of ``values`` (..., m) over each cluster's columns -> (..., C)."""
+    shape = values.shape[:-1] + (C,)
+    s = torch.zeros(shape, dtype=values.dtype, device=values.device).index_add_(-1, cid, values)
+    n = torch.zeros(C, dtype=values.dtype, device=values.device).index_add_(0, cid, torch.ones_like(cid, dtype=values.dtype))
+    return s / n.clamp_min(1)
+
+
+def _score(q: torch.Tensor, cid: torch.Tensor, cand: torch.Tensor, supports: list[Support], C: int,
+           tau: float, chunk: int = 1 << 22) -> torch.Tensor:
+    """Mean robust residual of every cluster under each of its candidates: ``q`` (m, 3)
+    sample points of cluster ``cid`` (m,), ``cand`` (C, K, 3) -> (K, C)."""
+    K = cand.shape[1]
+    out = torch.empty(K, C, dtype=q.dtype, device=q.device)
+    per = max(1, chunk // max(q.shape[0], 1))
+    for k0 in range(0, K, per):
+        v = cand[:, k0:k0 + per].transpose(0, 1)[:, cid]  # (k, m, 3)
+        x = q.unsqueeze(0).expand_as(v).reshape(-1, 3)
+        r = robust_residual(x, v.reshape(-1, 3), supports, tau).view(v.shape[0], -1)
+        out[k0:k0 + per] = _cluster_mean(r, cid, C)
+    return out
+
+
+def _principal_axes(q: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
+    """Unit horizontal principal axis of every cluster's sample points (C, 2)."""
+    xy = q[:, :2].to(torch.float64)
+    mean = _cluster_mean(xy.T, cid, C).T  # (C, 2)
+    d = xy - mean[cid]
+    cov = torch.stack([_cluster_mean((d[:, 0] * d[:, 0])[None], cid, C)[0],
+                       _cluster_mean((d[:, 0] * d[:, 1])[None], cid, C)[0],
+                       _cluster_mean((d[:, 1] * d[:, 1])[None], cid, C)[0]], 1)
+    # angle of the major axis of [[a, b], [b, c]]
+    ang = 0.5 * torch.atan2(2 * cov[:, 1], cov[:, 0] - cov[:, 2])
+    return torch.stack([torch.cos(ang), torch.sin(ang)], 1).to(q.dtype)
+
+
+def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
+                            tau: float = TAU) -> torch.Tensor:
+    """Per-point initial velocity (n, 3) in m/frame: each cluster's best constant horizontal
+    velocity where it explains the support scans clearly better than zero flow (see the
+    module's constants), zero elsewhere (noise points, small clusters, no evidence)."""
+    out = torch.zeros_like(points)
+    if labels is None or points.shape[0] == 0 or not supports:
+        return out
+    lab, C, counts = _cluster_index(labels, MIN_CLUSTER_POINTS)
+    if C == 0:
+        return out
+    rows = _subsample(lab, C, counts, SEARCH_POINTS)
+    if rows.numel() == 0:
+        return out
+    q, cid = points[rows], lab[rows]
+    axis = _principal_axes(q, cid, C)  # (C, 2)
+    ang = torch.arange(NUM_DIRECTIONS, device=q.device, dtype=q.dtype) * (2 * math.pi / NUM_DIRECTIONS)
+    ca, sa = torch.cos(ang), torch.sin(ang)
+    dirs = torch.stack([axis[:, None, 0] * ca - axis[:, None, 1] * sa,
+                        axis[:, None, 0] * sa + axis[:, None, 1] * ca], -1)  # (C, D, 2)
+    speeds = torch.arange(1, int(round(MAX_SPEED / SPEED_STEP)) + 1, device=q.device, dtype=q.dtype) * SPEED_STEP
+    v2 = (dirs[:, :, None, :] * speeds[None, None, :, None]).reshape(C, -1, 2)
+    cand = torch.cat([v2, torch.zeros_like(v2[..., :1])], -1)
+    cand = torch.cat([torch.zeros_like(cand[:, :1]), cand], 1)  # candidate 0: zero flow
+    scores = _score(q, cid, cand, supports, C, tau)  # (K, C)
+    zero = scores[0]
+    best = cand[torch.arange(C, device=q.device), scores.argmin(0)]  # (C, 3)
+    best_score = scores.min(0).values
+    # local refinement (pattern search): 3 x 3 horizontal offsets, repeated while a cluster
+    # still improves (at most LOCAL_ROUNDS times per step), at halving steps
+    off1 = torch.arange(-1, 2, device=q.device, dtype=q.dtype)
+    gx, gy = torch.meshgrid(off1, off1, indexing="ij")
+    unit = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros_like(gx.reshape(-1))], 1)
+    step = SPEED_STEP
+    for _ in range(LOCAL_STEPS):
+        for _ in range(LOCAL_ROUNDS):
+            cand = best[:, None, :] + step * unit[None]
+            s = _score(q, cid, cand, supports, C, tau)
+            smin, k = s.min(0)
+            better = smin < best_score
+            best = torch.where(better[:, None], cand[torch.arange(C, device=q.device), k], best)
+            best_score = torch.minimum(best_score, smin)
+            if not bool(better.any()):
+                break
+        step /= 2
+    moving = (best_score < (1 - SEARCH_GAIN) * zero) & (zero - best_score >= SEARCH_MIN_DROP)
+    vel = torch.where(moving[:, None], best, torch.zeros_like(best))
+    has = lab >= 0
+    out[has] = vel[lab[has]]
+    return out
+
+
+def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: torch.Tensor,
+                num_vertices: int) -> torch.Tensor:
+    """Grid parameters (M, 3) whose trilinear interpolation reproduces per-point velocities
+    where one velocity covers a vertex's points: each vertex gets the corner-weighted mean
+    velocity of the points that touch it (vertices touched only by points with zero
+    velocity stay zero)."""
+    idx = corner_idx.reshape(-1).to(torch.int64)
+    w = corner_w.reshape(-1, 1).to(point_vel.dtype)
+    v = point_vel.repeat_interleave(8, 0)
+    num = torch.zeros(num_vertices, 3, dtype=point_vel.dtype, device=point_vel.device).index_add_(0, idx, w * v)
+    den = torch.zeros(num_vertices, 1, dtype=point_vel.dtype, device=point_vel.device).index_add_(0, idx, w)
+    return num / den.clamp_min(1e-12)
+
+
+def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
+                 tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS) -> torch.Tensor:
+    """The flow (n, 3) with every moving cluster (mean flow >= ``min_speed`` m/frame)
+    replaced by its best planar rigid motion (horizontal translation v and yaw rate w about
+    the cluster's centroid c: u(p) = v + w z x (p - c) per frame, the vertical velocity kept
+    at the flow's mean), found by Levenberg-Marquardt on the robust squared DT residuals
+    started from (mean flow, 0). A cluster keeps its Floxels
+    flow unless the rigid motion explains the support scans clearly better than zero flow.
+    (Not compared with the Floxels flow itself: a non-rigid flow fits one support scan
+    better than the true rigid motion does, by sliding points onto surfaces.)"""
+    if labels is None or points.shape[0] == 0 or not supports:
+        return flow
+    lab, C, counts = _cluster_index(labels, MIN_CLUSTER_POINTS)
+    if C == 0:
+        return flow
+    dev, dt = points.device, points.dtype
+    has = lab >= 0
+    mean_flow = _cluster_mean(flow[has].T, lab[has], C).T
+    speed = mean_flow[:, :2].norm(dim=1)
+    sel = (speed >= min_speed) & (counts >= MIN_CLUSTER_POINTS)
+    if not bool(sel.any()):
+        return flow
+    lab = torch.where(has & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
+    counts = torch.where(sel, counts, torch.zeros_like(counts))
+    rows = _subsample(lab, C, counts, REFINE_POINTS)
+    q, cid = points[rows], lab[rows]
+    cen = _cluster_mean(q.T, cid, C).T  # (C, 3)
+    rel = q - cen[cid]
+    # planar rigid motion (vx, vy, yaw rate); the vertical velocity stays the flow's mean (the
+    # scans of vertical faces hardly constrain it, and road users move on the road)
+    theta = torch.cat([mean_flow[:, :2], torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 3)
+    vz = mean_flow[:, 2]
+    wsum = sum(s.w for s in supports)
+
+    def motion(th, vert=vz):
+        c = th[cid]
+        return torch.stack([c[:, 0] - c[:, 2] * rel[:, 1], c[:, 1] + c[:, 2] * rel[:, 0], vert[cid]], 1)
+
+    def cost(th, vert=vz):  # per cluster: mean of the loss-weighted squared robust residuals
+        u = motion(th, vert)
+        total = torch.zeros(q.shape[0], dtype=dt, device=dev)
+        for s in supports:
+            d, _ = _lookup(s, q + s.t * u)
+            total += s.w * d.clamp_max(tau) ** 2
+        return _cluster_mean((total / wsum)[None], cid, C)[0]
+
+    cur = cost(theta)
+    lam = torch.full((C,), 1e-2, dtype=dt, device=dev)
+    eye = torch.eye(3, dtype=dt, device=dev)
+    for _ in range(iters):
+        u = motion(theta)
+        H = torch.zeros(C, 3, 3, dtype=dt, device=dev)
+        b = torch.zeros(C, 3, dtype=dt, device=dev)
+        for s in supports:
+            d, g = _lookup(s, q + s.t * u, grad=True)
+            ok = (d < tau).to(dt) * (s.w / wsum)
+            J = s.t * torch.stack([g[:, 0], g[:, 1], g[:, 1] * rel[:, 0] - g[:, 0] * rel[:, 1]], 1)  # (m, 3)
+            H.index_add_(0, cid, ok[:, None, None] * J[:, :, None] * J[:, None, :])
+            b.index_add_(0, cid, (ok * d)[:, None] * J)
+        n = torch.zeros(C, dtype=dt, device=dev).index_add_(0, cid, torch.ones_like(cid, dtype=dt)).clamp_min(1)
+        H, b = H / n[:, None, None], b / n[:, None]
+        # Marquardt damping plus a small absolute term: unconstrained directions keep their value
+        A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-3 * eye)
+        step = -torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
+        step = torch.where(sel[:, None], step, torch.zeros_like(step))
+        trial = theta + step
+        new = cost(trial)
+        better = new < cur
+        theta = torch.where(better[:, None], trial, theta)
+        cur = torch.where(better, new, cur)
+        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
+    # keep the rigid motion where it is evidence of motion: it explains the scans clearly
+    # better than zero flow (the same test as the search); else the cluster keeps its flow
+    zero_cost = cost(torch.zeros_like(theta), torch.zeros_like(vz))
+    accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
+    take = (lab >= 0) & accept[lab.clamp_min(0)]
+    out = flow.clone()
+    if bool(take.any()):
+        cl = lab[take]
+        rel_all = points[take] - cen[cl]
+        th = theta[cl]
+        out[take] = torch.stack([th[:, 0] - th[:, 2] * rel_all[:, 1], th[:, 1] + th[:, 2] * rel_all[:, 0],
+                                 vz[cl]], 1)
+    return out
