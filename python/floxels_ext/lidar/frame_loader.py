@@ -280,7 +280,9 @@ class FrameLoader:
                 del self.done[k]
 
     def close(self) -> None:
-        for fut in self.futures.values():
+        with self._lock:  # a reader thread may still add futures (seen: "dictionary changed size")
+            futures = list(self.futures.values())
+        for fut in futures:
             fut.cancel()
         self.tpool.shutdown(wait=True, cancel_futures=True)
         self.pool.shutdown(wait=True, cancel_futures=True)

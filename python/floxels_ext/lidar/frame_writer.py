@@ -40,6 +40,7 @@ class FrameOutput:
     dynamic_threshold: float
     compress: bool = False
     self_contained: bool = False
+    inputs: dict[int, str] = dataclasses.field(default_factory=dict)  # frame -> its inputs record (JSON)
 
     def __call__(self, i: int, p, flow_kept: np.ndarray, elapsed: float, next_to_world) -> None:
         import torch
@@ -58,6 +59,8 @@ class FrameOutput:
             extra["points"] = p.points
         if self.stamps[i] is not None:
             extra["timestamp_ns"] = np.int64(self.stamps[i])
+        if i in self.inputs:
+            extra["inputs"] = np.str_(self.inputs[i])
         write_output(self.out_path[i], compress=self.compress, flow=full.numpy(), mask=p.mask,
                      dynamic=dynamic.numpy(), pose=p.to_world, elapsed_s=np.float64(elapsed),
                      source=np.str_(self.sources[i]), **self.meta, **extra)
