@@ -5,8 +5,9 @@
 Copies the working tree's tracked files (and the compiled ``python/floxels_ext/_C*.so``) to a
 scratch directory, checks that every test subset named below passes there unchanged, then for
 each mutation (a ``(file, old text, new text)`` replacement; the old text must occur exactly
-once) applies it, runs that mutation's tests (``pytest -x``, a fast subset per mutation: the
-tests that guard the code it changes), and restores the file. A mutation is *caught* when its
+once) applies it, runs that mutation's tests (a fast subset per mutation: the tests that guard the
+code it changes; all of them, so the report names every test that caught it), and restores
+the file. A mutation is *caught* when its
 tests fail. Prints a table, writes JSON (default ``bench/results/mutation_check.json``) and
 exits 1 if any mutation was missed, or if the baseline fails. Every mutation on the list must
 be caught (issue 34): add tests, not exceptions.
@@ -117,16 +118,20 @@ def scratch_copy(dest: Path) -> None:
         shutil.copy2(so, dest / "python" / "floxels_ext")
 
 
-def run_tests(root: Path, tests: list[str], timeout: float) -> tuple[int, float, str]:
+def run_tests(root: Path, tests: list[str], timeout: float, first_failure: bool = False):
+    """(pytest's exit status, seconds, its last line, the failed tests' names)."""
     env = {**os.environ, "PYTHONPATH": str(root / "python"), "PYTHONDONTWRITEBYTECODE": "1"}
     t0 = time.perf_counter()
     try:
-        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests], cwd=root,
+        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rf", "-p", "no:cacheprovider",
+                            *(["-x"] if first_failure else []), *tests], cwd=root,
                            env=env, capture_output=True, text=True, timeout=timeout)
         rc, out = r.returncode, r.stdout + r.stderr
     except subprocess.TimeoutExpired:
         rc, out = -1, "timeout"
-    return rc, time.perf_counter() - t0, out.strip().splitlines()[-1] if out.strip() else ""
+    lines = out.strip().splitlines()
+    failed = [ln.split()[1].split("::", 1)[-1] for ln in lines if ln.startswith("FAILED ")]
+    return rc, time.perf_counter() - t0, lines[-1] if lines else "", failed
 
 
 def main() -> int:
@@ -146,7 +151,7 @@ def main() -> int:
         root = Path(tmp)
         scratch_copy(root)
         subsets = sorted({t for m in muts for t in m[4]})
-        rc, secs, last = run_tests(root, subsets, args.timeout)
+        rc, secs, last, _ = run_tests(root, subsets, args.timeout, first_failure=True)
         print(f"baseline (no mutation) on {len(subsets)} test subset(s): {'pass' if rc == 0 else 'FAIL'} "
               f"in {secs:.0f} s ({last})", flush=True)
         if rc != 0:
@@ -163,13 +168,15 @@ def main() -> int:
                 continue
             target.write_text(text.replace(old, new))
             try:
-                rc, secs, last = run_tests(root, tests, args.timeout)
+                rc, secs, last, failed = run_tests(root, tests, args.timeout)
             finally:
                 target.write_text(text)
             caught = rc != 0
             ok &= caught
-            rows.append(dict(name=name, file=path, tests=tests, caught=caught, seconds=round(secs, 1), pytest=last))
-            print(f"{'caught' if caught else 'MISSED':<7} {secs:6.0f} s  {name}  ({last})", flush=True)
+            rows.append(dict(name=name, file=path, tests=tests, caught=caught, seconds=round(secs, 1), pytest=last,
+                             failed=failed))
+            print(f"{'caught' if caught else 'MISSED':<7} {secs:6.0f} s  {name}  ({last}; {', '.join(failed)})",
+                  flush=True)
     n_caught = sum(1 for r in rows if r["caught"])
     print(f"\n{n_caught} of {len(rows)} mutations caught")
     os.makedirs(os.path.dirname(args.json), exist_ok=True)
