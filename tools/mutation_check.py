@@ -64,6 +64,7 @@ MUTATIONS = [
     ("Adam lr default 0.05 -> 0.1", CFG, "lr: float = 0.05", "lr: float = 0.1", [PAPER]),
     ("min delta default 0.01 -> 0.001", CFG, "min_delta: float = 0.01", "min_delta: float = 0.001", [PAPER]),
     ("DBSCAN eps default 0.5 -> 1.0", CFG, "dbscan_eps: float = 0.5", "dbscan_eps: float = 1.0", [PAPER]),
+    ("DBSCAN min points default 4 -> 5", CFG, "dbscan_min_samples: int = 4", "dbscan_min_samples: int = 5", [PAPER]),
     ("time weights 1/t^2 -> 1/|t|", CFG, "time_weight_power: float = 2.0", "time_weight_power: float = 1.0",
      [PAPER]),
     ("DT cell default 0.1 -> 0.2", CFG, "dt_cell: float = 0.1 ", "dt_cell: float = 0.2 ", [PAPER]),

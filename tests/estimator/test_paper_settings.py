@@ -207,3 +207,21 @@ def test_full_run_recovers_the_wall_and_stops_by_the_paper_rule(wall):
             break
     assert stop is not None and res.num_iters == stop < 500
     assert res.best_iter == int(np.argmin(res.losses))
+
+
+def test_dbscan_eps_and_min_points_by_hand():
+    """eps 0.5, min_points 4 (the point itself counted, as in scikit-learn): a 3 x 3 grid of
+    points 0.45 m apart is a cluster (the middle and edge points have 4 or 5 points within 0.5
+    m), 0.55 m apart it is noise; 4 points 0.1 m apart are a cluster, 3 are noise."""
+    def grid(x0, n, step):
+        return [[x0 + step * i, step * j, 0.0] for i in range(n) for j in range(n)]
+
+    groups = [grid(0.0, 3, 0.45), grid(10.0, 3, 0.55), grid(20.0, 2, 0.1), grid(30.0, 2, 0.1)[:3]]
+    pts = np.array(sum(groups, []), np.float32)
+    res = Floxels(FloxelsConfig(max_iters=1), "cpu").fit([pts, pts, pts], target=1)
+    lab = res.labels.numpy()
+    a, b, c, d = np.split(lab, np.cumsum([len(g) for g in groups])[:-1])
+    assert len(set(a)) == 1 and a[0] >= 0
+    assert (b == -1).all()
+    assert len(set(c)) == 1 and c[0] >= 0 and c[0] != a[0]
+    assert (d == -1).all()
