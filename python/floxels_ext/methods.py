@@ -12,6 +12,13 @@ A method is a :class:`Method`: a name, a one-line description, and
   The flow is always per frame period (the median step of ``times`` when given), so
   unequally spaced scans (a dropped frame) give flows comparable with the others.
 
+``estimate_stream(scans, targets, device, options, callback)`` (optional): the same for many
+sequences laid end to end in one index space (``floxels run DATASET``): ``targets`` yields
+``(index, segment)`` pairs (``floxels_ext.estimator.stream.Segment``: the scans ``[lo, hi)``
+the window of ``index`` stays in, and their times), possibly waiting for the next sequence;
+one call serves them all, so the method's own pipeline neither restarts nor drains between
+sequences. Without it, ``floxels run`` calls ``estimate_sequence`` once per segment.
+
 ``config`` (optional) is the dataclass whose fields the options are; the CLI then parses
 ``--option KEY=VALUE`` text by each field's type (``cluster_loss=no`` is False).
 
@@ -38,6 +45,7 @@ class Method:
     description: str
     estimate_sequence: Callable[[list, Sequence[int], object, dict, Callable], None]
     config: type | None = None
+    estimate_stream: Callable | None = None
 
 
 _REGISTRY: dict[str, Method] = {}
@@ -80,11 +88,22 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None) -> N
                       callback=lambda f, res: callback(f, res.flow))
 
 
+def _floxels_stream(scans, targets, device, options, callback) -> None:
+    from floxels_ext.estimator.config import FloxelsConfig
+    from floxels_ext.estimator.stream import estimate_stream
+
+    try:
+        cfg = FloxelsConfig(**dict(options or {}))
+    except TypeError as e:  # unknown field name
+        raise ValueError(f"floxels: bad option: {e}") from None
+    estimate_stream(scans, targets, cfg, device=device, callback=lambda f, res: callback(f, res.flow))
+
+
 def _register_floxels() -> None:
     from floxels_ext.estimator.config import FloxelsConfig
 
     register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence,
-                    FloxelsConfig))
+                    FloxelsConfig, estimate_stream=_floxels_stream))
 
 
 _register_floxels()

@@ -111,6 +111,8 @@ def test_bad_categories_and_box_options(tmp_path, capsys):
     assert cli.main(["eval", str(pred), str(gt), "--categories", str(good), "--json", str(out)]) == 0
     m = json.loads(out.read_text())
     assert m["ignored_count"] == 4 and m["dynamic_count"] == 0
-    assert "--eval-box" in _err(capsys, ["eval", str(pred), str(gt), "--eval-box", "-3"])
+    with pytest.raises(SystemExit) as e:  # refused when parsed (cli_types.positive_float)
+        cli.main(["eval", str(pred), str(gt), "--eval-box", "-3"])
+    assert e.value.code == 2 and "argument --eval-box: must be a finite number > 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: the two box options exclude each other
         cli.main(["eval", str(pred), str(gt), "--eval-box", "10", "--no-eval-box"])

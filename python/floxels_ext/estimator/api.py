@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.distance import DistanceTransform, DtStreams, WindowCache
-from floxels_ext.estimator.group import fit_group, pack, prepare_group, solve_group
+from floxels_ext.estimator.distance import DistanceTransform, DtStreams
+from floxels_ext.estimator.group import fit_group
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import check_times, frame_period_of, prepare_scans, resolve_device
-from floxels_ext.estimator.streams import serial_stages, side_stream
+from floxels_ext.estimator.stream import RAMP_START, Window, solve_windows, window_for
+from floxels_ext.estimator.streams import serial_stages
 from floxels_ext.ops.solver import MAX_PROBLEMS
 from floxels_ext.switches import flag
 
@@ -122,20 +123,12 @@ def _batches(frames: list[int], size: int, ramp: bool) -> list[list[int]]:
     first batches are smaller (4, 8, ... frames) so the GPU starts optimising after a short
     first preparation, and each later batch is prepared while a batch about half its size is
     optimised; results do not depend on the batching."""
-    out, k, cur = [], 0, min(size, 4) if ramp else size
+    out, k, cur = [], 0, min(size, RAMP_START) if ramp else size
     while k < len(frames):
         out.append(frames[k:k + cur])
         k += cur
         cur = min(size, 2 * cur)
     return out
-
-
-def window_for(frame: int, num_frames: int, num_scans: int) -> tuple[int, int]:
-    """[start, stop) of the window of ``num_scans`` scans used for ``frame``: centred on it,
-    shifted inwards at the ends of the sequence (so the target may be the first/last scan)."""
-    w = min(num_scans, num_frames)
-    start = min(max(frame - w // 2, 0), num_frames - w)
-    return start, start + w
 
 
 def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, device=None,
@@ -194,58 +187,31 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         batch_size = MAX_PROBLEMS if dev.type == "cuda" else 1
     if not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-    cache: dict[int, DistanceTransform | None] = {}
-    converted: dict = {}  # sequence index -> scan on the device (converted and NaN-checked once)
     # On CUDA, the next batch is prepared (scans, distance transforms, DBSCAN, sorting: mostly
     # host-bound work) on a side stream while the GPU optimises this one.
     # FLOXELS_PIPELINE=0 turns this off, FLOXELS_RAMP=0 the smaller first batches (measurements).
     pipelined = (dev.type == "cuda" and len(frames) > batch_size and not serial_stages(dev)
                  and flag("FLOXELS_PIPELINE"))
-    batches = _batches(frames, batch_size, ramp=pipelined and flag("FLOXELS_RAMP"))
-    if not batches:
-        return []
-    side = side_stream(dev) if pipelined else None
-
-    def prepare(batch, poll=None):
-        def items():
-            out = []
-            for f in batch:
-                start, stop = window_for(f, n, cfg.num_scans)
-                out.append((prepare_scans(scans[start:stop], f - start, device, converted, start,
-                                          times=None if times is None else times[start:stop], period=period),
-                            WindowCache(cache, start)))
-            return out
-        if side is None:
-            return prepare_group(cfg, items())
-        with torch.cuda.stream(side):
-            prepared = prepare_group(cfg, items(), pipelined=True, poll=poll)
-            prepared.packs = pack(cfg, prepared)  # packing, too, before the current batch ends
-            return prepared
-
+    batches = []
+    for b in _batches(frames, batch_size, ramp=pipelined and flag("FLOXELS_RAMP")):
+        batches.append([])
+        for f in b:
+            start, stop = window_for(f, n, cfg.num_scans)
+            batches[-1].append(Window(f, start, stop, None if times is None else times[start:stop], period))
+    # the lowest scan a later window reads (frames may come in any order): DTs below it are freed
+    low = [math.inf] * (len(batches) + 1)
+    for k in range(len(batches) - 1, -1, -1):
+        low[k] = min([low[k + 1]] + [w.start for w in batches[k]])
+    batch_no = {id(b): k for k, b in enumerate(batches)}
     out = []
-    prepared = prepare(batches[0])
-    for k, batch in enumerate(batches):
-        solving = solve_group(cfg, prepared, wait_for=side)
-        error = None
-        if k + 1 < len(batches):
-            try:
-                prepared = prepare(batches[k + 1], poll=solving.poll)
-            except BaseException as e:  # deliver this batch's flows first, then raise
-                error = e
-        results = solving.finish()
-        del solving
-        # free the DTs and device scans that no later window will use
-        later = [window_for(g, n, cfg.num_scans)[0] for b in batches[k + 1:] for g in b]
-        horizon = min(later) if later else math.inf
-        for d in (cache, converted):
-            for i in [i for i in d if i < horizon]:
-                del d[i]
-        for f, res in zip(batch, results):
-            if to_unit != 1.0:
-                res.flow = res.flow * to_unit
-            out.append(res.flow)
-            if callback is not None:
-                callback(f, res)
-        if error is not None:
-            raise error
+
+    def deliver(f, res):
+        if to_unit != 1.0:
+            res.flow = res.flow * to_unit
+        out.append(res.flow)
+        if callback is not None:
+            callback(f, res)
+
+    solve_windows(scans, cfg, device, batches, deliver, pipelined=dev if pipelined else None,
+                  horizon=lambda nxt: math.inf if not nxt else low[batch_no[id(nxt)]])
     return out

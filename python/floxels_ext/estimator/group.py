@@ -265,7 +265,9 @@ class Solving:
                 parts.append((None, [], -1, 0, dict(timings), None, cfg.voxel_size, None, None))
                 continue
             losses, best_iter = summaries[k]
-            parts.append((lab, losses, best_iter, len(losses), dict(timings), pr.grids[k], cfg.voxel_size,
+            rc = pr.items[k][0].recentring  # the origin in the caller's coordinates
+            origin = rc.restore(pr.grids[k]) if rc is not None else pr.grids[k]
+            parts.append((lab, losses, best_iter, len(losses), dict(timings), origin, cfg.voxel_size,
                           pr.problems[k].corners, solved[k]))
         return [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
 

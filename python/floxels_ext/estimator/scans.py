@@ -7,7 +7,9 @@ Policy for bad input (documented in the README):
   equally spaced; time offsets are ``(t_k - t_target) / period`` frame periods;
 * rows with NaN/inf coordinates are dropped with a ``UserWarning``; in the target scan
   their flow is returned as NaN so the output keeps one row per input point;
-* an empty target scan gives an empty (0, 3) flow; an empty support scan contributes no loss.
+* an empty target scan gives an empty (0, 3) flow; an empty support scan contributes no loss;
+* scans far from the origin (a map frame) are re-centred in float64 before any float32 work
+  (``recentre.py``); the flow does not change.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from floxels_ext.estimator.recentre import Recentring
 from floxels_ext.ops.setup import stage_points
 
 
@@ -39,6 +42,8 @@ class PreparedScans:
     # (min xyz, max xyz) of each scan's kept points where known without a device
     # synchronisation (host scans uploaded to CUDA), else None
     bounds: list[tuple[list[float], list[float]] | None] | None = None
+    # the shift subtracted (in float64) from every scan before it became float32 (recentre.py)
+    recentring: Recentring | None = None
 
 
 _PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
@@ -142,7 +147,7 @@ def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
 
 def prepare_scans(scans: Sequence, target: int | None, device, converted: dict | None = None,
                   first_index: int = 0, on_ready=None, times: Sequence[float] | None = None,
-                  period: float | None = None) -> PreparedScans:
+                  period: float | None = None, recentring: Recentring | None = None) -> PreparedScans:
     """Validate a window of scans and move them to the compute device.
 
     ``converted`` (sequence index -> (points, finite mask, bounds)) lets sliding windows over one
@@ -151,7 +156,9 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     is called as soon as a host scan staged for the GPU has its upload queued (support scans
     first, the target last), so the caller can queue work on it while later scans are
     still being copied. ``times`` (seconds, one per scan of the window, checked) with
-    ``period`` (default: their median step) give the time offsets; else ``index - target``."""
+    ``period`` (default: their median step) give the time offsets; else ``index - target``.
+    ``recentring``: the shift shared by the windows of one call (default: one for this
+    window); scans far from the origin are moved near it in float64 first."""
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -191,7 +198,11 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     todo = [i for i in range(n) if converted is None or first_index + i not in converted]
     todo.sort(key=lambda i: i == target)  # support scans first (their EDTs are the longest work)
     ready = None if on_ready is None else (lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target))
-    fresh = dict(zip(todo, _finite_rows([tensors[i] for i in todo], dev, [first_index + i for i in todo],
+    if recentring is None:
+        recentring = Recentring()
+    recentring.decide(tensors)
+    fresh = dict(zip(todo, _finite_rows([recentring.apply(tensors[i]) for i in todo], dev,
+                                        [first_index + i for i in todo],
                                         [i == target for i in todo], ready)))
     points, masks, bounds = [], [], []
     for i in range(n):
@@ -210,7 +221,8 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     return PreparedScans(points=points, finite_masks=masks, target=target,
                          offsets=offsets, supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
-                         in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds)
+                         in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds,
+                         recentring=recentring)
 
 
 def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool],

@@ -16,7 +16,9 @@ def add_parser(sub) -> None:
     from floxels_ext.evaluation.sim.scenes import SCENES  # light: numpy only
 
     p.add_argument("--scene", default="crossing", choices=sorted(SCENES), help="simulated scene (default crossing)")
-    p.add_argument("--seed", type=int, default=0)
+    from floxels_ext.cli_types import nonnegative_int
+
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--scans", type=int, default=5, help="scans per window, target in the middle (default 5)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--iters", type=int, default=None, help="override the maximum number of iterations")
@@ -70,15 +72,19 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError(f"--scans must be in [2, 13], got {args.scans}")
     if args.iters is not None and args.iters < 1:
         raise CLIError(f"--iters must be >= 1, got {args.iters}")
+    verbosity = getattr(args, "verbosity", 0)  # -q: the table only; -v: also the config
+    if device == "cpu":  # one thread per core stalls when other work shares the cores (cpu_threads.py)
+        from floxels_ext.cpu_threads import apply_cpu_threads
+
+        apply_cpu_threads(print if verbosity > 0 else None)
     cfg = FloxelsConfig(num_scans=args.scans)
     if args.iters is not None:
         cfg = cfg.replace(max_iters=args.iters, patience=min(cfg.patience, args.iters))
-    png = Path(args.png)
-    if not png.parent.is_dir():
-        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
+    from floxels_ext.output_paths import check_output_file
+
+    png = check_output_file(args.png, "--png", "floxels_demo.png")
     t0 = time.perf_counter()
     scans, target, gt, dyn = prepare_demo_scans(args.scene, args.seed, args.scans, args.small)
-    verbosity = getattr(args, "verbosity", 0)  # -q: the table only; -v: also the config
     if verbosity > 0:
         print(f"config: {cfg}")
     if verbosity >= 0:
@@ -102,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     print("(EPE in metres per frame, angle error in radians)")
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items())
     if verbosity >= 0:
-        print(f"stages: {stages}; {res.num_iters} iterations, lowest loss at {res.best_iter}")
+        threads = f"; {torch.get_num_threads()} CPU thread(s)" if device == "cpu" else ""
+        print(f"stages: {stages}; {res.num_iters} iterations, lowest loss at {res.best_iter}{threads}")
     _picture(png, scans[target], res.flow, gt, args)
     return 0
 

@@ -150,7 +150,9 @@ def add_parser(sub) -> None:
     p.add_argument("--neighbours", type=int, default=2, help="scans on each side (default 2: t-2 .. t+2)")
     p.add_argument("--mode", choices=["constant-velocity", "chain"], default="constant-velocity")
     p.add_argument("--mask-only", action="store_true", help="only points that were optimised (no ground/far)")
-    p.add_argument("--radius", type=float, default=1.0, help="m, neighbour search radius of --mode chain")
+    from floxels_ext.cli_types import positive_float
+
+    p.add_argument("--radius", type=positive_float, default=1.0, help="m, neighbour search radius of --mode chain")
     p.add_argument("--no-flow", action="store_true", help="merge without moving (for comparison)")
     p.set_defaults(func=run)
 
@@ -165,9 +167,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.neighbours < 1:
         raise CLIError("--neighbours must be >= 1")
-    out = Path(args.out)
-    if not out.parent.is_dir():
-        raise CLIError(f"cannot write {out}: directory {out.parent} does not exist")
+    from floxels_ext.output_paths import check_output_file
+
+    out = check_output_file(args.out, "--out", "dense.ply")
     pts, off, names = accumulate_run(args.run_dir, args.frame, neighbours=args.neighbours, mode=args.mode,
                                      mask_only=args.mask_only, radius=args.radius, use_flow=not args.no_flow)
     rgb = _OFFSET_COLOURS[np.minimum(np.abs(off) * 2 - (off < 0), len(_OFFSET_COLOURS) - 1)]

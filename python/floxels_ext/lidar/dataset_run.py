@@ -1,29 +1,25 @@
-"""``floxels run DATASET --out OUT [--ray [auto|ADDRESS]]``: every sequence of a dataset, one after
-another on the local device or as tasks on a Ray cluster (``ray_runner``).
+"""``floxels run DATASET --out OUT [--ray [auto|ADDRESS]]``: every sequence of a dataset through
+one pipeline here (``dataset_worker``) or through one per worker on a Ray cluster (``ray_runner``).
 
 ``floxels_ext.lidar.run`` calls two functions of this module: ``add_dataset_arguments(parser)`` while
 building its parser and ``maybe_run_dataset(args)`` first thing in ``run(args)``; the latter
 returns None when INPUT is one sequence and ``--ray`` is not given (the plain run goes on).
 
-A task is one ``floxels run SEQ --out OUT/<rel> --frames A:B`` with the user's other options,
-parsed by the same parser, so its output is the one the local run writes. Output files are
-written atomically under temporary names ``.<frame>.npz.<pid>.tmp``; several tasks of one
-sequence share an output directory, so a task never removes the directory's temporaries wholesale
-(the plain run does, at its start): it removes only those of its own frames (left by an earlier,
-killed attempt), and the driver sweeps the rest before launching and after the last task.
+A task is a sequence's frames ``[A, B)`` with the user's other options: its outputs are those
+of ``floxels run SEQ --out OUT/<rel> --frames A:B`` (``dataset_sequence`` opens it with the
+plain run's checks, windows and metadata). Output files are written atomically under temporary
+names ``.<frame>.npz.<pid>.tmp``; several tasks of one sequence may share an output directory,
+so a task removes only the temporaries of its own frames (left by an earlier, killed attempt),
+and the Ray driver sweeps the rest before launching and after the last task.
 """
 
 from __future__ import annotations
 
 import argparse
-import io
-import os
-import re
 import sys
-from contextlib import ExitStack, redirect_stderr, redirect_stdout
 from pathlib import Path
 
-__all__ = ["add_dataset_arguments", "maybe_run_dataset", "floxels_task", "remove_temps", "common_options"]
+__all__ = ["add_dataset_arguments", "maybe_run_dataset", "remove_temps", "common_options"]
 
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
@@ -33,29 +29,36 @@ _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "
 def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     import textwrap
 
+    from floxels_ext.cli_types import finite_float
+
     g = p.add_argument_group("datasets and clusters", textwrap.fill(
         "INPUT may also be a dataset: a directory holding sequences at any depth (an Argoverse 2 split "
         "of log folders, KITTI odometry with sequences/NN/velodyne and poses/NN.txt, a directory of "
         "'floxels simulate' sequences) or a text file listing sequence directories (one a line, "
         "optionally 'PATH --poses FILE --calib FILE'). OUT then mirrors the input tree. Without --ray "
-        "the sequences run one after another here.", 92))
+        "the sequences run here, one after another through one pipeline (the next one read while the "
+        "current one is estimated); with --ray, one worker per GPU does the same with the sequences it "
+        "takes from the driver.", 92))
     g.add_argument("--ray", nargs="?", const="auto", metavar="auto|ADDRESS",
-                   help="run as tasks on a Ray cluster (pip install 'floxels_ext[ray]'): 'auto' (the default "
+                   help="run on a Ray cluster, one long-lived worker per GPU (pip install 'floxels_ext[ray]'): "
+                        "'auto' (the default "
                         "when the flag is bare) joins the cluster this machine belongs to or starts a local "
                         "one; ADDRESS is a head node (host:6379 or ray://host:10001)")
-    g.add_argument("--gpus-per-task", type=float, metavar="G",
-                   help="GPUs a task asks Ray for; fractions pack several tasks on a GPU (default: 1 when the "
-                        "cluster has GPUs and --device is not cpu, else 0 = CPU tasks)")
-    g.add_argument("--cpus-per-task", type=float, default=1.0, metavar="C",
-                   help="CPUs a task asks Ray for (also its torch threads; default 1)")
-    g.add_argument("--max-tasks", type=int, metavar="N", help="at most N tasks at once (default: as many as "
-                   "the cluster's resources fit)")
+    g.add_argument("--gpus-per-task", type=finite_float, metavar="G",
+                   help="GPUs a worker asks Ray for; fractions pack several workers on a GPU (default: 1 when "
+                        "the cluster has GPUs and --device is not cpu, else 0 = CPU workers)")
+    g.add_argument("--cpus-per-task", type=finite_float, default=None, metavar="C",
+                   help="CPUs a worker asks Ray for (its reader threads and torch threads; default: a GPU "
+                        "node's CPUs shared by its GPU workers, 1 for CPU workers)")
+    g.add_argument("--max-tasks", type=int, metavar="N", help="at most N workers (default: as many as the "
+                   "cluster's resources fit)")
     g.add_argument("--task-frames", type=int, default=192, metavar="N",
-                   help="frames per task: longer sequences are cut into chunks (rounded up to a multiple of "
-                        "--chunk; support scans beyond a chunk are still read); 0 = whole sequences "
-                        "(default 192)")
+                   help="frames per task (what a worker takes from the driver at a time): longer sequences "
+                        "are cut into chunks (rounded up to a multiple of --chunk; support scans beyond a chunk "
+                        "are still read); 0 = whole sequences (default 192)")
     g.add_argument("--retries", type=int, default=3, metavar="N",
-                   help="times Ray re-runs a task whose worker or node died (default 3)")
+                   help="workers started in place of ones that died, at most (default 3); a dead worker's "
+                        "tasks go to the others in any case")
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
@@ -76,65 +79,12 @@ def remove_temps(out_dir: Path, names=None) -> int:
     return cleanup_temps(Path(out_dir), None if names is None else {f"{n}.npz" for n in names})
 
 
-def task_job(task, common: dict, device: str | None, threads: int | None = None) -> dict:
-    """The picklable description of a task that ``floxels_task`` runs."""
-    return {"input": str(task.seq.path), "out": str(task.out_dir), "frames": f"{task.start}:{task.stop}",
-            "names": list(task.names), "poses": str(task.seq.poses) if task.seq.poses else None,
-            "calib": str(task.seq.calib) if task.seq.calib else None, "device": device, "threads": threads,
-            "options": common}
-
-
-def floxels_task(job: dict, quiet: bool = True) -> dict:
-    """Runs one task as ``floxels run`` would; returns {rc, error, failed, log, host, pid}.
-
-    ``quiet``: the run's messages and progress go to a buffer (its tail comes back in ``log``)."""
-    import socket
-
-    from floxels_ext.cli import CLIError, build_parser
-    from floxels_ext.evaluation.seqio import SequenceFormatError
-
-    if job.get("threads"):
-        import torch
-
-        torch.set_num_threads(int(job["threads"]))
-    argv = ["run", job["input"], "--out", job["out"], "--frames", job["frames"]]
-    for key in ("poses", "calib", "device"):
-        if job.get(key):
-            argv += [f"--{key}", job[key]]
-    ns = build_parser().parse_args(argv)
-    for k, v in job["options"].items():
-        setattr(ns, k, v)
-    ns.ray = None  # the task itself runs here
-    ns.cpu_limit = job.get("threads")  # the default reader count stays within the task's CPUs
-    if hasattr(ns, "verbosity") and quiet:
-        ns.verbosity = -1
-    out_dir = Path(job["out"])
-    remove_temps(out_dir, set(job["names"]))  # an earlier attempt of this task was killed mid-write
-    buf = io.StringIO()
-    result = {"rc": 0, "error": None, "failed": [], "log": "", "host": socket.gethostname(), "pid": os.getpid()}
-    streams = (redirect_stdout(buf), redirect_stderr(buf)) if quiet else ()
-    # the run removes only its own frames' temporaries, so tasks can share out_dir
-    with ExitStack() as stack:
-        for s in streams:
-            stack.enter_context(s)
-        try:
-            rc = ns.func(ns)
-            result["rc"] = 0 if rc is None else int(rc)
-        except (CLIError, SequenceFormatError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
-            result["rc"], result["error"] = 2, str(e)
-    log = buf.getvalue().splitlines()
-    if "failed frames:" in log:
-        result["failed"] = [ln.strip() for ln in log[log.index("failed frames:") + 1:] if ln.startswith("  ")]
-    result["log"] = "\n".join(log[-30:])
-    return result
-
-
 def _check_options(args, dataset: bool) -> None:
     from floxels_ext.cli import CLIError
 
     if args.ray is None:
         used = [f for f, v, default in (("--gpus-per-task", args.gpus_per_task, None),
-                                        ("--max-tasks", args.max_tasks, None), ("--cpus-per-task", args.cpus_per_task, 1.0),
+                                        ("--max-tasks", args.max_tasks, None), ("--cpus-per-task", args.cpus_per_task, None),
                                         ("--task-frames", args.task_frames, 192), ("--retries", args.retries, 3))
                 if v != default]
         if used:
@@ -147,7 +97,7 @@ def _check_options(args, dataset: bool) -> None:
         raise CLIError(f"--gpus-per-task must be >= 0, got {args.gpus_per_task}")
     if args.gpus_per_task and args.device == "cpu":
         raise CLIError("--gpus-per-task > 0 contradicts --device cpu")
-    if args.cpus_per_task <= 0:
+    if args.cpus_per_task is not None and args.cpus_per_task <= 0:
         raise CLIError(f"--cpus-per-task must be > 0, got {args.cpus_per_task}")
     if args.max_tasks is not None and args.max_tasks < 1:
         raise CLIError("--max-tasks must be >= 1")
@@ -197,30 +147,39 @@ def maybe_run_dataset(args) -> int | None:
 
 
 def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
-    """One sequence after another in this process, each with its own progress bar."""
-    from floxels_ext.cli import CLIError
+    """Every sequence through one pipeline in this process (``dataset_worker.run_tasks``), with
+    one progress bar for the dataset."""
+    import time
 
+    from floxels_ext.lidar.dataset_worker import run_tasks
+    from floxels_ext.lidar.progress import DatasetProgress
+
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
     total = sum(len(t.names) for t in tasks)
     todo = sum(len(t.todo) for t in tasks)
-    print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done",
-          file=sys.stderr, flush=True)
-    failed: list[str] = []
-    ran = 0
-    for k, t in enumerate(tasks, 1):
-        if not t.todo and not args.force:
-            continue
-        print(f"[{k}/{len(tasks)}] {t.seq.path} -> {t.out_dir}", file=sys.stderr, flush=True)
-        remove_temps(t.out_dir)  # nothing else writes there now
-        res = floxels_task(task_job(t, common, args.device), quiet=False)
-        if res["rc"] == 2:
-            if ran == 0:
-                raise CLIError(res["error"])
-            failed.append(f"{t.seq.path}: {res['error']}")
-        elif res["rc"] != 0:
-            failed.append(f"{t.seq.path}: some frames failed (listed above)")
-        ran += 1
-    if failed:
-        print(f"dataset: {len(failed)} failure(s):\n  " + "\n  ".join(failed), file=sys.stderr)
+    if verbosity >= 0:
+        print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done",
+              file=sys.stderr, flush=True)
+    run = [t for t in tasks if t.todo]
+    bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
+    for _ in range(len(tasks) - len(run)):
+        bar.sequence("skipped")
+    t0 = time.perf_counter()
+    try:
+        res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
+                        on_sequence=lambda task, outcome, job, lines: bar.sequence(outcome))
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    seqs = dict(res["sequences"])
+    seqs["skipped"] += len(tasks) - len(run)
+    print(f"dataset done: {n_sequences} sequences ({seqs['done']} done, {seqs['skipped']} skipped, {seqs['failed']} "
+          f"failed), {res['written']} frame(s) written in {wall:.1f} s"
+          + (f" ({res['written'] / wall:.2f} frames/s)" if wall > 0 and res["written"] else "")
+          + f", {len(res['failed'])} failure(s); outputs in {args.out}", file=sys.stderr)
+    if res["failed"]:
+        print("failed:", file=sys.stderr)
+        for line in res["failed"]:
+            print(f"  {line}", file=sys.stderr)
         return 1
-    print(f"dataset done: {n_sequences} sequences in {args.out}", file=sys.stderr)
     return 0

@@ -73,10 +73,31 @@ def _scale_bar(ax, span: float) -> None:
                                   sep=3, frameon=True, size_vertical=span / 300, color="black"))
 
 
-def _wheel(parent, vmax_frame: float, to_unit: float, unit: str) -> None:
-    """Colour key in the top-left corner of ``parent``: direction = angle, speed = radius
-    (same mapping as the points; ``vmax_frame`` in m/frame, labels in ``unit``)."""
-    ax = parent.inset_axes([0.015, 0.73, 0.25, 0.25], projection="polar")
+# where the colour wheel may go, in axes fractions (the scale bar holds the lower right)
+_WHEEL_SIZE = 0.25
+_WHEEL_CORNERS = {"upper left": (0.015, 0.73), "upper right": (0.735, 0.73), "lower left": (0.015, 0.05)}
+
+
+def _wheel_corner(pts, view, boxes) -> tuple[float, float]:
+    """The corner for the colour wheel that hides the fewest points (an object box counts as
+    many points: the wheel must not hide a moving object)."""
+    (x0, x1), (y0, y1) = view
+    best, where = None, _WHEEL_CORNERS["upper left"]
+    for fx, fy in _WHEEL_CORNERS.values():
+        lo = np.array([x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)])
+        hi = lo + _WHEEL_SIZE * np.array([x1 - x0, y1 - y0])
+        hidden = int(np.all((pts[:, :2] >= lo) & (pts[:, :2] <= hi), axis=1).sum())
+        hidden += 10_000 * sum(bool(np.all(b_hi >= lo) and np.all(b_lo <= hi)) for b_lo, b_hi in boxes)
+        if best is None or hidden < best:
+            best, where = hidden, (fx, fy)
+    return where
+
+
+def _wheel(parent, vmax_frame: float, to_unit: float, unit: str, corner=(0.015, 0.73)) -> None:
+    """Colour key in a corner of ``parent`` (axes fractions of its lower left): direction =
+    angle, speed = radius (same mapping as the points; ``vmax_frame`` in m/frame, labels in
+    ``unit``)."""
+    ax = parent.inset_axes([corner[0], corner[1], _WHEEL_SIZE, _WHEEL_SIZE], projection="polar")
     th, r = np.meshgrid(np.linspace(-math.pi, math.pi, 181), np.linspace(0, vmax_frame, 40))
     vec = np.stack([r.ravel() * np.cos(th.ravel()), r.ravel() * np.sin(th.ravel())], -1)
     rgb = _flow_colours(vec, vmax_frame).reshape(r.shape + (3,))
@@ -101,11 +122,13 @@ def _scene(ax, pts, flow, moving, vmax, view, objects, speeds, unit, title, stat
         order = np.flatnonzero(moving)
         ax.scatter(pts[order, 0], pts[order, 1], s=4.0, c=_flow_colours(flow[order, :2], vmax),
                    linewidths=0, rasterized=True)
+    boxes, labels = [], []
     for k, (g, sp) in enumerate(zip(objects, speeds)):
         lo, hi = pts[g, :2].min(0) - 0.8, pts[g, :2].max(0) + 0.8
         ax.add_patch(_rect(lo, hi))
-        ax.text(hi[0], hi[1], f" {k + 1}: {sp:.2g} {unit}", fontsize=8, va="bottom", ha="left", clip_on=True,
-                bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+        boxes.append((lo, hi))
+        labels.append(ax.text(hi[0], hi[1], f" {k + 1}: {sp:.2g} {unit}", fontsize=8, va="bottom", ha="left",
+                              clip_on=True, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8)))
     (x0, x1), (y0, y1) = view
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
@@ -115,6 +138,54 @@ def _scene(ax, pts, flow, moving, vmax, view, objects, speeds, unit, title, stat
     ax.set_title(title, fontsize=10)
     ax.grid(True, lw=0.3, alpha=0.5)
     _scale_bar(ax, min(x1 - x0, y1 - y0))
+    _declutter(ax, labels, boxes)
+
+
+# label positions tried around an object's box, in order: (corner x, corner y, ha, va)
+_LABEL_SPOTS = [("hi", "hi", "left", "bottom"), ("lo", "hi", "right", "bottom"), ("hi", "lo", "left", "top"),
+                ("lo", "lo", "right", "top"), ("hi", "mid", "left", "center"), ("lo", "mid", "right", "center")]
+
+
+def _declutter(ax, labels, boxes) -> None:
+    """Move each object's label to the first spot around its box where it overlaps no label
+    placed before it and no other object's box (else the spot overlapping least)."""
+    if not labels:
+        return
+    fig = ax.figure
+    renderer = fig.canvas.get_renderer()
+    to_px = ax.transData.transform
+    box_px = [(to_px(lo), to_px(hi)) for lo, hi in boxes]
+    a = ax.get_window_extent(renderer)
+    frame = ((a.x0, a.y0), (a.x1, a.y1))
+    placed = []
+
+    def overlap(a, b) -> float:
+        w = min(a[1][0], b[1][0]) - max(a[0][0], b[0][0])
+        h = min(a[1][1], b[1][1]) - max(a[0][1], b[0][1])
+        return max(w, 0.0) * max(h, 0.0)
+
+    for k, (t, (lo, hi)) in enumerate(zip(labels, boxes)):
+        best = None
+        for sx, sy, ha, va in _LABEL_SPOTS:
+            x = {"lo": lo[0], "hi": hi[0]}[sx]
+            y = {"lo": lo[1], "hi": hi[1], "mid": (lo[1] + hi[1]) / 2}[sy]
+            t.set_position((x, y))
+            t.set_ha(ha)
+            t.set_va(va)
+            e = t.get_window_extent(renderer).expanded(1.05, 1.1)
+            ext = ((e.x0, e.y0), (e.x1, e.y1))
+            area = (ext[1][0] - ext[0][0]) * (ext[1][1] - ext[0][1])
+            cost = (sum(overlap(ext, p) for p in placed) + sum(overlap(ext, b) for j, b in enumerate(box_px) if j != k)
+                    + 4 * (area - overlap(ext, frame)))  # cut at the panel's edge: worse than an overlap
+            if best is None or cost < best[0]:
+                best = (cost, (x, y), ha, va, ext)
+            if cost == 0:
+                break
+        _, pos, ha, va, ext = best
+        t.set_position(pos)
+        t.set_ha(ha)
+        t.set_va(va)
+        placed.append(ext)
 
 
 def _rect(lo, hi):
@@ -188,6 +259,9 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
             lo, hi = np.percentile(pts[:, :2], 0.5, axis=0) - 2, np.percentile(pts[:, :2], 99.5, axis=0) + 2
         else:
             lo, hi = np.array([-10.0, -10.0]), np.array([10.0, 10.0])
+        for g in objects:  # every boxed object whole, with room for its label
+            lo = np.minimum(lo, pts[g, :2].min(0) - 3.0)
+            hi = np.maximum(hi, pts[g, :2].max(0) + 3.0)
         view = ((lo[0], hi[0]), (lo[1], hi[1]))
     zooms = objects[:max_zooms]
     ncols = 2 if gt is not None else 1
@@ -218,15 +292,18 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
                f"ground truth ({int(gmov.sum())} moving points)", static_mask=mask)
     for k, g in enumerate(zooms):
         _zoom(fig.add_subplot(zoom_cells[k]), pts, flow, gt, g, k, speeds[k], vm, unit, to_unit, speed)
-    _wheel(ax, vm, to_unit, unit)
+    boxes = [(pts[g, :2].min(0) - 0.8, pts[g, :2].max(0) + 0.8) for g in objects]
+    _wheel(ax, vm, to_unit, unit, _wheel_corner(pts, view, boxes))
     if title:
         fig.suptitle(title, fontsize=11)
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, bbox_inches="tight")
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    from floxels_ext.output_paths import replace_atomically
+
+    try:
+        return replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp.png"), path,
+                                  lambda t: fig.savefig(t, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
 
 
 def _arrow_scale(g, pts, speed) -> float:

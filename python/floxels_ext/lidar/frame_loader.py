@@ -21,7 +21,7 @@ import numpy as np
 
 from floxels_ext.lidar.preprocess import transform_points
 
-__all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "FrameLoader", "ChunkScans"]
+__all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "LoaderPools", "FrameLoader", "ChunkScans"]
 
 
 @dataclass
@@ -31,6 +31,7 @@ class PreparedFrame:
     nonfinite: np.ndarray    # indices of the rows with NaN/inf coordinates
     to_world: np.ndarray     # (4, 4) native -> world
     points: np.ndarray | None = None  # (N, 3) all rows, only when asked for (--self-contained)
+    crc: int | None = None   # outputs.points_crc32 of all rows: read-back checks (floxels show)
 
     @property
     def n(self) -> int:
@@ -91,6 +92,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
+    from floxels_ext.lidar.outputs import points_crc32
     from floxels_ext.lidar.preprocess import host_rows, preprocess_mask
     from floxels_ext.ops.lidar import lidar_select
 
@@ -146,10 +148,78 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     if len(nonfinite) == len(pts):
         out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
         return out
+    if settings is not None and kept.shape[0] == 0:
+        # nothing to optimise: an all-zero flow would pass for a real result (issue 30)
+        out["error"] = empty_crop_message(path, pts_sensor, settings, pose_mode)
+        out["empty_crop"] = True
+        return out
+    kept_np = kept.numpy()
+    stray = far_outliers(kept_np)
+    if stray is not None:
+        out["stray"] = f"{path}: " + stray
     out["preprocess"] = time.perf_counter() - t1
-    out["frame"] = PreparedFrame(kept.numpy(), mask, nonfinite, np.asarray(to_world, np.float64),
-                                 np.ascontiguousarray(pts) if keep_points else None)
+    out["frame"] = PreparedFrame(kept_np, mask, nonfinite, np.asarray(to_world, np.float64),
+                                 np.ascontiguousarray(pts) if keep_points else None,
+                                 None if keep_points else points_crc32(pts))
     return out
+
+
+# A support scan's distance transform at the Floxels defaults (0.1 m cells, 2 m padding, float32)
+# over the axis-aligned extent of its points: a few stray returns far from the rest (--max-range
+# none) multiply it (one point 1 km away: 5.6 GB instead of 0.79 GB). Warned about above this
+# size when the scan's bulk alone would need a quarter of it or less.
+STRAY_DT_BYTES = 1e9
+STRAY_SPAN = 150.0  # m: scans whose coordinates all lie within this span are not examined further
+
+
+def _dt_bytes(lo, hi, cell: float = 0.1, padding: float = 2.0) -> float:
+    return 4.0 * float(np.prod((np.asarray(hi, np.float64) - lo + 2 * padding) / cell + 1))
+
+
+def far_outliers(kept: np.ndarray) -> str | None:
+    """A warning when a few points far from the rest of a scan blow up its distance transform
+    (see ``STRAY_DT_BYTES``), else None. Cheap: bounds of all points, quantiles of a sample."""
+    if len(kept) < 100:
+        return None
+    flat = kept.reshape(-1)  # one contiguous pass (per-column reductions cost ~100x more)
+    if float(flat.max()) - float(flat.min()) < STRAY_SPAN:  # every axis spans less: nothing to find
+        return None
+    lo = np.array([kept[:, k].min() for k in range(3)], np.float64)
+    hi = np.array([kept[:, k].max() for k in range(3)], np.float64)
+    full = _dt_bytes(lo, hi)
+    if full < STRAY_DT_BYTES:
+        return None
+    sample = kept[::max(1, len(kept) // 4096)].astype(np.float64)
+    blo = np.maximum(np.percentile(sample, 0.5, axis=0) - 10.0, lo)  # the bulk, 10 m margin
+    bhi = np.minimum(np.percentile(sample, 99.5, axis=0) + 10.0, hi)
+    bulk = _dt_bytes(blo, bhi)
+    if full < 4 * bulk:
+        return None
+    far = int(((kept < blo - 50.0) | (kept > bhi + 50.0)).any(axis=1).sum())  # clearly apart from the bulk
+    dims = lambda a, b: " x ".join(f"{v:.0f}" for v in b - a)  # noqa: E731
+    return (f"{far} point(s) lie far outside the rest of the scan (it spans {dims(lo, hi)} m, its bulk "
+            f"{dims(blo, bhi)} m): each distance transform of it needs ~{full / 1e9:.1f} GB instead of "
+            f"~{bulk / 1e9:.2f} GB (and more time); if they are stray returns, crop them (--max-range, --max-height)")
+
+
+def empty_crop_message(path, pts_sensor: np.ndarray, settings, pose_mode: str) -> str:
+    """Why a frame with finite points has none left after cropping and ground removal, with
+    the likely mistake: points not in the frame the ranges are measured in (the sensor at the
+    origin), or a crop that removes the whole scan."""
+    p = np.asarray(pts_sensor, np.float64)
+    p = p[np.isfinite(p).all(axis=1)]
+    r = np.hypot(p[:, 0], p[:, 1])
+    lo, hi = float(r.min()), float(r.max())
+    crop = ", ".join(f"--{k.replace('_', '-')} {getattr(settings, k)}" for k in ("min_range", "max_range", "max_height")
+                     if getattr(settings, k) is not None)
+    msg = (f"{path}: no point left to optimise after cropping ({crop}) and ground removal; its {len(p)} finite "
+           f"points lie {lo:.1f} to {hi:.1f} m from the sensor origin (horizontally)")
+    if settings.max_range is not None and lo > settings.max_range:
+        return msg + (". Likely a wrong frame: ranges are measured from each scan's sensor origin, and points in a "
+                      "world/map frame need their sensor pose ('pose' in the file, --points-frame world" +
+                      ("; --no-ego-motion measures from the world origin" if pose_mode == "identity" else "") +
+                      "), or check --poses/--calib; else widen --max-range")
+    return msg + ". Likely a wrong crop: check --min-range/--max-range/--max-height and the ground settings"
 
 
 def finite_mask(rows) -> np.ndarray:
@@ -191,32 +261,62 @@ def _process_load(i: int) -> dict:
     return load_frame(i, **_WORKER["kwargs"])
 
 
-class FrameLoader:
-    """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
-    processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
-    host work; started at construction, see :mod:`floxels_ext.lidar.worker_processes`)."""
+def _process_load_kw(i: int, kwargs: dict) -> dict:
+    return load_frame(i, **kwargs)
 
-    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
-                 pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn) -> None:
-        self.seq, self.report, self.warn = seq, report, warn
-        self.stages = stages or Stages()
-        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+
+class LoaderPools:
+    """The reader threads (or processes) and the two transform threads of a run; a dataset's
+    loaders share one set, so the readers of the next sequence are the same warm threads and
+    start while the method still works on the current one. ``init_kwargs``: processes hold
+    one sequence's reading arguments (the plain run); without them each read carries its own."""
+
+    def __init__(self, workers: int, kind: str = "thread", init_kwargs: dict | None = None) -> None:
         workers = max(1, workers)
+        self.kind, self.fixed = kind, init_kwargs is not None
         if kind == "process":
             from floxels_ext.lidar.worker_processes import process_pool
 
-            self.pool = process_pool(workers, _init_process, (self.kwargs,))
-            self._submit = lambda i: self.pool.submit(_process_load, i)
+            self.read = process_pool(workers, _init_process, (init_kwargs,))
         else:
-            self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
-            self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
+            self.read = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="floxels-read")
         # transforms wait for loads: a pool of their own, so they never queue behind later loads;
         # two threads: a transform is one op call of ~1 ms (more threads only contend for the GIL)
-        self.tpool = ThreadPoolExecutor(max_workers=min(workers, 2), thread_name_prefix="floxels-move")
+        self.move = ThreadPoolExecutor(max_workers=min(workers, 2), thread_name_prefix="floxels-move")
+
+    def close(self) -> None:
+        self.move.shutdown(wait=True, cancel_futures=True)
+        self.read.shutdown(wait=True, cancel_futures=True)
+
+
+class FrameLoader:
+    """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
+    processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
+    host work; started at construction, see :mod:`floxels_ext.lidar.worker_processes`).
+    ``pools``: shared :class:`LoaderPools` (a dataset's sequences), which :meth:`close` leaves open."""
+
+    def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
+                 pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn,
+                 pools: LoaderPools | None = None) -> None:
+        self.seq, self.report, self.warn = seq, report, warn
+        self.stages = stages or Stages()
+        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+        self._own_pools = pools is None
+        if pools is None:
+            pools = LoaderPools(workers, kind, self.kwargs if kind == "process" else None)
+        self.pools, self.pool, self.tpool = pools, pools.read, pools.move
+        if pools.kind == "process" and pools.fixed:
+            self._submit = lambda i: self.pool.submit(_process_load, i)
+        elif pools.kind == "process":
+            self._submit = lambda i: self.pool.submit(_process_load_kw, i, self.kwargs)
+        else:
+            self._submit = lambda i: self.pool.submit(load_frame, i, pre_device=pre_device, **self.kwargs)
         self.futures: dict = {}
         self.done: dict[int, PreparedFrame | None] = {}
         self.errors: dict[int, str] = {}
         self.nonfinite: dict[int, int] = {}
+        self.empty_crop: set[int] = set()  # frames with points but none left after cropping
+        self.stray: dict[int, str] = {}  # frames whose far outliers blow up a distance transform
         self._warned_no_pose = False
         self._lock = threading.Lock()
 
@@ -235,13 +335,20 @@ class FrameLoader:
             fr = res.get("frame")
             if "error" in res:
                 self.errors[i] = res["error"]
+                if res.get("empty_crop"):
+                    self.empty_crop.add(i)
             elif len(fr.nonfinite):
                 self.nonfinite[i] = len(fr.nonfinite)
+            first_stray = "stray" in res and not self.stray
+            if "stray" in res:
+                self.stray[i] = res["stray"]
             first_no_pose = res.get("warning") == "no_pose" and not self._warned_no_pose
             self._warned_no_pose |= first_no_pose
             self.done[i] = fr
         if "error" in res:
             self.report(f"floxels: error: {res['error']}")
+        if first_stray:  # once: the summary lists every such frame
+            self.warn(res["stray"] + " (further frames like it are listed in the run summary)")
         if first_no_pose:
             self.warn(f"{self.seq.frames[i].path} has no 'pose': ranges and heights are measured from the world origin")
         return fr
@@ -280,12 +387,13 @@ class FrameLoader:
                 del self.done[k]
 
     def close(self) -> None:
-        with self._lock:  # a reader thread may still add futures (seen: "dictionary changed size")
-            futures = list(self.futures.values())
-        for fut in futures:
-            fut.cancel()
-        self.tpool.shutdown(wait=True, cancel_futures=True)
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            for fut in self.futures.values():
+                fut.cancel()
+            self.futures.clear()
+            self.done.clear()
+        if self._own_pools:
+            self.pools.close()
 
 
 class ChunkScans(Sequence):

@@ -57,6 +57,8 @@ class FrameOutput:
             extra["ego_motion"] = np.linalg.solve(next_to_world, p.to_world)
         if self.self_contained:
             extra["points"] = p.points
+        if p.crc is not None:
+            extra["source_crc32"] = np.int64(p.crc)
         if self.stamps[i] is not None:
             extra["timestamp_ns"] = np.int64(self.stamps[i])
         if i in self.inputs:
@@ -73,9 +75,9 @@ def _child_init(write_one) -> None:
     _CHILD["write"] = write_one
 
 
-def _child_write(item) -> float:
+def _child_write(item, write_one=None) -> float:
     t0 = time.perf_counter()
-    _CHILD["write"](*item)
+    (write_one or _CHILD["write"])(*item)
     return time.perf_counter() - t0
 
 
@@ -84,7 +86,9 @@ class WriterPool:
     (``"process"``); ``put`` blocks while ``depth`` results wait (flat memory). Frames are
     independent files, written atomically, so their order does not matter; a failed write
     fails its frame (``failures``), not the run. Processes start at construction
-    (:mod:`floxels_ext.lidar.worker_processes`)."""
+    (:mod:`floxels_ext.lidar.worker_processes`). A dataset's sequences share one pool: each
+    ``put`` then names its sequence's ``write_one`` and an ``on_done(i, error)`` callback (on a
+    writer thread; ``error`` None when written)."""
 
     def __init__(self, write_one, stages, *, depth: int = 32, workers: int = 4, kind: str = "thread",
                  drain: int | None = None) -> None:
@@ -106,25 +110,27 @@ class WriterPool:
             for t in self.threads:
                 t.start()
 
-    def put(self, i: int, p, flow_kept, elapsed: float, next_to_world) -> None:
+    def put(self, i: int, p, flow_kept, elapsed: float, next_to_world, *, write_one=None, on_done=None) -> None:
         t0 = time.perf_counter()
         if self.kind == "process":
             self._slots.acquire()
             self.stages.add("wait_writer", time.perf_counter() - t0)
             light = dataclasses.replace(p, kept=np.zeros((0, 3), np.float32))  # the writer needs no kept points
             try:
-                fut = self.pool.submit(_child_write, (i, light, flow_kept, elapsed, next_to_world))
+                fut = self.pool.submit(_child_write, (i, light, flow_kept, elapsed, next_to_world), write_one)
             except Exception as e:  # a writer died (killed, out of memory): the pool is broken
                 self._slots.release()
                 with self._lock:
                     self.failures[i] = f"cannot write the output: {e}"
+                if on_done is not None:
+                    on_done(i, self.failures[i])
                 return
-            fut.add_done_callback(lambda f, i=i: self._done(i, f))
+            fut.add_done_callback(lambda f, i=i: self._done(i, f, on_done))
         else:
-            self.q.put((i, p, flow_kept, elapsed, next_to_world))
+            self.q.put(((i, p, flow_kept, elapsed, next_to_world), write_one, on_done))
             self.stages.add("wait_writer", time.perf_counter() - t0)
 
-    def _done(self, i: int, fut) -> None:
+    def _done(self, i: int, fut, on_done=None) -> None:
         err = fut.exception()
         with self._lock:
             if err is None:
@@ -134,21 +140,28 @@ class WriterPool:
         if err is None:
             self.stages.add("write", fut.result())  # seconds the child spent
         self._slots.release()
+        if on_done is not None:
+            on_done(i, None if err is None else f"cannot write the output: {err}")
 
     def _loop(self) -> None:
         while True:
-            item = self.q.get()
-            if item is None:
+            entry = self.q.get()
+            if entry is None:
                 return
+            item, write_one, on_done = entry
             t0 = time.perf_counter()
+            error = None
             try:
-                self.write_one(*item)
+                (write_one or self.write_one)(*item)
                 with self._lock:
                     self.written += 1
             except Exception as e:  # a full disk, a permission problem: this frame fails, not the run
+                error = f"cannot write the output: {e}"
                 with self._lock:
-                    self.failures[item[0]] = f"cannot write the output: {e}"
+                    self.failures[item[0]] = error
             self.stages.add("write", time.perf_counter() - t0)
+            if on_done is not None:
+                on_done(item[0], error)
 
     def close(self) -> None:
         """Write what is queued (finished results are not thrown away; on up to ``drain``

@@ -3,7 +3,9 @@ CI) or when tqdm is missing.
 
 ``Progress(total, label, verbosity)``: verbosity -1 (``floxels -q``) shows no bar; messages
 (:meth:`Progress.message`) are printed without garbling the bar in every case. Off a terminal
-a line is printed about every 5 % of the work so logs stay short.
+a line is printed about every 5 % of the work so logs stay short. :class:`DatasetProgress`:
+one bar for a whole dataset (frames done, frames/s, ETA) that also counts its sequences done,
+skipped (nothing left to do) and failed.
 """
 
 from __future__ import annotations
@@ -49,7 +51,8 @@ class Progress:
         pct = 100 * self.done // self.total if self.total else 100
         if pct // 5 != self._last_pct // 5 or self.done == self.total:
             self._last_pct = pct
-            print(f"{self.done}/{self.total} {self.label} ({pct}%), {rate:.2f} s/frame, "
+            fps = f" ({self.done / elapsed:.1f} frames/s)" if elapsed > 0 and self.done else ""
+            print(f"{self.done}/{self.total} {self.label} ({pct}%), {rate:.2f} s/frame{fps}, "
                   f"ETA {_hms(rate * (self.total - self.done))} {note}".rstrip(), file=self.stream, flush=True)
 
     def message(self, text: str) -> None:
@@ -63,3 +66,26 @@ class Progress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+
+class DatasetProgress(Progress):
+    """One bar for a dataset: :meth:`frames` as frames are written or fail, :meth:`sequence`
+    as each sequence ends (``"done"``, ``"skipped"``: nothing left to do, ``"failed"``: some of
+    its frames, or all of it, failed); the bar's note counts them."""
+
+    def __init__(self, total_frames: int, sequences: int, stream=None, verbosity: int = 0) -> None:
+        super().__init__(total_frames, "frames", stream=stream, verbosity=verbosity)
+        self.sequences = sequences
+        self.counts = {"done": 0, "skipped": 0, "failed": 0}
+
+    def note(self) -> str:
+        c = self.counts
+        return f"sequences {c['done']}/{self.sequences} done, {c['skipped']} skipped, {c['failed']} failed"
+
+    def frames(self, n: int = 1) -> None:
+        self.update(n, note=self.note())
+
+    def sequence(self, outcome: str) -> None:
+        self.counts[outcome] += 1
+        if self._bar is not None:
+            self._bar.set_postfix_str(self.note())

@@ -1,16 +1,22 @@
-"""The Ray driver of ``floxels run DATASET --ray``: one Ray task per (sequence, frame range).
+"""The Ray driver of ``floxels run DATASET --ray``: one long-lived worker per GPU (or per
+``--gpus-per-task`` share, or per ``--cpus-per-task`` CPUs on a CPU cluster).
 
-Each task asks Ray for ``--gpus-per-task`` GPUs (fractions pack tasks on one GPU) and
-``--cpus-per-task`` CPUs, and runs ``dataset_run.floxels_task`` on whichever node Ray picks; input
-and output must therefore be on storage all nodes see at the same path. The driver keeps at most
-as many tasks in flight as the cluster's resources fit (re-read as nodes join or leave), so every
-task in flight is running and the progress line's worker count is true. Progress is counted from
-the output files themselves (listing only the directories of running tasks), which also makes a
-re-run exact: it plans only the frames whose files are missing.
+Each worker is a Ray actor (:class:`FloxelsWorker`) that keeps its process, its CUDA context,
+the loaded extension and one pipeline (``dataset_worker.run_tasks``: readers, writers and the
+method's stream) for the whole job, so Ray's and CUDA's start are paid once per worker, not
+per task. Workers pull tasks (``dataset.Task``: a sequence, or a frame range of a long one)
+from a :class:`Dispatcher` actor that the driver starts; a worker asks for the next task as
+its read-ahead reaches the end of the current one, so the pipeline never drains between
+tasks. Input and output must be on storage every node sees at the same path.
 
-A worker or node that dies makes Ray re-run the task (``--retries``); the re-run skips the
-frames already written. A task that still fails is reported with the names of the files it did
-not write, and the exit status is 1; running the same command again writes only what is missing.
+The dispatcher leases each task to one worker at a time. When a worker (or its node) dies,
+the driver hands its unfinished leases back to the queue and, while ``--retries`` allows,
+starts a replacement; any worker may take them. Frames written before the death stay (the
+new holder's resume check skips them: nothing is written twice), frames in flight are
+estimated again (nothing is lost). A task left when no worker is left is reported with the
+names of the files it did not write; running the same command again writes only those.
+Progress is counted from the output files of the leased tasks; sequences done, skipped and
+failed from the dispatcher.
 """
 
 from __future__ import annotations
@@ -19,8 +25,9 @@ import math
 import os
 import sys
 import time
+from collections import deque
 
-__all__ = ["run_on_ray", "connect", "task_slots"]
+__all__ = ["run_on_ray", "connect", "task_slots", "Dispatcher", "FloxelsWorker"]
 
 
 def _ray():
@@ -47,7 +54,7 @@ def _alive_nodes(ray) -> list[dict]:
 
 
 def task_slots(nodes: list[dict], gpus: float, cpus: float) -> int:
-    """How many tasks of (gpus, cpus) the nodes hold at once (each node packs its own)."""
+    """How many workers of (gpus, cpus) the nodes hold at once (each node packs its own)."""
     eps = 1e-9
     total = 0
     for r in nodes:
@@ -59,7 +66,7 @@ def task_slots(nodes: list[dict], gpus: float, cpus: float) -> int:
 
 
 def _resources(ray, args) -> tuple[float, float, str]:
-    """(GPUs, CPUs) per task and the task's --device; CLIError when no node can hold such a task."""
+    """(GPUs, CPUs) per worker and the workers' --device; CLIError when no node can hold one."""
     from floxels_ext.cli import CLIError
 
     nodes = _alive_nodes(ray)
@@ -72,12 +79,17 @@ def _resources(ray, args) -> tuple[float, float, str]:
                        else "--device cuda contradicts --gpus-per-task 0")
     if gpus > 1 and gpus != int(gpus):
         raise CLIError(f"--gpus-per-task above 1 must be a whole number, got {gpus}")
-    if task_slots(nodes, gpus, args.cpus_per_task) == 0:
+    cpus = args.cpus_per_task
+    if cpus is None:  # a GPU node's CPUs shared by the workers it holds (readers and writers need them)
+        shares = [r.get("CPU", 0.0) / math.floor(r["GPU"] / gpus + 1e-9) for r in nodes
+                  if gpus > 0 and r.get("GPU", 0.0) >= gpus]
+        cpus = max(1.0, math.floor(min(shares))) if shares else 1.0
+    if task_slots(nodes, gpus, cpus) == 0:
         have = ", ".join(f"{r.get('CPU', 0):g} CPU + {r.get('GPU', 0):g} GPU" for r in nodes) or "no live node"
-        raise CLIError(f"no node of the Ray cluster can hold a task of {gpus:g} GPU + {args.cpus_per_task:g} CPU "
+        raise CLIError(f"no node of the Ray cluster can hold a worker of {gpus:g} GPU + {cpus:g} CPU "
                        f"(nodes: {have}); change --gpus-per-task / --cpus-per-task")
-    device = "cuda" if gpus > 0 else "cpu"  # a task sees only the GPUs Ray gave it, as cuda:0...
-    return gpus, args.cpus_per_task, device
+    device = "cuda" if gpus > 0 else "cpu"  # a worker sees only the GPUs Ray gave it, as cuda:0...
+    return gpus, cpus, device
 
 
 def _count_written(task, since: float | None) -> int:
@@ -116,105 +128,239 @@ def _missing_report(task, since: float | None, limit: int = 8) -> str:
     return f"{len(missing)} frame(s) not written: {shown}{more} (first input: {missing[0][1]})"
 
 
+class Dispatcher:
+    """The job's task queue (a Ray actor in the driver's node): leases each task to one worker
+    at a time and records how it ended."""
+
+    def __init__(self, tasks: list) -> None:
+        self.tasks = tasks
+        self.queue = deque(range(len(tasks)))
+        self.leases: dict[str, set[int]] = {}
+        self.ended: dict[int, tuple[str, list[str]]] = {}
+
+    def lease(self, worker: str):
+        """(task id, task) for ``worker``, or None when the queue is empty now."""
+        if not self.queue:
+            return None
+        k = self.queue.popleft()
+        self.leases.setdefault(worker, set()).add(k)
+        return k, self.tasks[k]
+
+    def finish(self, worker: str, k: int, outcome: str, lines: list[str]) -> None:
+        self.leases.get(worker, set()).discard(k)
+        self.ended[k] = (outcome, lines)
+
+    def requeue(self, worker: str) -> list[int]:
+        """A dead worker's unfinished tasks go back to the front of the queue."""
+        ks = sorted(self.leases.pop(worker, set()))
+        self.queue.extendleft(reversed(ks))
+        return ks
+
+    def state(self, worker: str | None = None) -> str:
+        """"work" (tasks queued), "wait" (none queued, some leased: a death may requeue them)
+        or "done"."""
+        if self.queue:
+            return "work"
+        return "wait" if any(self.leases.values()) else "done"
+
+    def status(self) -> dict:
+        return {"leased": {w: sorted(ks) for w, ks in self.leases.items()}, "ended": dict(self.ended),
+                "queued": len(self.queue)}
+
+
+def task_args(common: dict, device: str | None, threads: int | None):
+    """The run's namespace in a worker: the driver's common options, this worker's device and CPUs."""
+    from floxels_ext.cli import build_parser
+
+    ns = build_parser().parse_args(["run", "INPUT", "--out", "OUT"])
+    for k, v in common.items():
+        setattr(ns, k, v)
+    ns.device, ns.ray, ns.poses, ns.calib, ns.frames = device, None, None, None, None
+    ns.cpu_limit = threads  # the default reader count stays within the worker's CPUs
+    return ns
+
+
+class FloxelsWorker:
+    """A Ray actor: one pipeline for the whole job, fed by the dispatcher's tasks."""
+
+    def __init__(self, threads: int | None = None) -> None:
+        import torch
+
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.threads = threads
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def run(self, dispatcher, name: str, common: dict, device: str | None) -> dict:
+        import socket
+
+        import ray
+
+        from floxels_ext.lidar.dataset_worker import run_tasks
+
+        args = task_args(common, device, self.threads)
+        log: list[str] = []
+        out = {"written": 0, "failed": [], "host": socket.gethostname(), "pid": os.getpid(), "streams": 0}
+
+        def report(msg: str) -> None:
+            if len(log) < 200:
+                log.append(msg)
+
+        def tasks():
+            while True:
+                got = ray.get(dispatcher.lease.remote(name))
+                if got is None:
+                    return
+                k, task = got
+                task.lease = k
+                yield task
+
+        def ended(task, outcome, job, lines) -> None:
+            dispatcher.finish.remote(name, task.lease, outcome, list(lines))
+
+        while True:
+            res = run_tasks(tasks(), args, report=report, on_sequence=ended)
+            out["streams"] += 1
+            out["written"] += res["written"]
+            out["failed"] += res["failed"]
+            out["stages"] = res["stages"]
+            # the queue is empty: wait while others hold tasks (a death puts theirs back)
+            while (state := ray.get(dispatcher.state.remote(name))) == "wait":
+                time.sleep(0.25)
+            if state == "done":
+                out["log"] = log[-30:]
+                return out
+
+
 def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.dataset_run import floxels_task, remove_temps, task_job
-    from floxels_ext.lidar.progress import Progress
+    from floxels_ext.lidar.dataset_run import remove_temps
+    from floxels_ext.lidar.progress import DatasetProgress
 
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
     out_dirs = sorted({t.out_dir for t in tasks})
     for d in out_dirs:  # temporaries of an interrupted job; none of ours is running yet
         d.mkdir(parents=True, exist_ok=True)
         stale = remove_temps(d)
-        if stale:
+        if stale and verbosity >= 0:
             print(f"removed {stale} temporary file(s) left by an interrupted run in {d}", file=sys.stderr)
     todo_tasks = [t for t in tasks if t.todo]
+    total = sum(len(t.names) for t in tasks)
     if not todo_tasks:
-        n = sum(len(t.names) for t in tasks)
-        print(f"dataset {args.input}: {n_sequences} sequences, {n} frames, {n} already done, nothing to estimate",
-              file=sys.stderr)
+        print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total} already done, nothing to "
+              f"estimate", file=sys.stderr)
         return 0
     ray = connect(args.ray)
     gpus, cpus, device = _resources(ray, args)
-    total = sum(len(t.names) for t in tasks)
     todo = sum(len(t.todo) for t in todo_tasks)
     since = time.time() - 1.0 if args.force else None
     nodes = _alive_nodes(ray)
-    slots = task_slots(nodes, gpus, cpus) if args.max_tasks is None else min(args.max_tasks, task_slots(nodes, gpus, cpus))
-    print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done, {todo} to "
-          f"estimate in {len(todo_tasks)} task(s) on Ray ({len(nodes)} node(s), "
-          f"{sum(r.get('GPU', 0) for r in nodes):g} GPU, {sum(r.get('CPU', 0) for r in nodes):g} CPU): "
-          f"{gpus:g} GPU + {cpus:g} CPU per task, up to {slots} at once", file=sys.stderr, flush=True)
-    remote = ray.remote(floxels_task).options(num_gpus=gpus, num_cpus=cpus, max_retries=args.retries,
-                                              retry_exceptions=False)
+    cap = task_slots(nodes, gpus, cpus)
+    n_workers = max(1, min(cap if args.max_tasks is None else min(args.max_tasks, cap), len(todo_tasks)))
+    if verbosity >= 0:
+        print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done, {todo} to "
+              f"estimate in {len(todo_tasks)} task(s) on Ray ({len(nodes)} node(s), "
+              f"{sum(r.get('GPU', 0) for r in nodes):g} GPU, {sum(r.get('CPU', 0) for r in nodes):g} CPU): "
+              f"{n_workers} worker(s) of {gpus:g} GPU + {cpus:g} CPU", file=sys.stderr, flush=True)
     threads = max(1, int(cpus))
-    pending = list(todo_tasks)
-    inflight: dict = {}                      # ObjectRef -> Task
-    counted_done = 0                         # frames of finished tasks
+    dispatcher = ray.remote(Dispatcher).options(num_cpus=0).remote(todo_tasks)
+    worker_cls = ray.remote(FloxelsWorker).options(num_gpus=gpus, num_cpus=cpus, max_restarts=0)
+    workers: dict = {}   # run ObjectRef -> (name, actor)
+    made = 0
+
+    def start_worker() -> None:
+        nonlocal made
+        name = f"worker-{made}"
+        made += 1
+        actor = worker_cls.remote(threads)
+        workers[actor.run.remote(dispatcher, name, common, device)] = (name, actor)
+
+    for _ in range(n_workers):
+        start_worker()
+    replacements = args.retries
+    bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
+    for _ in range(len(tasks) - len(todo_tasks)):
+        bar.sequence("skipped")
     failures: list[str] = []
-    succeeded = 0
-    bar = Progress(todo, "frames")
+    deaths: list[str] = []
+    results: list[dict] = []
+    ended_seen: set[int] = set()
+    done_frames = 0   # frames of tasks that ended
     shown = 0
     t0 = time.perf_counter()
-    t_slots = t_count = t0
     try:
-        while pending or inflight:
-            now = time.perf_counter()
-            if now - t_slots > 10.0:  # nodes may have joined or left
-                t_slots = now
-                cap = task_slots(_alive_nodes(ray), gpus, cpus)
-                slots = max(1, cap if args.max_tasks is None else min(args.max_tasks, cap))
-            while pending and len(inflight) < slots:
-                t = pending.pop(0)
-                inflight[remote.remote(task_job(t, common, device, threads))] = t
-            running = len(inflight)
-            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)  # back as soon as one ends
-            if ready:
-                ready, _ = ray.wait(list(inflight), num_returns=len(inflight), timeout=0)
+        while workers:
+            ready, _ = ray.wait(list(workers), num_returns=1, timeout=0.5)
             for ref in ready:
-                t = inflight.pop(ref)
+                name, actor = workers.pop(ref)
                 try:
-                    res = ray.get(ref)
+                    results.append(ray.get(ref))
+                    ray.kill(actor)  # its GPU is free for the next job at once
                 except ray.exceptions.RayError as e:
-                    if isinstance(getattr(e, "cause", None), ImportError) and succeeded == 0:
-                        raise CLIError(f"a Ray worker cannot import what a task needs ({e.cause}); install the "
-                                       f"same floxels_ext and its dependencies on every node") from None
+                    if isinstance(getattr(e, "cause", None), CLIError):
+                        raise e.cause from None  # a mistake in the common options: every worker would fail
+                    if isinstance(getattr(e, "cause", None), ImportError):
+                        raise CLIError(f"a Ray worker cannot import what it needs ({e.cause}); install the same "
+                                       f"floxels_ext and its dependencies on every node") from None
+                    back = ray.get(dispatcher.requeue.remote(name))
                     lines = str(e).strip().splitlines()
-                    failures.append(f"{t.label}: {type(e).__name__}: {lines[-1] if lines else e}; "
-                                    f"{_missing_report(t, since)}")
-                    res = None
-                if res is not None:
-                    if res["rc"] == 2 and succeeded == 0 and not failures:
-                        raise CLIError(res["error"])  # a mistake in the common options: every task would fail
-                    if res["rc"] == 0:
-                        succeeded += 1
-                    elif res["rc"] == 2:
-                        failures.append(f"{t.label}: {res['error']}")
-                    else:
-                        failures += res["failed"] or [f"{t.label} (on {res['host']}): exit {res['rc']}; "
-                                                      f"{_missing_report(t, since)}\n{res['log']}"]
-                counted_done += _count_written(t, since)
-            if time.perf_counter() - t_count < 0.5 and (pending or inflight):
-                continue  # list the running tasks' directories twice a second at most
-            t_count = time.perf_counter()
-            done = counted_done + sum(_count_written(t, since) for t in inflight.values())
+                    deaths.append(f"{name}: {type(e).__name__}: {lines[-1] if lines else e}; "
+                                  f"{len(back)} task(s) handed to the other workers")
+                    if verbosity >= 0:
+                        bar.message(f"floxels: warning: {deaths[-1]}")
+                    if replacements > 0:
+                        replacements -= 1
+                        start_worker()
+            st = ray.get(dispatcher.status.remote())
+            for k, (outcome, lines) in st["ended"].items():
+                if k not in ended_seen:
+                    ended_seen.add(k)
+                    bar.sequence(outcome)
+                    failures += lines
+                    done_frames += _count_written(todo_tasks[k], since)
+            if not workers and (st["queued"] or any(st["leased"].values())):
+                break  # no worker left: what is left is reported below
+            if st["queued"] == 0 and not any(st["leased"].values()) and len(ended_seen) == len(todo_tasks):
+                # all done: workers return now; one still waiting for resources (its node gone) is not needed
+                left, _ = ray.wait(list(workers), num_returns=len(workers), timeout=30.0)
+                for ref in left:
+                    results.append(ray.get(ref))
+                    ray.kill(workers.pop(ref)[1])
+                for ref, (_, actor) in list(workers.items()):
+                    ray.kill(actor)
+                workers.clear()
+            leased = [todo_tasks[k] for ks in st["leased"].values() for k in ks]
+            done = done_frames + sum(_count_written(t, since) for t in leased)
             if done > shown:
-                el = time.perf_counter() - t0
-                bar.update(done - shown, note=f"{done / el:.2f} frames/s, {running} worker(s)")
+                bar.frames(done - shown)
                 shown = done
     except BaseException:
-        for ref in inflight:
-            ray.cancel(ref, force=True)
+        for _, actor in workers.values():
+            ray.kill(actor)
         bar.close()
         print("floxels: job stopped; running the same command again writes only the missing frames",
               file=sys.stderr)
         raise
     bar.close()
-    left = sum(remove_temps(d) for d in out_dirs)  # from attempts killed mid-write and then retried
+    st = ray.get(dispatcher.status.remote())
+    unfinished = [todo_tasks[k] for k in range(len(todo_tasks)) if k not in st["ended"]]
+    for t in unfinished:
+        failures.append(f"{t.label}: no worker left to run it; {_missing_report(t, since)}")
+    ray.kill(dispatcher)
+    left = sum(remove_temps(d) for d in out_dirs)  # from workers killed mid-write
     wall = time.perf_counter() - t0
-    print(f"done: {shown} frame(s) written by {len(todo_tasks)} task(s) in {wall:.1f} s "
+    counts = {o: 0 for o in ("done", "skipped", "failed")}
+    for outcome, _ in st["ended"].values():
+        counts[outcome] += 1
+    counts["skipped"] += len(tasks) - len(todo_tasks)
+    counts["failed"] += len(unfinished)
+    print(f"done: {n_sequences} sequences in {len(tasks)} task(s) ({counts['done']} done, {counts['skipped']} skipped, "
+          f"{counts['failed']} failed), {shown} frame(s) written by {made} worker(s) in {wall:.1f} s "
           f"({shown / wall if wall > 0 else 0:.2f} frames/s), {total - todo} skipped (already done), "
-          f"{len(failures)} failure(s)" + (f"; removed {left} temporary file(s) of killed attempts" if left else ""),
-          file=sys.stderr)
+          f"{len(failures)} failure(s)" + (f"; {len(deaths)} worker(s) lost" if deaths else "")
+          + (f"; removed {left} temporary file(s) of killed workers" if left else ""), file=sys.stderr)
     if failures:
         print("failed:", file=sys.stderr)
         for f in failures:

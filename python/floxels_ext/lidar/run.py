@@ -163,6 +163,10 @@ def run(args) -> int:
             print(f"{name:<12} {get_method(name).description}")
         return 0
     device, options = check_args(args, torch)
+    if device == "cpu" and not getattr(args, "cpu_limit", None):  # a Ray task has its threads set
+        from floxels_ext.cpu_threads import apply_cpu_threads
+
+        apply_cpu_threads((lambda m: print(m, file=sys.stderr)) if verbosity > 0 else None)
     try:
         settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
                               remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
@@ -178,6 +182,10 @@ def run(args) -> int:
     if len(seq) < 2:
         raise CLIError(f"{seq.root} holds {len(seq)} frame; scene flow needs at least 2")
     check_out_dir(out, seq)
+    if args.summary:  # checked before the work, like every output path
+        from floxels_ext.output_paths import check_output_file
+
+        check_output_file(args.summary, "--summary", "run_summary.json")
     selected = parse_frames(args.frames, len(seq))
     out.mkdir(parents=True, exist_ok=True)
     stale = cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
@@ -286,6 +294,10 @@ def run(args) -> int:
                "frames": len(seq), "selected": len(selected), "written": written, "skipped": skipped,
                "failed": len(failed), "failures": [{"frame": seq.frames[i].name, "message": msgs[i]} for i in msgs],
                "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               # frames with points but none left to optimise (counted in "failed" too)
+               "no_points_after_crop": [seq.frames[i].name for i in sorted(loader.empty_crop)],
+               # frames whose few far points blow up a distance transform (warned about once)
+               "far_outliers": [seq.frames[i].name for i in sorted(loader.stray)],
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
@@ -294,17 +306,20 @@ def run(args) -> int:
                "settings": json.loads(json.dumps(run_settings, default=str))}
     summary_path = Path(args.summary) if args.summary else out / "run_summary.json"
     try:
-        tmp = summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(summary, indent=2) + "\n")
-        os.replace(tmp, summary_path)
+        from floxels_ext.output_paths import replace_atomically
+
+        text = json.dumps(summary, indent=2) + "\n"
+        replace_atomically(summary_path.with_name(f".{summary_path.name}.{os.getpid()}.tmp"), summary_path,
+                           lambda t: t.write_text(text))
     except OSError as e:
         report(f"floxels: warning: cannot write the summary {summary_path}: {e}")
     line = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failed)} failed"
+    if loader.empty_crop:
+        line += f" ({len(loader.empty_crop)} with no point left after cropping)"
     if times:
         line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
                  f"{sum(times):.1f} s total")
-    if verbosity >= 0:
-        print(line, file=sys.stderr)
+    print(line, file=sys.stderr)  # also with -q: its help promises the final summary
     if verbosity >= 1:
         st = stages.as_dict()
         print("stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()) + f"; summary: {summary_path}",

@@ -75,17 +75,26 @@ def _default_center(points) -> tuple[float, float]:
 def add_parser(sub) -> None:
     p = sub.add_parser("show", help="bird's-eye-view PNG (and rerun recording) of a frame's points and flow",
                        description="Render one output of 'floxels run' (a .npz file, or RUN_DIR with --frame) as a "
-                                   "top-view PNG: points coloured by height, flow arrows coloured by direction "
-                                   "(legend wheel top right) with brightness by speed.")
+                                   "bird's-eye-view PNG. With matplotlib (pip install 'floxels_ext[viz]'): metres on "
+                                   "the axes and a scale bar, moving points coloured by direction (hue) and speed "
+                                   "(saturation; colour wheel), each moving object boxed and labelled with its median "
+                                   "speed, zoom panels with flow arrows on the largest ones, ground and cropped points "
+                                   "grey. Without matplotlib: a plain raster (points coloured by height, flow arrows "
+                                   "coloured by direction, legend wheel top right), sized by --extent/--resolution "
+                                   "and with arrows scaled by --flow-scale.")
     p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
     p.add_argument("--frame", default="0", help="with a RUN_DIR: frame index (sorted order) or name (default 0)")
     p.add_argument("--png", metavar="FILE", help="output PNG (default <frame name>.png in the current directory)")
-    p.add_argument("--extent", type=float, default=40.0, help="half-width of the view in metres (default 40)")
-    p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1)")
+    from floxels_ext.cli_types import positive_float
+
+    p.add_argument("--extent", type=positive_float, default=40.0, help="half-width of the view in metres (default 40)")
+    p.add_argument("--resolution", type=positive_float, default=0.1,
+                   help="metres per pixel of the plain raster (default 0.1; the matplotlib picture has its own size)")
     p.add_argument("--center", help="X,Y view centre (default: the sensor, else the points' median)")
-    p.add_argument("--flow-scale", type=float, default=1.0,
-                   help="arrow length = flow x this (default 1; plain raster without matplotlib only)")
-    p.add_argument("--frame-period", type=float, default=None, metavar="S",
+    p.add_argument("--flow-scale", type=positive_float, default=None,
+                   help="plain raster only: arrow length = flow x this (default 1); the matplotlib picture "
+                        "scales its zoom arrows to each object")
+    p.add_argument("--frame-period", type=positive_float, default=None, metavar="S",
                    help="seconds between frames, to label speeds in m/s (default: m/frame)")
     p.add_argument("--rerun", metavar="FILE.rrd", help="also save a rerun recording (needs rerun-sdk)")
     p.set_defaults(func=run)
@@ -159,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.viz import write_png
+    from floxels_ext.output_paths import check_output_file
 
     path = _resolve(args.target, args.frame)
     data = load_flow_output(path)
@@ -166,16 +176,14 @@ def run(args: argparse.Namespace) -> int:
     if args.center:
         try:
             center = tuple(float(v) for v in args.center.split(","))
-            assert len(center) == 2
+            assert len(center) == 2 and all(math.isfinite(v) for v in center)
         except (ValueError, AssertionError):
-            raise CLIError(f"--center expects X,Y, got {args.center!r}") from None
+            raise CLIError(f"--center expects X,Y (two finite numbers), got {args.center!r}") from None
     if not (args.extent > 0 and args.resolution > 0) or args.extent / args.resolution > 8000:
         raise CLIError("--extent and --resolution must be > 0 and give at most 16000 pixels across")
     if args.frame_period is not None and not args.frame_period > 0:
         raise CLIError(f"--frame-period must be > 0 seconds, got {args.frame_period}")
-    png = Path(args.png) if args.png else Path(f"{path.stem}.png")
-    if not png.parent.is_dir():
-        raise CLIError(f"--png {png}: directory {png.parent} does not exist")
+    png = check_output_file(args.png if args.png else f"{path.stem}.png", "--png", f"{path.stem}.png")
     n_mov = int(data["dynamic"].sum())
     try:
         from floxels_ext.lidar.flow_plot import plot_flow_bev
@@ -186,10 +194,13 @@ def run(args: argparse.Namespace) -> int:
         plot_flow_bev(png, data["points"], data["flow"], mask=data["mask"], view=view,
                       frame_period=args.frame_period, title=f"floxels show: {path}")
         size = "matplotlib"
+        if args.flow_scale is not None:
+            print("note: --flow-scale applies to the plain raster only; the matplotlib picture scales its arrows "
+                  "to each object")
     except MissingDependencyError as e:
         print(f"note: {e}; writing a plain raster instead")
         img = render_frame(data, extent=args.extent, resolution=args.resolution, center=center,
-                           flow_scale=args.flow_scale)
+                           flow_scale=1.0 if args.flow_scale is None else args.flow_scale)
         write_png(png, img)
         size = f"{img.shape[1]}x{img.shape[0]}"
     print(f"wrote {png} ({size}, {len(data['points'])} points, {n_mov} moving)")

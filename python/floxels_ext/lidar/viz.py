@@ -39,10 +39,9 @@ def write_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
            + chunk(b"IDAT", zlib.compress(raw, 6))
            + chunk(b"IEND", b""))
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(png)
-    os.replace(tmp, path)
-    return path
+    from floxels_ext.output_paths import replace_atomically
+
+    return replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp"), path, lambda t: t.write_bytes(png))
 
 
 def hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -35,6 +35,10 @@ class LidarConfig:
             raise ValueError("need -89 <= fov_down < fov_up <= 89 degrees")
         if not 0 <= self.min_range < self.max_range:
             raise ValueError("need 0 <= min_range < max_range")
+        for name in ("fov_up", "fov_down", "max_range", "min_range", "range_noise", "dropout", "sensor_height",
+                     "rate_hz"):
+            if not math.isfinite(getattr(self, name)):  # NaN would pass the comparisons below
+                raise ValueError(f"{name} must be a finite number, got {getattr(self, name)}")
         if self.range_noise < 0 or not 0 <= self.dropout < 1 or self.rate_hz <= 0:
             raise ValueError("need range_noise >= 0, 0 <= dropout < 1 and rate_hz > 0")
 

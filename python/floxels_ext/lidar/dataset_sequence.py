@@ -1,0 +1,168 @@
+"""One sequence of ``floxels run DATASET`` in the shared pipeline (``dataset_stream``): opening
+it as the plain ``floxels run SEQ --frames A:B`` does (frames, poses, resume, output metadata;
+the same checks, the same files) and, once its frames are done, its ``run_summary.json`` and
+failure lines, as the plain run writes them.
+
+:class:`DatasetContext` holds what every sequence of the job shares: the parsed options, the
+method's options, the preprocessing settings, the reader pools and stage times.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from floxels_ext.lidar.dataset_stream import SeqJob
+
+__all__ = ["DatasetContext", "open_sequence", "write_sequence_summary", "failure_lines"]
+
+
+@dataclass
+class DatasetContext:
+    args: object           # the run's parsed arguments (the options every sequence shares)
+    device: str
+    options: dict          # the method's options (check_args)
+    settings: object       # Preprocess
+    pools: object          # LoaderPools
+    stages: object         # Stages
+    pre_device: str | None
+    report: object         # message -> None (errors and warnings)
+    workers: int = 0
+    writers: int = 0
+    kind: str = "thread"
+    extra: dict = field(default_factory=dict)
+
+
+def open_sequence(task, ctx: DatasetContext) -> SeqJob:
+    """The job of ``task`` (``dataset.Task``: a sequence's frames [start, stop) and its output
+    directory). Raises CLIError (or the readers' errors) when the sequence cannot run; only
+    this task's own temporaries are removed (tasks of one sequence may share its directory)."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.frame_loader import FrameLoader
+    from floxels_ext.lidar.frame_writer import FrameOutput
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.io.poses import PoseFormatError
+    from floxels_ext.lidar.io.sources import InputError, discover_input
+    from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
+    from floxels_ext.lidar.resume import input_records
+    from floxels_ext.lidar.run import absolute_sources
+    from floxels_ext.lidar.run_args import check_out_dir, check_resume
+    from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
+
+    args, spec = ctx.args, task.seq
+    out = Path(task.out_dir)
+    try:
+        seq = discover_input(spec.path, poses_file=spec.poses, calib=spec.calib, bin_columns=args.bin_columns,
+                             ext=args.ext, points_frame=args.points_frame)
+        check_out_dir(out, seq)
+        selected = list(range(task.start, min(task.stop, len(seq))))
+        out.mkdir(parents=True, exist_ok=True)
+        cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
+        args_seq = _with(args, poses=str(spec.poses) if spec.poses else None,
+                         calib=str(spec.calib) if spec.calib else None)
+        pose_mode, poses = resolve_poses(seq, args_seq, out, ctx.report)
+    except (InputError, PoseFormatError, MissingDependencyError) as e:
+        raise CLIError(str(e)) from None
+    run_settings = {"method": args.method, "num_scans": args.scans, "options": ctx.options,
+                    "preprocess": asdict(ctx.settings), "ego_motion": pose_mode,
+                    "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
+                    "dynamic_threshold": args.dynamic_threshold}
+    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
+    stamps = [f.timestamp_ns for f in seq.frames]
+    times_s, _ = frame_times(seq, stamps, ctx.report)
+    # what each frame's output depends on, recorded and compared as by floxels run (lidar/resume.py)
+    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
+    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=ctx.report)
+    meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
+            "options": np.str_(json.dumps(ctx.options, default=str)),
+            "settings": np.str_(json.dumps(run_settings, default=str)),
+            "dynamic_threshold": np.float64(args.dynamic_threshold), "format": np.int32(FORMAT_VERSION),
+            "bin_columns": np.int32(seq.bin_columns or 0),
+            "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
+    write_one = FrameOutput(out_path=out_path, sources=absolute_sources(seq, todo), stamps=stamps, meta=meta,
+                            dynamic_threshold=args.dynamic_threshold, compress=args.compress,
+                            self_contained=args.self_contained, inputs=inputs)
+    loader = FrameLoader(seq, ctx.settings, poses, pose_mode, ctx.report, pools=ctx.pools, pre_device=ctx.pre_device,
+                         keep_points=args.self_contained, stages=ctx.stages,
+                         warn=lambda m: ctx.report(f"floxels: warning: {m}"))
+
+    def next_pose(i):
+        if i + 1 >= len(seq) or pose_mode == "seqio":
+            return None
+        if pose_mode == "table":
+            return poses[i + 1]
+        if pose_mode == "identity":
+            return np.eye(4)
+        nxt = loader.peek(i + 1)
+        return None if nxt is None else nxt.to_world
+
+    info = {"out": out, "selected": selected, "skipped": len(selected) - len(todo), "settings": run_settings,
+            "task": task}
+    return SeqJob(label=task.label, seq=seq, loader=loader, todo=todo, write_one=write_one, next_pose=next_pose,
+                  times_s=times_s, info=info)
+
+
+def _with(args, **changes):
+    import argparse
+
+    ns = argparse.Namespace(**vars(args))
+    for k, v in changes.items():
+        setattr(ns, k, v)
+    return ns
+
+
+def failure_lines(job: SeqJob) -> list[str]:
+    """One line per failed frame, naming its file (as the plain run lists them)."""
+    out = []
+    for i in sorted(job.failed):
+        path = str(job.seq.frames[i].path)
+        msg = job.failed[i]
+        out.append(msg if msg.startswith(path) else f"{path}: {msg}")
+    return out
+
+
+def write_sequence_summary(job: SeqJob, ctx: DatasetContext) -> Path | None:
+    """The sequence's ``run_summary.json`` with the plain run's keys; the stage times are the
+    whole stream's so far (the stages are shared by its sequences), its wall time is from the
+    moment the stream took the sequence to its last frame written."""
+    args, seq, info = ctx.args, job.seq, job.info
+    for i, msg in job.loader.errors.items():  # unreadable support scans count as failures too
+        if i in info["selected"]:
+            job.failed.setdefault(i, msg)
+    todo = set(job.todo)
+    nonfinite = {i: k for i, k in job.loader.nonfinite.items() if i in todo}
+    if nonfinite:
+        first = sorted(nonfinite)[:3]
+        ctx.report(f"floxels: warning: {len(nonfinite)} frame(s) have rows with NaN/inf coordinates (their flow "
+                   f"is NaN): " + ", ".join(f"{seq.frames[i].path.name} ({nonfinite[i]} rows)" for i in first)
+                   + (" ..." if len(nonfinite) > 3 else ""))
+    wall = max(0.0, job.t_end - job.t_start)
+    times = job.times
+    lines = failure_lines(job)
+    summary = {"input": str(seq.root), "out": str(info["out"]), "method": args.method, "device": ctx.device,
+               "frames": len(seq), "selected": len(info["selected"]), "written": job.written,
+               "skipped": info["skipped"], "failed": len(job.failed),
+               "failures": [{"frame": seq.frames[i].name, "message": m} for i, m in zip(sorted(job.failed), lines)],
+               "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               "wall_s": round(wall, 4),
+               "frames_per_s": round(job.written / wall, 3) if wall > 0 and job.written else None,
+               "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
+               "s_per_frame_median": round(statistics.median(times), 6) if times else None,
+               "stages_s": ctx.stages.as_dict(), "workers": ctx.workers, "writers": ctx.writers,
+               "worker_kind": ctx.kind, "writer_kind": ctx.kind, "preprocess_device": ctx.pre_device or "cpu",
+               "settings": json.loads(json.dumps(info["settings"], default=str)),
+               "dataset_stream": True}
+    path = Path(info["out"]) / "run_summary.json"
+    try:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        os.replace(tmp, path)
+    except OSError as e:
+        ctx.report(f"floxels: warning: cannot write the summary {path}: {e}")
+        return None
+    return path
