@@ -100,6 +100,8 @@ MUTATIONS = [
     ("resume records no poses", RES, "if poses is not None else None", "if False else None", [RESUME]),
     ("resume records no times", RES, '"times": None if times_s is None else', '"times": None if True else',
      [RESUME]),
+    ("dataset sequences resume without the input check", "python/floxels_ext/lidar/dataset_sequence.py",
+     "args.force, inputs=inputs, report=ctx.report)", "args.force)", [RESUME]),
     ("temporaries of other frames swept", OUTS, 'if m and (names is None or m.group("name") in names):', "if m:",
      [RESUME]),
 ]

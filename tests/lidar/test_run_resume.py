@@ -273,3 +273,33 @@ def test_outputs_of_earlier_versions_are_kept_with_a_warning(done, fake, capsys)
     # frame 2's window [1, 4) does not hold frame 0; frames 0 and 1 have no record: kept
     assert fake[n:] == []
     assert "2 output(s) were written by an earlier version" in err and "--force" in err
+
+
+def test_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
+    """A dataset's sequences are checked as ``floxels run`` checks one (lidar/dataset_sequence.py),
+    for every sequence that has work left; the other sequence is not touched."""
+    from floxels_ext.evaluation.seqio import save_sequence
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    root, out = tmp_path / "data", tmp_path / "out"
+    for k in range(2):
+        save_sequence(root / f"s{k}", simulate_sequence("crossing", 7 - 2 * k, k, beams=8, azimuth_steps=180))
+    argv = ["run", str(root), "--out", str(out), "--device", "cpu", "--scans", "3", "--max-iters", "2"]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    snap = {k: _snapshot(out / f"s{k}") for k in range(2)}
+    assert (len(snap[0]), len(snap[1])) == (7, 5)
+    f = root / "s0" / "000003.npz"
+    with np.load(f) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["points"] = arrays["points"][:-1]  # a frame replaced by the user (one point fewer)
+    for k in ("flow", "dynamic", "labels", "ground"):
+        if k in arrays and len(arrays[k]) == len(arrays["points"]) + 1:
+            arrays[k] = arrays[k][:-1]
+    np.savez(f, **arrays)
+    (out / "s0" / "000006.npz").unlink()  # and one output missing, so the sequence has work
+    rc = cli.main(argv)
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    # 000006 (missing), and the frames whose windows (3 scans) hold 000003: 000002 to 000004
+    assert _rewritten(snap[0], out / "s0") == ["000002", "000003", "000004", "000006"]
+    assert _rewritten(snap[1], out / "s1") == []
