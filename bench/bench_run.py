@@ -119,7 +119,8 @@ class Ceiling:
         from floxels_ext.estimator.api import estimate_sequence
 
         self.scans, self.t_read, self.t_pre = prepared_scans(kitti)
-        self.cfg = FloxelsConfig(**{"num_scans": scans_n, **options})
+        # the same work as floxels run's default: the motion evidence with unexplained flow zeroed
+        self.cfg = FloxelsConfig(**{"num_scans": scans_n, "evidence": "zero", **options})
         self.device, self.estimate, self.times = device, estimate_sequence, []
         estimate_sequence(self.scans[:8], self.cfg, device=device, frames=[3])  # warm-up
         self._sync()

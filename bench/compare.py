@@ -20,8 +20,12 @@ centred on its frame. ``av2``: the real Argoverse 2 pair in ``../shared/data/av2
 (``ego1_T_ego0``) and the label's ego flow is subtracted (object motion); non-ground points
 with |x|, |y| < 35 m are evaluated (the AV2 protocol; AV2 categories mapped to the 2024
 meta-classes by ``floxels_ext.evaluation.protocol.AV2_CATEGORY_MAP``, the official evaluation's ignored
-categories left out), the estimators see non-ground points within 40 m (scan 1's ground: points
-within 0.15 m of a labelled ground point of scan 0).
+categories left out), the estimators see non-ground points within 40 m: scan 0's ground is the
+label's (``is_ground0``, the protocol's evaluated points), scan 1 has no label, so its ground
+(and its outliers) is removed by the project's ground removal (``floxels_ext.lidar.preprocess``,
+the defaults of ``floxels run``, in scan 1's own ego frame); the same removal on scan 0 matches
+the label with precision and recall >= 0.97 (printed). Before issue 29 scan 1's ground was
+"within 0.15 m of a labelled ground point of scan 0", which left 7,558 ground points in scan 1.
 
 Metrics are point-weighted over all evaluated frames (``floxels_ext.evaluation.metrics.evaluate_sequence``).
 Time per frame is the wall time of the method's sequence runs divided by the number of
@@ -108,16 +112,35 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
     return scans, truth
 
 
+def project_ground(points):
+    """(N,) bool: ground or outlier by the project's ground removal (``floxels run``'s defaults,
+    no range/height crop), ``points`` in their own ego frame (z up)."""
+    from floxels_ext.lidar.preprocess import GROUND, OUTLIER, Preprocess, preprocess_classes
+
+    cls = preprocess_classes(np.ascontiguousarray(points, np.float32),
+                             Preprocess(min_range=None, max_range=None, max_height=None))
+    return (cls == GROUND) | (cls == OUTLIER)
+
+
+def ground_agreement(pred, label, points, box=35.0):
+    """Precision and recall of a ground mask against the label, over the evaluation box."""
+    sel = (np.abs(points[:, 0]) < box) & (np.abs(points[:, 1]) < box)
+    tp = int((pred & label & sel).sum())
+    return {"precision": tp / max(int((pred & sel).sum()), 1), "recall": tp / max(int((label & sel).sum()), 1),
+            "points": int(sel.sum())}
+
+
 def load_av2_pair(path, max_points=0):
     """(scans [pc0, pc1 in pc0's frame], truth of pc0 (object motion), evaluation mask)."""
-    from scipy.spatial import cKDTree
-
     d = np.load(path)
     p0, p1 = d["pc0"].astype(np.float64), d["pc1"].astype(np.float64)
+    g0 = d["is_ground0"].astype(bool)
+    g1 = project_ground(p1)  # in pc1's own frame, before the move into pc0's
+    agree = ground_agreement(project_ground(p0), g0, p0)
+    log(f"project ground removal vs is_ground0 (|x|, |y| < 35 m): precision {agree['precision']:.4f}, "
+        f"recall {agree['recall']:.4f}; pc1: {int(g1.sum())} of {len(p1)} points removed as ground")
     T = np.linalg.inv(d["ego1_T_ego0"])  # ego1 -> ego0
     p1 = p1 @ T[:3, :3].T + T[:3, 3]
-    g0 = d["is_ground0"].astype(bool)
-    g1 = cKDTree(p0[g0]).query(p1, distance_upper_bound=0.15)[0] < 0.15
     box = lambda p, r: (np.abs(p[:, 0]) < r) & (np.abs(p[:, 1]) < r)  # noqa: E731
     k0 = box(p0, 40.0) & ~g0 & d["flow_valid"].astype(bool)
     k1 = box(p1, 40.0) & ~g1

@@ -131,11 +131,19 @@ TORCH_LIBRARY(floxels, m) {
   // surface, and (remove_ground) not within ground_threshold of it; the surface is built from
   // the finite points within grid_distance (horizontal): lowest z per ground_cell cell, opened
   // with a window_cells-wide square window, capped at a trimmed least-squares plane +
-  // ground_max_rise (None: no cap); more than max_cells grid cells is an error. Equal to
+  // ground_max_rise (None: no cap); more than max_cells grid cells is an error. Before the
+  // opening, points more than outlier_below under the block reference height
+  // (floxels_ext/lidar/ground_outliers.py) or above outlier_above (z) are outliers: they build
+  // no cell and are never kept (None: no such test). Equal to
   // floxels_ext.lidar.preprocess.preprocess_mask_numpy (the reference). Non-finite rows: False.
   m.def("lidar_keep_mask(Tensor points, float? min_range, float? max_range, float? max_height, bool remove_ground, "
         "float ground_cell, int window_cells, float ground_threshold, float? ground_max_rise, float grid_distance, "
-        "int max_cells) -> Tensor");
+        "int max_cells, float? outlier_below, float? outlier_above) -> Tensor");
+  // The same as (N,) uint8 classes: 0 cropped or non-finite, 1 kept, 2 ground, 3 outlier
+  // (preprocess_classes_numpy, the reference).
+  m.def("lidar_point_classes(Tensor points, float? min_range, float? max_range, float? max_height, "
+        "bool remove_ground, float ground_cell, int window_cells, float ground_threshold, float? ground_max_rise, "
+        "float grid_distance, int max_cells, float? outlier_below, float? outlier_above) -> Tensor");
   // out (N, 3), points' dtype = R p + t of a (4, 4) float64 rigid transform, computed in float64.
   m.def("rigid_transform(Tensor points, Tensor transform) -> Tensor");
   // kept (M, 3) contiguous, points' dtype: the rows of points where mask (N,) bool is set, in

@@ -1,6 +1,7 @@
 // CPU ops of the lidar pipeline, the per-frame host work of `floxels run`:
-//  * lidar_keep_mask: cropping and ground removal, floxels_ext/lidar/preprocess.py's numpy
-//    reference step for step (float64, same grid, same filters, same trimmed plane);
+//  * lidar_keep_mask / lidar_point_classes: cropping, outliers and ground removal,
+//    floxels_ext/lidar/preprocess.py's numpy reference step for step (float64, same grid, same
+//    block references, same filters, same trimmed plane);
 //  * rigid_transform: a 4x4 transform of (N, 3) points in float64;
 //  * lidar_select: the kept rows as an (M, 3) array and the rows with NaN/inf coordinates;
 //  * frame_flow: a frame's optimised flow back into its file's rows and axes, plus the dynamic
@@ -26,6 +27,7 @@
 #include "common/check.h"
 #include "kernels/finite.h"
 #include "kernels/lidar.h"
+#include "cpu/lidar_ground.h"
 #include "cpu/lidar_plane.h"
 
 namespace floxels {
@@ -34,16 +36,54 @@ namespace {
 constexpr double kInf = std::numeric_limits<double>::infinity();
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
+// Class codes of lidar_point_classes (preprocess.py's CROPPED, KEPT, GROUND, OUTLIER).
+enum : uint8_t { kCropped = 0, kKept = 1, kGround = 2, kOutlier = 3 };
+
 struct GroundGrid {
   int64_t H = 0, W = 0;
   std::vector<double> opened;   // the opened (and capped) lowest-point map, H x W
   std::vector<int64_t> cell;    // per point: its cell, -1 if it does not build the grid
+  std::vector<char> outlier;    // per point (empty: none): step 0's outliers
 };
 
-// Steps 1-3 of preprocess.py's module docstring: lowest z per cell, opening, plane cap.
+struct OutlierRule {
+  double below, above;  // NaN: no such test
+};
+
+// Step 0 of preprocess.py's module docstring: flag the grid's outliers against the block
+// references of ground_outliers.py, then rebuild the lowest-point map without them.
+template <typename T>
+void drop_outliers(const lidar::Rows<T>& p, int64_t N, const OutlierRule& o, const double lo_c[2], double cell_size,
+                   int64_t window_cells, GroundGrid& g, std::vector<double>& grid) {
+  const bool below = lidar::has(o.below), above = lidar::has(o.above);
+  if (!below && !above) return;
+  int64_t Hb = 0, Wb = 0;
+  std::vector<double> ref;
+  if (below) ref = ground_reference(grid, g.H, g.W, lo_c, cell_size, window_cells, Hb, Wb);
+  const int64_t b = ref_block_cells(window_cells);
+  g.outlier.assign(N, 0);
+  bool any = false;
+  for (int64_t i = 0; i < N; ++i) {
+    if (g.cell[i] < 0) continue;
+    const double z = p.z(i);
+    bool bad = above && z > o.above;
+    if (below) {
+      const int64_t a = g.cell[i] / g.W, c = g.cell[i] % g.W;
+      bad = bad || z < ref[(a / b) * Wb + c / b] - o.below;
+    }
+    g.outlier[i] = bad;
+    any = any || bad;
+  }
+  if (!any) return;
+  std::fill(grid.begin(), grid.end(), kInf);
+  for (int64_t i = 0; i < N; ++i)
+    if (g.cell[i] >= 0 && !g.outlier[i]) grid[g.cell[i]] = std::min(grid[g.cell[i]], p.z(i));
+}
+
+// Steps 0-3 of preprocess.py's module docstring: lowest z per cell, outliers, opening, plane cap.
 template <typename T>
 void build_ground(const lidar::Rows<T>& p, int64_t N, double cell_size, int64_t window_cells, double max_rise,
-                  double grid_distance, int64_t max_cells, GroundGrid& g) {
+                  double grid_distance, int64_t max_cells, const OutlierRule& orule, GroundGrid& g) {
   g.cell.assign(N, -1);
   double lo[2] = {kInf, kInf}, hi[2] = {-kInf, -kInf};
   bool any = false;
@@ -78,6 +118,7 @@ void build_ground(const lidar::Rows<T>& p, int64_t N, double cell_size, int64_t 
     g.cell[i] = c;
     grid[c] = std::min(grid[c], p.z(i));
   }
+  drop_outliers(p, N, orule, lo_c, cell_size, window_cells, g, grid);
   // separable square filters (exact: min and max round nothing), constant border as scipy's
   const int64_t h = window_cells / 2;
   std::vector<double> buf(lidar::running_buffer(std::max(H, W), h)), tmp(H * W);
@@ -93,16 +134,16 @@ void build_ground(const lidar::Rows<T>& p, int64_t N, double cell_size, int64_t 
 }
 
 template <typename T>
-void keep_mask(const lidar::Rows<T>& p, int64_t N, const lidar::CropRule& rule, bool need_surface, const GroundGrid& g,
-               bool* keep) {
+void point_classes(const lidar::Rows<T>& p, int64_t N, const lidar::CropRule& rule, bool need_surface,
+                   const GroundGrid& g, uint8_t* cls) {
   for (int64_t i = 0; i < N; ++i) {
     const double x = p.x(i), y = p.y(i), z = p.z(i);
     if (!finite3(x, y, z)) {
-      keep[i] = false;
+      cls[i] = kCropped;
       continue;
     }
     const double h = (need_surface && !g.cell.empty() && g.cell[i] >= 0) ? z - g.opened[g.cell[i]] : kNaN;
-    keep[i] = lidar::keep_point(rule, x, y, z, h, need_surface);
+    cls[i] = uint8_t(lidar::point_class(rule, x, y, z, h, need_surface, !g.outlier.empty() && g.outlier[i]));
   }
 }
 
@@ -123,11 +164,13 @@ double opt(const std::optional<double>& v, const char* name) {
   return *v;
 }
 
-at::Tensor lidar_keep_mask_cpu(const at::Tensor& points_in, std::optional<double> min_range,
-                               std::optional<double> max_range, std::optional<double> max_height,
-                               bool remove_ground, double ground_cell, int64_t window_cells,
-                               double ground_threshold, std::optional<double> ground_max_rise,
-                               double grid_distance, int64_t max_cells) {
+// (N,) uint8 classes (kCropped, kKept, kGround, kOutlier) of one scan.
+at::Tensor lidar_point_classes_cpu(const at::Tensor& points_in, std::optional<double> min_range,
+                                   std::optional<double> max_range, std::optional<double> max_height,
+                                   bool remove_ground, double ground_cell, int64_t window_cells,
+                                   double ground_threshold, std::optional<double> ground_max_rise,
+                                   double grid_distance, int64_t max_cells, std::optional<double> outlier_below,
+                                   std::optional<double> outlier_above) {
   check_host_points(points_in, "lidar_keep_mask");
   FLX_CHECK(std::isfinite(ground_cell) && ground_cell > 0, "floxels: lidar_keep_mask: ground_cell must be > 0, got ",
             ground_cell);
@@ -140,20 +183,38 @@ at::Tensor lidar_keep_mask_cpu(const at::Tensor& points_in, std::optional<double
   FLX_CHECK(max_cells >= 1, "floxels: lidar_keep_mask: max_cells must be >= 1, got ", max_cells);
   const lidar::CropRule rule{opt(min_range, "min_range"), opt(max_range, "max_range"),
                              opt(max_height, "max_height"), remove_ground, ground_threshold};
+  const OutlierRule orule{opt(outlier_below, "outlier_below"), opt(outlier_above, "outlier_above")};
   const double max_rise = ground_max_rise ? *ground_max_rise : kInf;
   FLX_CHECK(!ground_max_rise || std::isfinite(*ground_max_rise),
             "floxels: lidar_keep_mask: ground_max_rise must be finite or None, got ", max_rise);
   const bool need_surface = remove_ground || lidar::has(rule.max_height);
   const auto& points = points_in;  // any strides: rows of a file read without a copy
   const int64_t N = points.size(0);
-  auto out = at::empty({N}, points.options().dtype(at::kBool));
-  bool* keep = out.mutable_data_ptr<bool>();
+  auto out = at::empty({N}, points.options().dtype(at::kByte));
+  uint8_t* cls = out.mutable_data_ptr<uint8_t>();
   GroundGrid g;
   auto run = [&](const auto& p) {
-    if (need_surface) build_ground(p, N, ground_cell, window_cells, max_rise, grid_distance, max_cells, g);
-    keep_mask(p, N, rule, need_surface, g, keep);
+    if (need_surface) build_ground(p, N, ground_cell, window_cells, max_rise, grid_distance, max_cells, orule, g);
+    point_classes(p, N, rule, need_surface, g, cls);
   };
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "lidar_keep_mask", [&] { run(rows<scalar_t>(points)); });
+  return out;
+}
+
+at::Tensor lidar_keep_mask_cpu(const at::Tensor& points_in, std::optional<double> min_range,
+                               std::optional<double> max_range, std::optional<double> max_height,
+                               bool remove_ground, double ground_cell, int64_t window_cells,
+                               double ground_threshold, std::optional<double> ground_max_rise,
+                               double grid_distance, int64_t max_cells, std::optional<double> outlier_below,
+                               std::optional<double> outlier_above) {
+  const auto cls = lidar_point_classes_cpu(points_in, min_range, max_range, max_height, remove_ground, ground_cell,
+                                           window_cells, ground_threshold, ground_max_rise, grid_distance, max_cells,
+                                           outlier_below, outlier_above);
+  const int64_t N = cls.size(0);
+  auto out = at::empty({N}, cls.options().dtype(at::kBool));
+  const uint8_t* c = cls.const_data_ptr<uint8_t>();
+  bool* keep = out.mutable_data_ptr<bool>();
+  for (int64_t i = 0; i < N; ++i) keep[i] = c[i] == kKept;
   return out;
 }
 
@@ -266,6 +327,7 @@ std::tuple<at::Tensor, at::Tensor> frame_flow_cpu(const at::Tensor& flow_in, con
 
 TORCH_LIBRARY_IMPL(floxels, CPU, m) {
   m.impl("lidar_keep_mask", &lidar_keep_mask_cpu);
+  m.impl("lidar_point_classes", &lidar_point_classes_cpu);
   m.impl("rigid_transform", &rigid_transform_cpu);
   m.impl("lidar_select", &lidar_select_cpu);
   m.impl("frame_flow", &frame_flow_cpu);

@@ -52,18 +52,20 @@ FLX_HD int compare_range(double x, double y, double limit) {
   return r < limit ? -1 : (r > limit ? 1 : 0);
 }
 
-// Keep test of one finite point at (x, y, z): height above the ground surface h (NaN where the
-// point has no surface), or z itself when no surface is built (need_surface false).
-FLX_HD bool keep_point(const CropRule& c, double x, double y, double z, double h, bool need_surface) {
-  if (has(c.min_range) && compare_range(x, y, c.min_range) < 0) return false;
-  if (has(c.max_range) && compare_range(x, y, c.max_range) > 0) return false;
+// Class of one finite point at (x, y, z) (preprocess.py's CROPPED 0, KEPT 1, GROUND 2, OUTLIER 3,
+// in its precedence): height above the ground surface h (NaN where the point has no surface), or
+// z itself when no surface is built (need_surface false); outlier: step 0 flagged it.
+FLX_HD int point_class(const CropRule& c, double x, double y, double z, double h, bool need_surface, bool outlier) {
+  if (has(c.min_range) && compare_range(x, y, c.min_range) < 0) return 0;
+  if (has(c.max_range) && compare_range(x, y, c.max_range) > 0) return 0;
+  if (outlier) return 3;
   if (need_surface) {
-    if (has(c.max_height) && !(h <= c.max_height)) return false;
-    if (c.remove_ground && (h < c.ground_threshold)) return false;
+    if (has(c.max_height) && !(h <= c.max_height)) return 0;
+    if (c.remove_ground && (h < c.ground_threshold)) return 2;
   } else if (has(c.max_height) && !(z <= c.max_height)) {
-    return false;
+    return 0;
   }
-  return true;
+  return 1;
 }
 
 // out = R p + t for a row-major 4x4 rigid transform, accumulated in float64 in the order of

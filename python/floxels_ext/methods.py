@@ -7,7 +7,10 @@ A method is a :class:`Method`: a name, a one-line description, and
   in one ego-motion-compensated frame, consecutive at the sensor rate or, with ``times``, at
   those timestamps in seconds: one per scan, strictly increasing), calling
   ``callback(frame, flow)`` with a (N_frame, 3) float32 numpy array as soon as each frame is
-  done (so that callers can write it and stay resumable). ``options`` is a dict of
+  done (so that callers can write it and stay resumable); a method may pass a third argument,
+  a dict of per-point fields of the frame (Floxels with ``evidence`` "score" or "zero": its
+  ``evidence`` and ``explained``, :mod:`floxels_ext.estimator.evidence`), only when its
+  options ask for them, so two-argument callbacks keep working. ``options`` is a dict of
   method-specific settings (e.g. ``{"num_scans": 5}``); unknown keys raise ``ValueError``.
   The flow is always per frame period (the median step of ``times`` when given), so
   unequally spaced scans (a dropped frame) give flows comparable with the others.
@@ -84,8 +87,13 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None) -> N
         cfg = FloxelsConfig(**options)
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
-    estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times,
-                      callback=lambda f, res: callback(f, res.flow))
+    if cfg.evidence == "off":
+        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times,
+                          callback=lambda f, res: callback(f, res.flow))
+    else:
+        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times,
+                          callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
+                                                                          "explained": res.explained}))
 
 
 def _floxels_stream(scans, targets, device, options, callback) -> None:
@@ -96,7 +104,12 @@ def _floxels_stream(scans, targets, device, options, callback) -> None:
         cfg = FloxelsConfig(**dict(options or {}))
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
-    estimate_stream(scans, targets, cfg, device=device, callback=lambda f, res: callback(f, res.flow))
+    if cfg.evidence == "off":
+        estimate_stream(scans, targets, cfg, device=device, callback=lambda f, res: callback(f, res.flow))
+    else:  # the same per-point fields as _floxels_sequence
+        estimate_stream(scans, targets, cfg, device=device,
+                        callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
+                                                                        "explained": res.explained}))
 
 
 def _register_floxels() -> None:

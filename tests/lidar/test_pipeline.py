@@ -78,7 +78,8 @@ def test_run_flow_equals_estimate_sequence_on_the_reference_preprocessing(tmp_pa
         T = fr.pose.copy()
         T[:3, 3] -= anchor
         scans.append(transform_points(p[m], T))
-    ref = estimate_sequence(scans, FloxelsConfig(num_scans=3, max_iters=6), device="cpu")
+    # floxels run's default: the motion evidence, unexplained groups zeroed (--raw-flow: "score")
+    ref = estimate_sequence(scans, FloxelsConfig(num_scans=3, max_iters=6, evidence="zero"), device="cpu")
     for chunk in (None, "3", "2"):
         out = tmp_path / f"out{chunk}"
         args = ["run", str(d), "--out", str(out), "--poses", str(tmp_path / "poses.txt"), "--scans", "3",

@@ -304,3 +304,34 @@ def test_python_dash_m_reports_user_errors_without_traceback(tmp_path, module):
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.startswith("floxels: error:") and "Traceback" not in r.stderr
+
+
+def test_motion_evidence_fields_switch_and_resume(seq, tmp_path, capsys):
+    """floxels run writes the motion evidence into every frame and zeroes unexplained groups by
+    default; --raw-flow keeps the paper's flow; the setting is compared on resume."""
+    save_sequence(tmp_path / "sim", seq)
+    out, raw = tmp_path / "out", tmp_path / "raw"
+    args = [tmp_path / "sim", "--scans", "3", "--max-iters", "8", "--frames", "1:3"]
+    rc, cap = _run([*args, "--out", out], capsys)
+    assert rc == 0, cap.err
+    rc, cap = _run([*args, "--out", raw, "--raw-flow"], capsys)
+    assert rc == 0, cap.err
+    for name in ("000001", "000002"):
+        z, r = read_flow_output(out / f"{name}.npz"), read_flow_output(raw / f"{name}.npz")
+        assert z["settings"]["options"]["evidence"] == "zero" and r["settings"]["options"]["evidence"] == "score"
+        for d in (z, r):
+            ev, ex, mask = d["evidence"], d["explained"], d["mask"]
+            assert ev.dtype == np.float32 and ex.dtype == bool and ev.shape == ex.shape == mask.shape
+            assert np.isfinite(ev[mask]).all() and np.isnan(ev[~mask]).all() and not ex[~mask].any()
+        np.testing.assert_array_equal(z["explained"], r["explained"])
+        np.testing.assert_array_equal(z["evidence"], r["evidence"])
+        # default: the raw flow where explained, 0 elsewhere; dynamic follows the written flow
+        np.testing.assert_array_equal(z["flow"], np.where(r["explained"][:, None], r["flow"], 0))
+        assert not (z["dynamic"] & ~z["explained"]).any()
+    # resume with the other setting: stopped (an output of other settings), --force recomputes
+    rc, cap = _run([*args, "--out", out, "--raw-flow"], capsys)
+    assert rc == 2 and "evidence" in cap.err
+    rc, cap = _run([*args, "--out", raw, "--raw-flow", "--option", "evidence=zero"], capsys)
+    assert rc == 2 and "--raw-flow contradicts" in cap.err
+    rc, cap = _run([*args, "--out", out], capsys)
+    assert rc == 0 and "2 already done" in cap.err

@@ -173,8 +173,9 @@ def test_lidar_ops_pass_opcheck():
     T = torch.eye(4, dtype=torch.float64)
     T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
     mask = torch.rand(2000) < 0.5
-    args = (p, 3.0, 50.0, 4.0, True, 0.5, 17, 0.3, 0.5, 58.0, MAX_GROUND_CELLS)
-    for op, a in ((torch.ops.floxels.lidar_keep_mask, args), (torch.ops.floxels.rigid_transform, (p, T)),
+    args = (p, 3.0, 50.0, 4.0, True, 0.5, 17, 0.3, 0.5, 58.0, MAX_GROUND_CELLS, 1.0, 20.0)
+    for op, a in ((torch.ops.floxels.lidar_keep_mask, args), (torch.ops.floxels.lidar_point_classes, args),
+                  (torch.ops.floxels.rigid_transform, (p, T)),
                   (torch.ops.floxels.lidar_select, (p, mask)),
                   (torch.ops.floxels.frame_flow, (torch.randn(int(mask.sum()), 3), mask,
                                                   torch.tensor([0, 3]), torch.eye(3), 0.05))):

@@ -3,12 +3,15 @@ frames on top of ``torch.ops.floxels``, and sliding windows over a sequence.
 
 ``api`` is the public surface (re-exported by ``floxels_ext``); ``group`` prepares and solves
 a group of target frames together; ``streams`` holds the CUDA stream scheduling; ``scans``
-validates and stages the input scans; ``solver_run`` drives the device-resident solver op.
+validates and stages the input scans; ``solver_run`` drives the device-resident solver op;
+``evidence`` tests after the optimisation whether a group's flow explains the support scans
+better than zero flow (``FloxelsConfig.evidence``).
 """
 
 from floxels_ext.estimator.api import (DistanceTransform, Floxels, FloxelsResult, estimate_flow,
                                        estimate_sequence, window_for)
 from floxels_ext.estimator.config import FloxelsConfig
+from floxels_ext.estimator.evidence import MotionEvidence, group_ids, motion_evidence
 
 __all__ = ["FloxelsConfig", "Floxels", "FloxelsResult", "DistanceTransform", "estimate_flow",
-           "estimate_sequence", "window_for"]
+           "estimate_sequence", "window_for", "MotionEvidence", "motion_evidence", "group_ids"]

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from floxels_ext.estimator.config_fields import check_field_types
+from floxels_ext.estimator.evidence import EVIDENCE_MODES
 from floxels_ext.estimator.config_fields import parse_option_value as _parse_field
 from floxels_ext.ops.grid import DEFAULT_MAX_CELLS
 
@@ -67,6 +68,17 @@ class FloxelsConfig:
     cluster_loss_mean: str = "all"   # cluster term averaged over all points ("all", the paper's
                                      # 1/N) or over the clustered (non-noise) points ("clustered")
 
+    # ---- motion evidence (issue 29; estimator/evidence.py) ---------------------------------
+    # After the optimisation, each DBSCAN cluster (unclustered points: per flow-grid cell) is
+    # tested: does its flow explain the support scans better than zero flow, by more than
+    # max(evidence_margin, evidence_ratio * zero-flow residual)? "off": not computed (the
+    # paper's output); "score": result.evidence / result.explained filled, flow untouched;
+    # "zero": also the flow of unexplained groups set to 0 (floxels run's default).
+    evidence: str = "off"
+    evidence_margin: float = 0.02    # metres of mean DT residual the flow must remove (lidar range
+                                     # noise: a smaller gain is no evidence)
+    evidence_ratio: float = 0.05     # and this share of the zero-flow residual (far, sparse groups)
+
     def __post_init__(self) -> None:
         # types first, generically from the field annotations (fields added later are covered)
         check_field_types(self)
@@ -125,6 +137,13 @@ class FloxelsConfig:
             raise ValueError(f"FloxelsConfig.lr_gamma must be a positive finite number, got {g!r}")
         if self.truncation_mode not in ("zero", "clamp"):
             raise ValueError(f"FloxelsConfig.truncation_mode must be 'zero' or 'clamp', got {self.truncation_mode!r}")
+        if self.evidence not in EVIDENCE_MODES:
+            raise ValueError(f"FloxelsConfig.evidence must be 'off', 'score' or 'zero', got {self.evidence!r}")
+        em, er = self.evidence_margin, self.evidence_ratio
+        if not (math.isfinite(em) and em >= 0):
+            raise ValueError(f"FloxelsConfig.evidence_margin must be a non-negative finite number (m), got {em!r}")
+        if not (math.isfinite(er) and 0 <= er < 1):
+            raise ValueError(f"FloxelsConfig.evidence_ratio must lie in [0, 1), got {er!r}")
         if self.cluster_loss_mean not in ("all", "clustered"):
             raise ValueError(f"FloxelsConfig.cluster_loss_mean must be 'all' or 'clustered', "
                              f"got {self.cluster_loss_mean!r}")

@@ -16,6 +16,7 @@ import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DtStreams, build_dt
+from floxels_ext.estimator.evidence import MotionEvidence, group_ids, motion_evidence
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
 from floxels_ext.estimator.solver_run import SolverRun
@@ -24,7 +25,7 @@ from floxels_ext.ops.grid import grid_from_bounds, point_bounds
 from floxels_ext.ops.setup import problem_setup
 from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
 
-__all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack"]
+__all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack", "problem_evidence"]
 
 F = torch.ops.floxels
 
@@ -234,18 +235,29 @@ class Solving:
             for b, k in enumerate(group):
                 solved[k] = packed.best_params(b).clone()
         flows, parts = [], []  # flow of the kept rows, (labels, fields of the result) per frame
+        evidence = [] if cfg.evidence != "off" else None  # (N_kept, 2): score, explained (0/1)
         for k, (prep, _) in enumerate(pr.items):
             if pr.problems[k] is None:
                 flows.append(prep.points[prep.target].new_zeros(0, 3))
+                if evidence is not None:
+                    evidence.append(prep.points[prep.target].new_zeros(0, 2))
                 continue
             corners = pr.problems[k].corners
             flow_s = F.corner_gather(solved[k], corners.corner_idx, corners.corner_w)
+            if evidence is not None:
+                ev = problem_evidence(cfg, pr.problems[k], flow_s)
+                if cfg.evidence == "zero":
+                    flow_s = ev.apply(flow_s)
+                ev_k = torch.empty(len(flow_s), 2, dtype=torch.float32, device=flow_s.device)
+                ev_k[pr.orders[k], 0] = ev.score
+                ev_k[pr.orders[k], 1] = ev.explained.to(torch.float32)
+                evidence.append(ev_k)
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
             flows.append(flow)
         # every frame's output in one transfer (numpy outputs of CUDA flows), then the one
         # synchronisation of the read-backs
-        outs = restore_outputs(flows, [prep for prep, _ in pr.items])
+        outs, ev_outs = restore_outputs(flows, [prep for prep, _ in pr.items], evidence)
         for _, packed, run in self.runs:
             if run.cuda:
                 run.stream.synchronize()
@@ -269,7 +281,24 @@ class Solving:
             origin = rc.restore(pr.grids[k]) if rc is not None else pr.grids[k]
             parts.append((lab, losses, best_iter, len(losses), dict(timings), origin, cfg.voxel_size,
                           pr.problems[k].corners, solved[k]))
-        return [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
+        results = [FloxelsResult(out, flow, *fields) for out, flow, fields in zip(outs, flows, parts)]
+        if ev_outs is not None:
+            for res, (score, explained) in zip(results, ev_outs):
+                res.evidence, res.explained = score, explained
+        return results
+
+
+def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Tensor) -> MotionEvidence:
+    """:func:`~floxels_ext.estimator.evidence.motion_evidence` of one solved problem (rows in
+    the solver's order: sorted by (cluster, flow-grid cell), so the groups, clusters and the
+    unclustered points' cells, are runs), on the distance transforms its loss used."""
+    # cells: the compact index of each point's lower flow-grid corner (one per cell)
+    groups = group_ids(problem.points, problem.labels, cfg.voxel_size, presorted=True,
+                       cells=problem.corners.corner_idx[:, 0])
+    return motion_evidence(problem.points, flow, groups, problem.dts,
+                           problem.origins, problem.time_offsets,
+                           problem.weights, dt_cell=cfg.dt_cell, truncation=cfg.truncation,
+                           margin=cfg.evidence_margin, ratio=cfg.evidence_ratio, runs=True)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:

@@ -26,6 +26,13 @@ class FloxelsResult:
     voxel_size: float = 0.5
     _corners: CompactCorners | None = None
     _params: torch.Tensor | None = None
+    # motion evidence (FloxelsConfig.evidence "score" or "zero"; None when "off"), per target
+    # row like ``flow``: ``evidence`` float (metres of distance-transform residual the flow of
+    # the point's group removes compared with zero flow; NaN on dropped rows), ``explained``
+    # bool (the group passes the test; with "zero" the others' flow is 0). estimator/evidence.py.
+    # ``grid`` keeps the optimiser's flow (not zeroed).
+    evidence: object | None = None
+    explained: object | None = None
 
     @property
     def grid(self) -> torch.Tensor | None:

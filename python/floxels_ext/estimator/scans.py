@@ -301,30 +301,47 @@ def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):
     """Scatter the flow of the kept target rows back to all input rows (NaN for dropped ones)
     and convert to what the caller passed in: numpy float32, or a tensor of the input's
     dtype on the input's device."""
-    return restore_outputs([flow_kept], [prep])[0]
+    return restore_outputs([flow_kept], [prep])[0][0]
 
 
-def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans]) -> list:
+def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], evidence: list | None = None):
     """:func:`restore_output` of several frames; the numpy outputs of CUDA flows come back in
     one copy through page-locked memory (per-frame copies from pageable memory cost a host
-    synchronisation and ~0.3 ms per 100k points each)."""
-    fulls = []
-    for flow_kept, prep in zip(flows_kept, preps):
-        if flow_kept.shape[0] == prep.num_target_points:
-            full = flow_kept
-        else:
-            full = torch.full((prep.num_target_points, 3), float("nan"), dtype=flow_kept.dtype,
-                              device=flow_kept.device)
-            full[prep.finite_masks[prep.target]] = flow_kept
-        fulls.append(full.detach())
-    out: list = [None] * len(fulls)
-    to_host = [k for k, prep in enumerate(preps) if prep.was_numpy]
-    for k, arr in zip(to_host, _numpy_float32([fulls[k] for k in to_host])):
+    synchronisation and ~0.3 ms per 100k points each).
+
+    ``evidence``: per frame, the kept rows' (N_kept, 2) float32 (motion-evidence score,
+    explained as 0/1), or None. Returns (flows, None) or (flows, [(score, explained)]) with
+    the score in the flow's kind (numpy float32 / the input's dtype and device; NaN on dropped
+    rows) and explained bool (False on dropped rows); everything in the same one transfer."""
+    def full_rows(kept, prep, width):
+        if kept.shape[0] == prep.num_target_points:
+            return kept.detach()
+        full = torch.full((prep.num_target_points, width), float("nan"), dtype=kept.dtype, device=kept.device)
+        full[prep.finite_masks[prep.target]] = kept
+        return full.detach()
+
+    fulls = [full_rows(f, prep, 3) for f, prep in zip(flows_kept, preps)]
+    evs = [full_rows(e, prep, 2) for e, prep in zip(evidence, preps)] if evidence is not None else []
+    nf = len(fulls)
+    every = fulls + evs
+    out: list = [None] * len(every)
+    to_host = [k for k in range(len(every)) if preps[k % nf].was_numpy]
+    for k, arr in zip(to_host, _numpy_float32([every[k] for k in to_host])):
         out[k] = arr
-    for k, prep in enumerate(preps):
+    for k in range(len(every)):
+        prep = preps[k % nf]
         if not prep.was_numpy:
-            out[k] = fulls[k].to(device=prep.in_device, dtype=prep.in_dtype)
-    return out
+            out[k] = every[k].to(device=prep.in_device, dtype=prep.in_dtype)
+    if evidence is None:
+        return out, None
+    pairs = []
+    for e in out[nf:]:
+        score, flag = e[:, 0], e[:, 1]
+        if isinstance(e, np.ndarray):
+            pairs.append((np.ascontiguousarray(score), flag == 1.0))
+        else:
+            pairs.append((score.contiguous(), flag == 1.0))
+    return out[:nf], pairs
 
 
 def _numpy_float32(tensors: list[torch.Tensor]) -> list[np.ndarray]:

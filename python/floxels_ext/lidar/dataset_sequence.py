@@ -149,6 +149,10 @@ def write_sequence_summary(job: SeqJob, ctx: DatasetContext) -> Path | None:
                "skipped": info["skipped"], "failed": len(job.failed),
                "failures": [{"frame": seq.frames[i].name, "message": m} for i, m in zip(sorted(job.failed), lines)],
                "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
+               # as the plain run: frames with points but none left to optimise (also in "failed"),
+               # frames whose few far points blow up a distance transform
+               "no_points_after_crop": [seq.frames[i].name for i in sorted(job.loader.empty_crop) if i in todo],
+               "far_outliers": [seq.frames[i].name for i in sorted(job.loader.stray) if i in todo],
                "wall_s": round(wall, 4),
                "frames_per_s": round(job.written / wall, 3) if wall > 0 and job.written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
@@ -159,9 +163,10 @@ def write_sequence_summary(job: SeqJob, ctx: DatasetContext) -> Path | None:
                "dataset_stream": True}
     path = Path(info["out"]) / "run_summary.json"
     try:
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(summary, indent=2) + "\n")
-        os.replace(tmp, path)
+        from floxels_ext.output_paths import replace_atomically
+
+        text = json.dumps(summary, indent=2) + "\n"
+        replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp"), path, lambda t: t.write_text(text))
     except OSError as e:
         ctx.report(f"floxels: warning: cannot write the summary {path}: {e}")
         return None

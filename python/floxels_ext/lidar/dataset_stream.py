@@ -157,7 +157,7 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
     scans = StreamScans(layout, tpool, stages)
     delivered: set[int] = set()
 
-    def deliver(g: int, flow) -> None:
+    def deliver(g: int, flow, fields=None) -> None:
         now = time.perf_counter()
         dt, state["t_last"] = now - state["t_last"], now
         seg, i = layout.locate(g)
@@ -171,7 +171,7 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
                 job.t_start = now - dt
             job.times.append(dt)
             flow = np.asarray(flow, np.float32).reshape(-1, 3)
-            writer.put(i, p, flow, dt, job.next_pose(i), write_one=job.write_one,
+            writer.put(i, p, flow, dt, job.next_pose(i), fields, write_one=job.write_one,
                        on_done=lambda i, err, job=job: resolve(job, i, err))
             state["delivered"] += 1
         job.loader.evict_below(i - pad)  # frames before this window: no later window reads them
@@ -235,7 +235,7 @@ def _per_segment(method, scans: StreamScans, targets: Targets, device, options: 
         view = _SegmentView(scans, seg.lo, seg.hi)
         extra = {"times": list(seg.times)} if pass_times and seg.times is not None else {}
         method.estimate_sequence(view, [g - seg.lo for g in batch], device, dict(options),
-                                 lambda f, flow, lo=seg.lo: deliver(lo + int(f), flow), **extra)
+                                 lambda f, flow, fields=None, lo=seg.lo: deliver(lo + int(f), flow, fields), **extra)
         batch.clear()
 
     for g, seg in targets:

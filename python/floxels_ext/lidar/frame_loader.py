@@ -32,6 +32,9 @@ class PreparedFrame:
     to_world: np.ndarray     # (4, 4) native -> world
     points: np.ndarray | None = None  # (N, 3) all rows, only when asked for (--self-contained)
     crc: int | None = None   # outputs.points_crc32 of all rows: read-back checks (floxels show)
+    # points per preprocess class (kept, ground, outlier, cropped: non-finite rows included);
+    # None without preprocessing
+    counts: dict | None = None
 
     @property
     def n(self) -> int:
@@ -93,7 +96,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
     from floxels_ext.lidar.outputs import points_crc32
-    from floxels_ext.lidar.preprocess import host_rows, preprocess_mask
+    from floxels_ext.lidar.preprocess import KEPT, host_rows, preprocess_classes
     from floxels_ext.ops.lidar import lidar_select
 
     path = seq.frames[i].path
@@ -127,6 +130,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     out["read"] = t1 - t0
     rows = host_rows(pts)  # the file's x y z columns, viewed (the ops read any strides)
     pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
+    classes = None
     try:
         if settings is None:
             mask = finite_mask(rows)
@@ -137,9 +141,11 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
             if getattr(_TLS, "stream", None) is None:
                 _TLS.stream = torch.cuda.Stream(device=pre_device)
             with torch.cuda.stream(_TLS.stream):
-                mask = preprocess_mask(pts_sensor, settings, device=pre_device)
+                classes = preprocess_classes(pts_sensor, settings, device=pre_device)
         else:
-            mask = preprocess_mask(pts_sensor, settings)  # the compiled CPU op: no GIL while it runs
+            classes = preprocess_classes(pts_sensor, settings)  # the compiled CPU op: no GIL while it runs
+        if classes is not None:
+            mask = classes == KEPT
     except ValueError as e:
         out["error"] = f"{path}: preprocessing failed: {e}"
         return out
@@ -158,9 +164,13 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     if stray is not None:
         out["stray"] = f"{path}: " + stray
     out["preprocess"] = time.perf_counter() - t1
+    counts = None
+    if classes is not None:
+        n = np.bincount(classes, minlength=4)
+        counts = {"kept": int(n[1]), "ground": int(n[2]), "outlier": int(n[3]), "cropped": int(n[0])}
     out["frame"] = PreparedFrame(kept_np, mask, nonfinite, np.asarray(to_world, np.float64),
                                  np.ascontiguousarray(pts) if keep_points else None,
-                                 None if keep_points else points_crc32(pts))
+                                 None if keep_points else points_crc32(pts), counts)
     return out
 
 
@@ -317,6 +327,7 @@ class FrameLoader:
         self.nonfinite: dict[int, int] = {}
         self.empty_crop: set[int] = set()  # frames with points but none left after cropping
         self.stray: dict[int, str] = {}  # frames whose far outliers blow up a distance transform
+        self.counts: dict[int, dict] = {}  # frame -> PreparedFrame.counts (run summary)
         self._warned_no_pose = False
         self._lock = threading.Lock()
 
@@ -337,8 +348,11 @@ class FrameLoader:
                 self.errors[i] = res["error"]
                 if res.get("empty_crop"):
                     self.empty_crop.add(i)
-            elif len(fr.nonfinite):
-                self.nonfinite[i] = len(fr.nonfinite)
+            else:
+                if len(fr.nonfinite):
+                    self.nonfinite[i] = len(fr.nonfinite)
+                if fr.counts is not None:
+                    self.counts[i] = fr.counts
             first_stray = "stray" in res and not self.stray
             if "stray" in res:
                 self.stray[i] = res["stray"]

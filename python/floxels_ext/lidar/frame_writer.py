@@ -42,7 +42,7 @@ class FrameOutput:
     self_contained: bool = False
     inputs: dict[int, str] = dataclasses.field(default_factory=dict)  # frame -> its inputs record (JSON)
 
-    def __call__(self, i: int, p, flow_kept: np.ndarray, elapsed: float, next_to_world) -> None:
+    def __call__(self, i: int, p, flow_kept: np.ndarray, elapsed: float, next_to_world, fields=None) -> None:
         import torch
 
         from floxels_ext.ops.lidar import frame_flow
@@ -63,9 +63,22 @@ class FrameOutput:
             extra["timestamp_ns"] = np.int64(self.stamps[i])
         if i in self.inputs:
             extra["inputs"] = np.str_(self.inputs[i])
+        if fields is not None:  # the motion evidence of the kept rows -> every row of the file
+            extra.update(evidence_rows(p.mask, fields))
         write_output(self.out_path[i], compress=self.compress, flow=full.numpy(), mask=p.mask,
                      dynamic=dynamic.numpy(), pose=p.to_world, elapsed_s=np.float64(elapsed),
                      source=np.str_(self.sources[i]), **self.meta, **extra)
+
+
+def evidence_rows(mask: np.ndarray, fields: dict) -> dict:
+    """``evidence`` (float32, NaN on rows not optimised) and ``explained`` (bool, False there)
+    over all rows of a frame file, from the values of its ``mask`` rows (the method's order)."""
+    n = len(mask)
+    score = np.full(n, np.nan, np.float32)
+    score[mask] = np.asarray(fields["evidence"], np.float32).reshape(-1)
+    explained = np.zeros(n, bool)
+    explained[mask] = np.asarray(fields["explained"], bool).reshape(-1)
+    return {"evidence": score, "explained": explained}
 
 
 _CHILD: dict = {}
@@ -110,14 +123,15 @@ class WriterPool:
             for t in self.threads:
                 t.start()
 
-    def put(self, i: int, p, flow_kept, elapsed: float, next_to_world, *, write_one=None, on_done=None) -> None:
+    def put(self, i: int, p, flow_kept, elapsed: float, next_to_world, fields=None, *, write_one=None,
+            on_done=None) -> None:
         t0 = time.perf_counter()
         if self.kind == "process":
             self._slots.acquire()
             self.stages.add("wait_writer", time.perf_counter() - t0)
             light = dataclasses.replace(p, kept=np.zeros((0, 3), np.float32))  # the writer needs no kept points
             try:
-                fut = self.pool.submit(_child_write, (i, light, flow_kept, elapsed, next_to_world), write_one)
+                fut = self.pool.submit(_child_write, (i, light, flow_kept, elapsed, next_to_world, fields), write_one)
             except Exception as e:  # a writer died (killed, out of memory): the pool is broken
                 self._slots.release()
                 with self._lock:
@@ -127,7 +141,7 @@ class WriterPool:
                 return
             fut.add_done_callback(lambda f, i=i: self._done(i, f, on_done))
         else:
-            self.q.put(((i, p, flow_kept, elapsed, next_to_world), write_one, on_done))
+            self.q.put(((i, p, flow_kept, elapsed, next_to_world, fields), write_one, on_done))
             self.stages.add("wait_writer", time.perf_counter() - t0)
 
     def _done(self, i: int, fut, on_done=None) -> None:

@@ -33,6 +33,16 @@ Output: OUT_DIR/<frame name>.npz per frame (np.savez; --compress: zip-compressed
   dynamic     (N,)  bool     optimised points whose |flow| exceeds dynamic_threshold
                              (--dynamic-threshold, metres per frame step; default 0.05, i.e.
                              0.5 m/s at 10 Hz, the Argoverse 2 protocol's dynamic threshold)
+  evidence    (N,)  float32  motion evidence (Floxels; absent with --option evidence=off or
+                             other methods): metres of distance-transform residual by which
+                             the flow of the point's group (its DBSCAN cluster, or for an
+                             unclustered point its 0.5 m flow-grid cell) explains the support
+                             scans better than zero flow; NaN on points not optimised
+  explained   (N,)  bool     the group's flow passes the evidence test (gain > max(margin,
+                             ratio * zero-flow residual), FloxelsConfig.evidence_margin/_ratio);
+                             by default (evidence=zero) unexplained groups get zero flow and
+                             are not 'dynamic'; --raw-flow keeps the paper's flow (then filter
+                             with dynamic & explained)
   pose        (4,4) float64  the frame's coordinates -> the sequence's world frame
   ego_motion  (4,4) float64  the frame's coordinates -> the next frame's (when the next pose
                              is known, the last selected frame included)
@@ -226,7 +236,8 @@ def _source_points(d: dict, path: Path) -> np.ndarray:
 
 
 def read_flow_output(path, *, points: bool = True) -> dict:
-    """One ``floxels run`` output as a dict: ``flow``, ``mask``, ``dynamic``, ``pose``,
+    """One ``floxels run`` output as a dict: ``flow``, ``mask``, ``dynamic``, ``evidence`` and
+    ``explained`` (the motion evidence; None in outputs without it), ``pose``,
     ``ego_motion`` (None when unknown), ``points`` (stored, else read from the recorded source
     file; skipped with ``points=False``), ``options``/``settings`` (dicts), ``method``,
     ``num_scans``, ``source``, ``timestamp_ns`` (None when unknown), ``elapsed_s``.
@@ -260,8 +271,10 @@ def read_flow_output(path, *, points: bool = True) -> dict:
         thr = float(d["dynamic_threshold"]) if "dynamic_threshold" in d else 0.05
         with np.errstate(invalid="ignore"):
             out["dynamic"] = out["mask"] & (np.linalg.norm(np.nan_to_num(flow), axis=1) > thr)
-    for k in ("mask", "dynamic"):
-        if out[k].shape != (n,):
+    out["evidence"] = np.asarray(d["evidence"], np.float32) if "evidence" in d else None
+    out["explained"] = np.asarray(d["explained"], bool) if "explained" in d else None
+    for k in ("mask", "dynamic", "evidence", "explained"):
+        if out[k] is not None and out[k].shape != (n,):
             raise OutputError(f"{path}: '{k}' has shape {out[k].shape}, expected ({n},)")
     out["pose"] = np.asarray(d.get("pose", np.eye(4)), np.float64)
     out["ego_motion"] = np.asarray(d["ego_motion"], np.float64) if "ego_motion" in d else None

@@ -76,8 +76,9 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                  times_s=None) -> dict:
     """Estimate every frame of ``todo`` (sorted sequence indices of ``n`` frames).
 
-    ``writer.put(i, prepared, flow_kept, elapsed_s, next_to_world)`` takes each result (``next_pose(i)``,
-    called on this thread, gives the last argument: the next frame's pose or None); the writer is
+    ``writer.put(i, prepared, flow_kept, elapsed_s, next_to_world, fields)`` takes each result
+    (``next_pose(i)``, called on this thread, gives the next frame's pose or None; ``fields``: the
+    method's per-point fields of the kept rows, e.g. Floxels' motion evidence, or None); the writer is
     closed (queued results written) before returning, also on errors and Ctrl-C;
     ``on_written(i)`` (progress) on the calling thread, as results are handed over.
     Returns {"failed": {i: message}, "times": [s/frame], "delivered": count}; raises
@@ -130,7 +131,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
             t_last = [time.perf_counter()]
             seen: set[int] = set()
 
-            def on_frame(f_local, flow_kept, lo=lo):
+            def on_frame(f_local, flow_kept, fields=None, lo=lo):
                 nonlocal delivered
                 i = lo + int(f_local)
                 seen.add(i)
@@ -142,7 +143,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                 else:
                     elapsed.append(dt)
                     flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)
-                    writer.put(i, p, flow_kept, dt, next_pose(i))
+                    writer.put(i, p, flow_kept, dt, next_pose(i), fields)
                     delivered += 1
                 on_written(i)
                 loader.evict_below(i - pad)  # frames before this window: no later window reads them

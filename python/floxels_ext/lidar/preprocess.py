@@ -5,6 +5,9 @@ Ground removal (:func:`ground_mask`) is a single-window *progressive morphologic
 (Zhang et al., "A progressive morphological filter for removing nonground measurements from
 airborne LIDAR data", IEEE TGRS 2003), applied to a bird's-eye-view grid:
 
+0. outliers far below the ground (multipath) or far above the sensor are found against a robust
+   reference height (:mod:`floxels_ext.lidar.ground_outliers`: block quartiles, a cone around
+   the ground near the sensor); they build no cell, are never kept and are counted;
 1. keep the lowest z of every ``cell_size`` cell (a lower envelope of the scene);
 2. morphological *opening* of that height map with a square window of ``window`` metres
    (min filter, then max filter; empty cells take no part). Opening removes every bump
@@ -30,8 +33,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["transform_points", "host_rows", "relative_pose", "ground_surface", "ground_mask", "crop_mask",
-           "Preprocess", "preprocess_mask", "preprocess_mask_numpy"]
+__all__ = ["transform_points", "host_rows", "relative_pose", "ground_estimate", "ground_surface", "ground_mask",
+           "crop_mask", "Preprocess", "preprocess_mask", "preprocess_mask_numpy", "preprocess_classes",
+           "preprocess_classes_numpy", "CROPPED", "KEPT", "GROUND", "OUTLIER"]
+
+# Per-point classes of :func:`preprocess_classes` (uint8): dropped by the range/height crop or
+# non-finite, kept (optimised), removed as ground, removed as an outlier (step 0 below).
+CROPPED, KEPT, GROUND, OUTLIER = 0, 1, 2, 3
 
 
 def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -115,25 +123,29 @@ def _check_ground_args(cell_size, window, max_distance) -> None:
 MAX_GROUND_CELLS = 2001 * 2001
 
 
-def ground_surface(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
-                   max_rise: float | None = 0.5, max_distance: float | None = 200.0):
-    """Local ground height under each point (see the module docstring), NaN for non-finite rows
-    and for points farther than ``max_distance`` metres (horizontally) from the frame origin:
-    only the points within that distance build the grid (``None``: all finite points, whose
-    extent must then stay within :data:`MAX_GROUND_CELLS` cells).
-
-    Returns an (N,) float64 array."""
+def ground_estimate(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
+                    max_rise: float | None = 0.5, max_distance: float | None = 200.0,
+                    outlier_below: float | None = 1.0, outlier_above: float | None = 20.0):
+    """Local ground height under each point (see the module docstring) and the outliers of
+    step 0: ``(surface (N,) float64, outlier (N,) bool)``. The surface is NaN for non-finite
+    rows and for points farther than ``max_distance`` metres (horizontally) from the frame
+    origin: only the points within that distance build the grid (``None``: all finite points,
+    whose extent must then stay within :data:`MAX_GROUND_CELLS` cells); those points only can
+    be outliers. ``outlier_below`` / ``outlier_above`` None: no such outliers."""
     from scipy import ndimage
+
+    from floxels_ext.lidar.ground_outliers import ground_reference, outlier_flags
 
     _check_ground_args(cell_size, window, max_distance)
     p = np.asarray(points, np.float64)
     out = np.full(len(p), np.nan)
+    outlier = np.zeros(len(p), bool)
     ok = np.isfinite(p).all(axis=1)
     if max_distance is not None:
         with np.errstate(invalid="ignore"):
             ok &= np.hypot(p[:, 0], p[:, 1]) <= max_distance
     if not ok.any():
-        return out
+        return out, outlier
     q = p[ok]
     lo = np.floor(q[:, :2].min(axis=0) / cell_size)
     hi = np.floor(q[:, :2].max(axis=0) / cell_size)
@@ -142,16 +154,32 @@ def ground_surface(points: np.ndarray, *, cell_size: float = 0.5, window: float 
                          f"the ground grid would exceed {MAX_GROUND_CELLS:,} cells; crop them (max_distance)")
     ij = (np.floor(q[:, :2] / cell_size) - lo).astype(np.int64)
     shape = tuple((hi - lo + 1).astype(np.int64))
+    size = _window_cells(window, cell_size)
     lowest = np.full(shape, np.inf)
     np.minimum.at(lowest, (ij[:, 0], ij[:, 1]), q[:, 2])
-    size = _window_cells(window, cell_size)
+    if outlier_below is not None or outlier_above is not None:
+        ref = ground_reference(lowest, lo, cell_size, size) if outlier_below is not None else None
+        bad = outlier_flags(q[:, 2], ij, ref, size, outlier_below, outlier_above)
+        if bad.any():
+            outlier[np.flatnonzero(ok)[bad]] = True
+            lowest = np.full(shape, np.inf)  # rebuilt without them
+            np.minimum.at(lowest, (ij[~bad, 0], ij[~bad, 1]), q[~bad, 2])
     eroded = ndimage.minimum_filter(lowest, size=size, mode="constant", cval=np.inf)
     # empty cells must not raise the dilation: they become -inf there
     opened = ndimage.maximum_filter(np.where(np.isfinite(eroded), eroded, -np.inf), size=size,
                                     mode="constant", cval=-np.inf)
     opened = _plane_cap(opened, cell_size, max_rise)
     out[ok] = opened[ij[:, 0], ij[:, 1]]
-    return out
+    return out, outlier
+
+
+def ground_surface(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
+                   max_rise: float | None = 0.5, max_distance: float | None = 200.0,
+                   outlier_below: float | None = 1.0, outlier_above: float | None = 20.0):
+    """The surface of :func:`ground_estimate` alone: an (N,) float64 array (outliers have the
+    surface of their cell)."""
+    return ground_estimate(points, cell_size=cell_size, window=window, max_rise=max_rise, max_distance=max_distance,
+                           outlier_below=outlier_below, outlier_above=outlier_above)[0]
 
 
 def _window_cells(window: float, cell_size: float) -> int:
@@ -205,9 +233,13 @@ class Preprocess:
     # m: without max_range, only points this close (horizontally) build the ground grid; farther
     # ones have no ground height (never ground; dropped by the max_height crop)
     ground_max_distance: float = 200.0
+    # m under the robust reference height (ground_outliers.py) below which a point is an outlier
+    # (multipath), and m above the sensor above which it is one; None: no such test
+    outlier_below: float | None = 1.0
+    outlier_above: float | None = 20.0
 
     def __post_init__(self) -> None:
-        for name in ("min_range", "max_range", "max_height"):
+        for name in ("min_range", "max_range", "max_height", "outlier_below", "outlier_above"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0 (or None), got {v}")
@@ -237,29 +269,57 @@ def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess
     (:func:`floxels_ext.lidar.preprocess_torch.preprocess_mask_torch`). Both give the masks of
     :func:`preprocess_mask_numpy`, the reference (tests compare them)."""
     if device is not None and str(device) != "cpu":
-        from floxels_ext.lidar.preprocess_torch import preprocess_mask_torch
-
-        return preprocess_mask_torch(points_sensor, settings, device)
+        return preprocess_classes(points_sensor, settings, device) == KEPT
     from floxels_ext.ops.lidar import lidar_keep_mask
 
     return lidar_keep_mask(host_rows(points_sensor), **_op_arguments(settings)).numpy()
+
+
+def preprocess_classes(points_sensor: np.ndarray, settings: Preprocess = Preprocess(), device=None) -> np.ndarray:
+    """(N,) uint8 class of every point of one scan: :data:`CROPPED` (or non-finite), :data:`KEPT`,
+    :data:`GROUND`, :data:`OUTLIER`; ``== KEPT`` is :func:`preprocess_mask`. Devices as there;
+    reference: :func:`preprocess_classes_numpy`."""
+    if device is not None and str(device) != "cpu":
+        from floxels_ext.lidar.preprocess_torch import preprocess_classes_torch
+
+        return preprocess_classes_torch(points_sensor, settings, device)
+    from floxels_ext.ops.lidar import lidar_point_classes
+
+    return lidar_point_classes(host_rows(points_sensor), **_op_arguments(settings)).numpy()
 
 
 def _op_arguments(s: Preprocess) -> dict:
     return dict(min_range=s.min_range, max_range=s.max_range, max_height=s.max_height,
                 remove_ground=s.remove_ground, ground_cell=s.ground_cell,
                 window_cells=_window_cells(s.ground_window, s.ground_cell), ground_threshold=s.ground_threshold,
-                ground_max_rise=s.ground_max_rise, grid_distance=s.grid_distance, max_cells=MAX_GROUND_CELLS)
+                ground_max_rise=s.ground_max_rise, grid_distance=s.grid_distance, max_cells=MAX_GROUND_CELLS,
+                outlier_below=s.outlier_below, outlier_above=s.outlier_above)
 
 
 def preprocess_mask_numpy(points_sensor: np.ndarray, settings: Preprocess = Preprocess()) -> np.ndarray:
     """The reference of :func:`preprocess_mask` in numpy/scipy (tens of ms a 200k-point scan)."""
+    return preprocess_classes_numpy(points_sensor, settings) == KEPT
+
+
+def preprocess_classes_numpy(points_sensor: np.ndarray, settings: Preprocess = Preprocess()) -> np.ndarray:
+    """The reference of :func:`preprocess_classes`. Precedence: non-finite or outside the range
+    crop, then outlier, then above ``max_height``, then ground, else kept."""
     need_surface = settings.remove_ground or settings.max_height is not None
-    surface = ground_surface(points_sensor, cell_size=settings.ground_cell, window=settings.ground_window,
-                             max_rise=settings.ground_max_rise,
-                             max_distance=settings.grid_distance) if need_surface else None
-    keep = crop_mask(points_sensor, min_range=settings.min_range, max_range=settings.max_range,
-                     max_height=settings.max_height, ground_height=surface)
-    if settings.remove_ground:
-        keep &= ~ground_mask(points_sensor, height_threshold=settings.ground_threshold, surface=surface)
-    return keep
+    p = np.asarray(points_sensor, np.float64)
+    in_range = crop_mask(p, min_range=settings.min_range, max_range=settings.max_range, max_height=None)
+    cls = np.full(len(p), CROPPED, np.uint8)
+    if not need_surface:
+        cls[crop_mask(p, min_range=settings.min_range, max_range=settings.max_range,
+                      max_height=settings.max_height)] = KEPT
+        return cls
+    surface, outlier = ground_estimate(p, cell_size=settings.ground_cell, window=settings.ground_window,
+                                       max_rise=settings.ground_max_rise, max_distance=settings.grid_distance,
+                                       outlier_below=settings.outlier_below, outlier_above=settings.outlier_above)
+    with np.errstate(invalid="ignore"):
+        h = p[:, 2] - surface
+        low_enough = (h <= settings.max_height) if settings.max_height is not None else np.ones(len(p), bool)
+        ground = (h < settings.ground_threshold) if settings.remove_ground else np.zeros(len(p), bool)
+    cls[in_range & low_enough & ~ground] = KEPT
+    cls[in_range & low_enough & ground] = GROUND
+    cls[in_range & outlier] = OUTLIER
+    return cls

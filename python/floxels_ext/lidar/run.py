@@ -78,6 +78,10 @@ def add_parser(sub) -> None:
     p.add_argument("--max-iters", type=int, help="shortcut for --option max_iters=N")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="method option (Floxels: any FloxelsConfig field, e.g. voxel_size=0.5); repeatable")
+    p.add_argument("--raw-flow", action="store_true",
+                   help="Floxels: keep the paper's raw flow (default: the flow of groups of points whose motion "
+                        "the scans do not support is set to 0, FloxelsConfig evidence=zero); the motion evidence "
+                        "is written either way ('evidence', 'explained')")
     p.add_argument("--no-ground-removal", action="store_true", help="keep ground points")
     p.add_argument("--min-range", type=_opt_float, default=3.0, help="m, drop closer points (default 3; 'none')")
     p.add_argument("--max-range", type=_opt_float, default=50.0, help="m, drop farther points (default 50; 'none')")
@@ -87,6 +91,11 @@ def add_parser(sub) -> None:
                    "still ground (default 0.3)")
     p.add_argument("--ground-window", type=float, default=8.0, help="m, morphological window (default 8)")
     p.add_argument("--ground-cell", type=float, default=0.5, help="m, ground grid cell (default 0.5)")
+    p.add_argument("--outlier-below", type=_opt_float, default=1.0,
+                   help="m under the robust ground reference: deeper points are outliers (multipath), removed "
+                   "and counted in the summary (default 1; 'none')")
+    p.add_argument("--outlier-above", type=_opt_float, default=20.0,
+                   help="m above the sensor: higher points are outliers (default 20; 'none')")
     p.add_argument("--bin-columns", type=int, choices=[3, 4, 5, 6], help="float32 columns of .bin frames "
                    "(default: from the file size; 4 KITTI, 5 nuScenes)")
     p.add_argument("--ext", help="frame extension to use when INPUT mixes formats")
@@ -170,7 +179,8 @@ def run(args) -> int:
     try:
         settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
                               remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
-                              ground_window=args.ground_window, ground_threshold=args.ground_threshold)
+                              ground_window=args.ground_window, ground_threshold=args.ground_threshold,
+                              outlier_below=args.outlier_below, outlier_above=args.outlier_above)
     except ValueError as e:
         raise CLIError(str(e)) from None
     out = Path(args.out)
@@ -298,6 +308,10 @@ def run(args) -> int:
                "no_points_after_crop": [seq.frames[i].name for i in sorted(loader.empty_crop)],
                # frames whose few far points blow up a distance transform (warned about once)
                "far_outliers": [seq.frames[i].name for i in sorted(loader.stray)],
+               # per estimated frame: points kept (optimised), removed as ground, removed as
+               # outliers (far below the ground / far above the sensor), cropped (or non-finite)
+               "point_classes": {seq.frames[i].name: c for i, c in sorted(loader.counts.items()) if i in set(todo)},
+               "outliers": sum(c["outlier"] for i, c in loader.counts.items() if i in set(todo)),
                "wall_s": round(wall, 4), "frames_per_s": round(written / wall, 3) if wall > 0 and written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,

@@ -82,8 +82,13 @@ def check_args(args, torch):
     if "num_scans" in options and options["num_scans"] != args.scans:
         raise CLIError(f"--option num_scans={options['num_scans']} contradicts --scans {args.scans}; "
                        f"give the window size once, with --scans")
+    raw = bool(getattr(args, "raw_flow", False))
     if args.method == "floxels":  # the baselines estimate from a (frame, next frame) pair
-        options = {"num_scans": args.scans, **options}
+        # motion evidence (estimator/evidence.py): unexplained motion zeroed by default, written
+        # either way; a setting like the others (options, recorded, compared on resume)
+        if raw and options.get("evidence") == "zero":
+            raise CLIError("--raw-flow contradicts --option evidence=zero; give one of them")
+        options = {"num_scans": args.scans, "evidence": "score" if raw else "zero", **options}
         from floxels_ext.estimator.config import FloxelsConfig  # fail fast on a bad option instead of after reading data
         try:
             FloxelsConfig(**options)

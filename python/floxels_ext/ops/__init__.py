@@ -11,7 +11,7 @@ from floxels_ext.ops.dbscan import dbscan
 from floxels_ext.ops.dt_loss import dt_loss, dt_loss_fwd_bwd
 from floxels_ext.ops.edt import distance_transform, edt, points_to_occupancy
 from floxels_ext.ops.grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
-from floxels_ext.ops.lidar import frame_flow, lidar_keep_mask, lidar_select, rigid_transform
+from floxels_ext.ops.lidar import frame_flow, lidar_keep_mask, lidar_point_classes, lidar_select, rigid_transform
 from floxels_ext.ops.nearest import nearest_neighbor
 from floxels_ext.ops.setup import ProblemSetup, problem_setup, stage_points
 from floxels_ext.ops.trilinear import trilinear_gather, trilinear_scatter
@@ -27,5 +27,5 @@ __all__ = [
     "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",
     "problem_setup", "ProblemSetup", "stage_points",
     "nearest_neighbor",
-    "lidar_keep_mask", "rigid_transform", "lidar_select", "frame_flow",
+    "lidar_keep_mask", "lidar_point_classes", "rigid_transform", "lidar_select", "frame_flow",
 ]

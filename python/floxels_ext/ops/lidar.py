@@ -15,13 +15,19 @@ import torch
 from floxels_ext.ops._checks import check_point_rows
 from floxels_ext.ops._lib import ops_ns
 
-__all__ = ["lidar_keep_mask", "rigid_transform", "lidar_select", "frame_flow"]
+__all__ = ["lidar_keep_mask", "lidar_point_classes", "rigid_transform", "lidar_select", "frame_flow"]
 
 
 @torch.library.register_fake("floxels::lidar_keep_mask")
 def _fake_keep(points, min_range, max_range, max_height, remove_ground, ground_cell, window_cells,
-               ground_threshold, ground_max_rise, grid_distance, max_cells):
+               ground_threshold, ground_max_rise, grid_distance, max_cells, outlier_below, outlier_above):
     return points.new_empty((points.shape[0],), dtype=torch.bool)
+
+
+@torch.library.register_fake("floxels::lidar_point_classes")
+def _fake_classes(points, min_range, max_range, max_height, remove_ground, ground_cell, window_cells,
+                  ground_threshold, ground_max_rise, grid_distance, max_cells, outlier_below, outlier_above):
+    return points.new_empty((points.shape[0],), dtype=torch.uint8)
 
 
 @torch.library.register_fake("floxels::rigid_transform")
@@ -51,15 +57,35 @@ def _host_points(points, name: str = "points") -> torch.Tensor:
 def lidar_keep_mask(points: torch.Tensor, *, min_range: float | None, max_range: float | None,
                     max_height: float | None, remove_ground: bool, ground_cell: float, window_cells: int,
                     ground_threshold: float, ground_max_rise: float | None, grid_distance: float,
-                    max_cells: int) -> torch.Tensor:
-    """(N,) bool: the rows of ``points`` (one scan, sensor frame, z up) kept by cropping and
-    ground removal (the op's schema comment in ``csrc/ops.cpp`` says each argument).
+                    max_cells: int, outlier_below: float | None = None,
+                    outlier_above: float | None = None) -> torch.Tensor:
+    """(N,) bool: the rows of ``points`` (one scan, sensor frame, z up) kept by cropping, outlier
+    and ground removal (the op's schema comment in ``csrc/ops.cpp`` says each argument).
     A ground grid over ``max_cells`` cells raises ValueError."""
+    return _keep_op(ops_ns.lidar_keep_mask, points, min_range, max_range, max_height, remove_ground, ground_cell,
+                    window_cells, ground_threshold, ground_max_rise, grid_distance, max_cells, outlier_below,
+                    outlier_above)
+
+
+def lidar_point_classes(points: torch.Tensor, *, min_range: float | None, max_range: float | None,
+                        max_height: float | None, remove_ground: bool, ground_cell: float, window_cells: int,
+                        ground_threshold: float, ground_max_rise: float | None, grid_distance: float,
+                        max_cells: int, outlier_below: float | None = None,
+                        outlier_above: float | None = None) -> torch.Tensor:
+    """(N,) uint8 class of every row, as :func:`lidar_keep_mask` decides it: 0 cropped (or
+    non-finite), 1 kept, 2 ground, 3 outlier (``floxels_ext.lidar.preprocess.CROPPED`` ...)."""
+    return _keep_op(ops_ns.lidar_point_classes, points, min_range, max_range, max_height, remove_ground, ground_cell,
+                    window_cells, ground_threshold, ground_max_rise, grid_distance, max_cells, outlier_below,
+                    outlier_above)
+
+
+def _keep_op(op, points, min_range, max_range, max_height, remove_ground, ground_cell, window_cells,
+             ground_threshold, ground_max_rise, grid_distance, max_cells, outlier_below, outlier_above):
     points = _host_points(points)
     try:
-        return ops_ns.lidar_keep_mask(points, min_range, max_range, max_height, bool(remove_ground),
-                                      float(ground_cell), int(window_cells), float(ground_threshold),
-                                      ground_max_rise, float(grid_distance), int(max_cells))
+        return op(points, min_range, max_range, max_height, bool(remove_ground), float(ground_cell),
+                  int(window_cells), float(ground_threshold), ground_max_rise, float(grid_distance), int(max_cells),
+                  outlier_below, outlier_above)
     except RuntimeError as e:
         raise ValueError(str(e).split("\n")[0].removeprefix("floxels: lidar_keep_mask: ")) from None
 
