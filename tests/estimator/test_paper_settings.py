@@ -57,6 +57,9 @@ def test_paper_settings_are_the_defaults():
     assert c.num_scans == 5
     # Adam's own defaults (the paper says Adam, nothing more)
     assert c.adam_betas == (0.9, 0.999) and c.adam_eps == 1e-8
+    # not in the paper: the motion evidence test after the optimisation (issue 29) is off by
+    # default in the API, so estimate_flow returns the paper's output
+    assert c.evidence == "off"
     # the regulariser factor: S support scans by default; the paper's printed 2m-1 on request
     assert c.reg_scale == "support" and c.regulariser_scale(4) == 4.0
     assert c.replace(reg_scale="paper").regulariser_scale(4) == 3.0  # 2m - 1 with m = 2

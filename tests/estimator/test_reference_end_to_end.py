@@ -31,7 +31,9 @@ REFERENCE_SETTINGS = dict(
     lambda_d=1.0, cluster_loss=True, lambda_c=0.6, flow_norm_loss=True, lambda_g_start=0.1, lambda_g_end=0.01,
     lambda_g_decay_iters=100, reg_scale="support", dbscan_eps=0.5, dbscan_min_samples=4, lr=0.05, max_iters=500,
     patience=250, min_delta=0.01, adam_betas=(0.9, 0.999), adam_eps=1e-8, max_dt_cells=512 * 1024 * 1024,
-    lr_milestones=(), lr_gamma=0.5, truncation_mode="zero", cluster_loss_mean="all")
+    lr_milestones=(), lr_gamma=0.5, truncation_mode="zero", cluster_loss_mean="all",
+    # motion evidence (issue 29) is not part of the paper: off, the paper's output
+    evidence="off", evidence_margin=0.02, evidence_ratio=0.05)
 
 SCENES = [("crossing", 3), ("parking", 1), ("urban", 2)]
 
