@@ -49,6 +49,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
     from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
+    from floxels_ext.lidar.resume import input_records
     from floxels_ext.lidar.run import absolute_sources
     from floxels_ext.lidar.run_args import check_out_dir, check_resume
     from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
@@ -72,9 +73,11 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
                     "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
                     "dynamic_threshold": args.dynamic_threshold}
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
-    todo = check_resume(out_path, selected, run_settings, args.force)
     stamps = [f.timestamp_ns for f in seq.frames]
     times_s, _ = frame_times(seq, stamps, ctx.report)
+    # what each frame's output depends on, recorded and compared as by floxels run (lidar/resume.py)
+    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
+    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=ctx.report)
     meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
             "options": np.str_(json.dumps(ctx.options, default=str)),
             "settings": np.str_(json.dumps(run_settings, default=str)),
@@ -83,7 +86,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
             "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
     write_one = FrameOutput(out_path=out_path, sources=absolute_sources(seq, todo), stamps=stamps, meta=meta,
                             dynamic_threshold=args.dynamic_threshold, compress=args.compress,
-                            self_contained=args.self_contained)
+                            self_contained=args.self_contained, inputs=inputs)
     loader = FrameLoader(seq, ctx.settings, poses, pose_mode, ctx.report, pools=ctx.pools, pre_device=ctx.pre_device,
                          keep_points=args.self_contained, stages=ctx.stages,
                          warn=lambda m: ctx.report(f"floxels: warning: {m}"))

@@ -40,6 +40,7 @@ class FrameOutput:
     dynamic_threshold: float
     compress: bool = False
     self_contained: bool = False
+    inputs: dict[int, str] = dataclasses.field(default_factory=dict)  # frame -> its inputs record (JSON)
 
     def __call__(self, i: int, p, flow_kept: np.ndarray, elapsed: float, next_to_world, fields=None) -> None:
         import torch
@@ -60,6 +61,8 @@ class FrameOutput:
             extra["source_crc32"] = np.int64(p.crc)
         if self.stamps[i] is not None:
             extra["timestamp_ns"] = np.int64(self.stamps[i])
+        if i in self.inputs:
+            extra["inputs"] = np.str_(self.inputs[i])
         if fields is not None:  # the motion evidence of the kept rows -> every row of the file
             extra.update(evidence_rows(p.mask, fields))
         write_output(self.out_path[i], compress=self.compress, flow=full.numpy(), mask=p.mask,

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["OUTPUT", "FORMAT_VERSION", "OutputError", "write_output", "read_flow_output", "cleanup_temps",
-           "read_settings", "settings_mismatch", "run_outputs", "points_crc32"]
+           "read_settings", "read_resume_record", "settings_mismatch", "run_outputs", "points_crc32"]
 
 FORMAT_VERSION = 2
 
@@ -56,6 +56,8 @@ Output: OUT_DIR/<frame name>.npz per frame (np.savez; --compress: zip-compressed
   method, num_scans, elapsed_s, options (JSON), dynamic_threshold, format (2),
   settings (JSON: everything that changes the result; a resumed run with other
   settings stops, --force recomputes)
+  inputs (JSON: size and modification time of each scan file of the frame's window,
+  its poses and times; a resumed run recomputes the frames whose inputs changed)
 OUT_DIR/run_summary.json (or --summary FILE): frames, written, skipped, failures with file
 names, s/frame and per-stage times of the last run.
 """
@@ -157,6 +159,24 @@ def read_settings(path: Path) -> dict | None:
             return old or None
     except Exception:  # unreadable: not "done"; the caller recomputes it
         return None
+
+
+def read_resume_record(path: Path) -> dict | None:
+    """What a resumed run compares: ``{"settings": ..., "inputs": ...}`` of an output
+    (``settings`` as :func:`read_settings` gives it; ``inputs``, the record of
+    :mod:`floxels_ext.lidar.resume`, None for outputs of earlier versions). None when the file
+    cannot be read as an output (truncated, not a zip, no ``flow``, no settings): not done."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "flow" not in z.files:
+                return None
+            inputs = json.loads(str(z["inputs"])) if "inputs" in z.files else None
+    except Exception:
+        return None
+    settings = read_settings(path)
+    if settings is None or not isinstance(inputs, (dict, type(None))):
+        return None
+    return {"settings": settings, "inputs": inputs}
 
 
 def settings_mismatch(recorded: dict, current: dict) -> list[str]:

@@ -4,7 +4,9 @@ Per frame: read the file (``floxels_ext.lidar.io``), crop and remove the ground 
 scan's own sensor frame (``floxels_ext.lidar.preprocess``), bring the scans of its window into one
 frame with the poses (ego-motion compensation), estimate the flow with the chosen method and
 write ``OUT_DIR/<frame name>.npz`` (see :data:`floxels_ext.lidar.outputs.OUTPUT`). Frames already
-written with the same settings are skipped, so an interrupted run continues where it stopped.
+written with the same settings from the same inputs are skipped, so an interrupted run continues
+where it stopped; frames whose window's scans, poses or times changed are recomputed
+(:mod:`floxels_ext.lidar.resume`).
 Reading and preprocessing run ahead on reader threads and writing on writer threads while the
 method optimises (:mod:`floxels_ext.lidar.pipeline`).
 
@@ -147,6 +149,7 @@ def absolute_sources(seq, frames) -> dict[int, str]:
 def run(args) -> int:
     from floxels_ext.lidar.run_args import (check_args, check_out_dir, check_resume, host_cores, parse_frames,
                                              reader_plan)
+    from floxels_ext.lidar.resume import input_records
     from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
 
     from floxels_ext.lidar.dataset_run import maybe_run_dataset
@@ -222,16 +225,19 @@ def run(args) -> int:
                     "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
                     "dynamic_threshold": args.dynamic_threshold}
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
-    todo = check_resume(out_path, selected, run_settings, args.force)
+    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
+    # pipeline passes them to methods whose estimate_sequence takes ``times``
+    stamps = [f.timestamp_ns for f in seq.frames]
+    times_s, times_source = frame_times(seq, stamps, report)
+    # what each frame's output depends on (its window's files, poses, times): recorded in the
+    # output, compared on a resume (lidar/resume.py)
+    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
+    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=info)
     skipped = len(selected) - len(todo)
     info(f"{seq.root}: {len(seq)} frames ({seq.kind}), {len(selected)} selected, {skipped} already done, "
          f"{len(todo)} to estimate with {args.method} on {device} "
          f"(ego-motion: {seq.pose_source or {'seqio': 'points already in one frame', 'identity': 'none (--no-ego-motion)', 'frame': 'per-frame poses', 'table': 'KISS-ICP odometry'}[pose_mode]})")
 
-    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
-    # pipeline passes them to methods whose estimate_sequence takes ``times``
-    stamps = [f.timestamp_ns for f in seq.frames]
-    times_s, times_source = frame_times(seq, stamps, report)
     if times_source is not None:
         info(f"frame times from {times_source}: window offsets follow them, flow stays per frame step")
     meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
@@ -242,7 +248,7 @@ def run(args) -> int:
             "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
     write_one = FrameOutput(out_path=out_path, sources=absolute_sources(seq, todo), stamps=stamps, meta=meta,
                             dynamic_threshold=args.dynamic_threshold, compress=args.compress,
-                            self_contained=args.self_contained)
+                            self_contained=args.self_contained, inputs=inputs)
 
     pre_dev, workers, writers, kind = reader_plan(args, device)
     if kind == "process" and pre_dev is not None:

@@ -130,30 +130,62 @@ def check_out_dir(out: Path, seq) -> None:
                            f"choose another directory")
 
 
-def check_resume(out_path: dict, selected: list[int], settings: dict, force: bool) -> list[int]:
-    """Frames to estimate: those without an output, and (with --force) all; an output written
-    with other settings stops the run (CLIError) unless --force."""
+def check_resume(out_path: dict, selected: list[int], settings: dict, force: bool, inputs: dict | None = None,
+                 report=None) -> list[int]:
+    """Frames to estimate: those without an output, those whose output cannot be read
+    (truncated by a crash, not an output), those whose inputs changed since they were written
+    (``inputs``: ``{frame: JSON record}`` of :func:`floxels_ext.lidar.resume.input_records`), and
+    (with --force) all. An output written with other settings (method, options, preprocessing,
+    poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
+    carry no input record: they count as done, and ``report`` says so."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import read_settings, settings_mismatch
+    from floxels_ext.lidar.outputs import read_resume_record, settings_mismatch
+    from floxels_ext.lidar.resume import inputs_diff
 
     if force:
         return list(selected)
     todo, clash = [], None
+    unreadable, changed, legacy = [], [], []
     for i in selected:
         if not out_path[i].is_file():
             todo.append(i)
             continue
-        rec = read_settings(out_path[i])
+        rec = read_resume_record(out_path[i])
         if rec is None:  # unreadable (e.g. truncated by a crash of the machine): recompute it
             todo.append(i)
+            unreadable.append(i)
             continue
-        diff = settings_mismatch(rec, settings)
+        diff = settings_mismatch(rec["settings"], settings)
         if diff and clash is None:
             clash = (out_path[i], diff)
+        if inputs is None or i not in inputs:
+            continue
+        if rec["inputs"] is None:
+            legacy.append(i)
+            continue
+        why = inputs_diff(rec["inputs"], json.loads(inputs[i]))
+        if why is not None:
+            todo.append(i)
+            changed.append((i, why))
     if clash is not None:
         raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
                        f"use --force to recompute, or another --out")
-    return todo
+    if report is not None:
+        def names(frames):
+            return ", ".join(out_path[i].name for i in frames[:3]) + (" ..." if len(frames) > 3 else "")
+
+        if unreadable:
+            report(f"recomputing {len(unreadable)} output(s) that cannot be read (truncated or not an output of "
+                   f"floxels run): {names(unreadable)}")
+        if changed:
+            i, why = changed[0]
+            report(f"recomputing {len(changed)} frame(s) whose inputs changed since they were written (their "
+                   f"window's scans, poses or times), e.g. {out_path[i].name}: {why}")
+        if legacy:
+            report(f"floxels: warning: {len(legacy)} output(s) were written by an earlier version without a record "
+                   f"of their inputs ({names(legacy)}): kept as done; a change of their scans, poses or times "
+                   f"since then is not detected (--force recomputes them)")
+    return sorted(todo)
 
 
 def host_cores(args) -> int:

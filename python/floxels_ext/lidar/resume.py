@@ -1,0 +1,91 @@
+"""What each frame's output was computed from, so that a resumed ``floxels run`` recomputes the
+frames whose inputs changed (issue 30, item 4).
+
+A frame's flow depends on the scans of its window (the method's window around it, and the
+next scan, whose pose gives ``ego_motion``), their poses and their times. Each output records
+them as ``inputs`` (JSON)::
+
+    {"scans": {NAME: [size, mtime_ns], ...},      # each window file's size and modification time
+     "poses": {NAME: "blake2b of the 4x4", ...},   # null: the poses are in the files, or none
+     "times": {NAME: seconds after the target, ...}}  # null: frames evenly spaced
+
+Sizes with modification times, not content hashes: a stat per file costs microseconds while
+hashing every scan again would cost a read of the whole sequence per run; an edit, a copy
+over or a fixed file changes the time (``cp -p`` of a same-size file with its old time would
+not be seen). Poses and times are recorded as resolved values, so editing one line of a poses
+file recomputes only the frames whose windows use that pose, and removing ``times.txt``
+recomputes the frames whose offsets it set.
+
+Outputs written before this record existed have no ``inputs``: they are kept as done (their
+inputs cannot be compared), and the run says how many, pointing at ``--force``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import numpy as np
+
+__all__ = ["window_frames", "input_records", "inputs_diff"]
+
+
+def window_frames(i: int, n: int, num_scans: int) -> range:
+    """The frames whose scans frame ``i``'s output depends on: the estimator's window
+    (:func:`floxels_ext.estimator.api.window_for`), widened to the neighbours the two-scan
+    methods pair with (``i - 1`` at the end of a sequence, else ``i + 1``; ``i + 1`` also gives
+    ``ego_motion``)."""
+    from floxels_ext.estimator.api import window_for
+
+    lo, hi = window_for(i, n, num_scans)
+    return range(min(lo, max(i - 1, 0)), max(hi, min(i + 2, n)))
+
+
+def _pose_digest(pose) -> str:
+    return hashlib.blake2b(np.ascontiguousarray(pose, np.float64).tobytes(), digest_size=10).hexdigest()
+
+
+def input_records(seq, frames, num_scans: int, poses, times_s) -> dict[int, str]:
+    """``{frame: inputs JSON}`` for each of ``frames`` (indices into ``seq``): see the module doc.
+    ``poses``: the (F, 4, 4) table the run uses, or None (poses inside the files, or none);
+    ``times_s``: per-frame times (s), or None."""
+    n = len(seq)
+    need = sorted({j for i in frames for j in window_frames(i, n, num_scans)})
+    stat: dict[int, list | None] = {}
+    for j in need:
+        try:
+            st = os.stat(seq.frames[j].path)
+            stat[j] = [int(st.st_size), int(st.st_mtime_ns)]
+        except OSError:
+            stat[j] = None
+    digest = {j: _pose_digest(poses[j]) for j in need} if poses is not None else None
+    out = {}
+    for i in frames:
+        win = window_frames(i, n, num_scans)
+        names = [seq.frames[j].name for j in win]
+        rec = {"scans": {nm: stat[j] for nm, j in zip(names, win)},
+               "poses": None if digest is None else {nm: digest[j] for nm, j in zip(names, win)},
+               "times": None if times_s is None else
+               {nm: round(float(times_s[j]) - float(times_s[i]), 9) for nm, j in zip(names, win)}}
+        out[i] = json.dumps(rec, sort_keys=True)
+    return out
+
+
+def inputs_diff(recorded: dict, current: dict) -> str | None:
+    """None when the two records match, else what changed (for the message)."""
+    if recorded == current:
+        return None
+    rs, cs = recorded.get("scans") or {}, current.get("scans") or {}
+    if set(rs) != set(cs):
+        return "its window holds other frames now"
+    changed = [nm for nm in cs if rs[nm] != cs[nm]]
+    if changed:
+        return f"{', '.join(changed[:3])}{' ...' if len(changed) > 3 else ''} changed"
+    for key, what in (("poses", "poses"), ("times", "frame times")):
+        a, b = recorded.get(key), current.get(key)
+        if a != b:
+            if a is None or b is None:
+                return f"{what} {'now given' if a is None else 'no longer given'}"
+            return f"the {what} of {', '.join(nm for nm in b if a.get(nm) != b[nm])[:60]} changed"
+    return "its inputs changed"
