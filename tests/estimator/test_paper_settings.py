@@ -83,7 +83,11 @@ def test_paper_text_states_the_values():
 def test_cli_default_window_is_five_scans():
     from floxels_ext import cli
 
+    from floxels_ext.lidar.run_args import resolve_preset
+
     args = cli.build_parser().parse_args(["run", "in", "--out", "o"])
+    assert args.preset == "paper"
+    resolve_preset(args)  # --scans left out: the preset's window (the paper's 5 scans)
     assert args.scans == 5
     assert window_for(10, 20, FloxelsConfig().num_scans) == (8, 13)
 
