@@ -70,8 +70,8 @@ MUTATIONS = [
     ("DT cell default 0.1 -> 0.2", CFG, "dt_cell: float = 0.1 ", "dt_cell: float = 0.2 ", [PAPER]),
     ("voxel default 0.5 -> 0.4", CFG, "voxel_size: float = 0.5", "voxel_size: float = 0.4", [PAPER]),
     ("default window 5 -> 3 scans", CFG, "num_scans: int = 5 ", "num_scans: int = 3 ", [PAPER]),
-    ("floxels run --scans default 5 -> 3", "python/floxels_ext/lidar/run.py", '"--scans", type=int, default=5,',
-     '"--scans", type=int, default=3,', [PAPER]),
+    ("floxels run's default window (the paper preset's) 5 -> 3", CFG, '    "paper": {},',
+     '    "paper": {"num_scans": 3},', [PAPER]),
     # what the solver is told
     ("solver ignores truncation_mode='clamp'", SOLVER, '1.0 if cfg.truncation_mode == "clamp" else 0.0', "0.0",
      [PAPER]),
