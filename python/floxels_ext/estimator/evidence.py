@@ -119,8 +119,8 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
     offsets in frame periods and their weights in the loss (as the estimator builds them).
     Look-ups clamp at the DT border like the loss; values are capped at ``truncation``.
     Without support scans every group is unexplained with score 0. ``runs``: the groups are
-    contiguous runs (``group_ids(..., presorted=True)``): the group sums are then prefix-sum
-    differences in float64, deterministic on every device (otherwise ``index_add_``, whose CUDA
+    contiguous runs with non-decreasing ids (``group_ids(..., presorted=True)``): the group sums
+    are then prefix-sum differences in float64, deterministic on every device (otherwise ``index_add_``, whose CUDA
     atomics may change the last bits between runs).
 
     About 5 small kernels per support scan and 10 more (a frame's host cost on a GPU: tens of
@@ -149,18 +149,17 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
 
 
 def _run_sums(values: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
-    """Per point, the sum of ``values`` (C, N) over its group, the groups being contiguous runs:
-    float64 prefix sums along each row, differenced at each run's first and last point (found
-    with cummax / cummin: no atomics, no host synchronisation). The scans run along the
-    innermost, contiguous dimension: an (N, C) scan along dim 0 with C = 3 runs as three
-    sequential threads on CUDA (6 ms for 100k points on an H200, more than the optimiser)."""
-    n = values.shape[1]
+    """Per point, the sum of ``values`` (C, N) over its group, the groups being contiguous runs
+    with non-decreasing ids (as :func:`group_ids` ``(presorted=True)`` numbers them): float64
+    prefix sums differenced at each run's first and last point, found by binary search (no
+    atomics, no host synchronisation, so the same bits on every run). One prefix sum over the
+    C rows laid end to end (a row's earlier rows add a constant that the difference cancels):
+    CUDA scans one long contiguous vector fast, while a scan along a short dimension, or C rows
+    of N along the last, runs nearly sequentially (6.4 ms, then 0.14 ms per 100k points on an
+    H200)."""
+    c, n = values.shape
     v = values.double()
-    cs = torch.cumsum(v, 1)
-    pos = torch.arange(n, device=values.device)
-    start = torch.ones(n, dtype=torch.bool, device=values.device)
-    torch.ne(groups[1:], groups[:-1], out=start[1:])
-    first = torch.cummax(torch.where(start, pos, 0), 0).values
-    end = torch.roll(start, -1)  # a row is its run's last when the next row starts a run (or it is the last row)
-    last = torch.cummin(torch.where(end, pos, n).flip(0), 0).values.flip(0)
+    cs = v.reshape(-1).cumsum(0).view(c, n)
+    first = torch.searchsorted(groups, groups)
+    last = torch.searchsorted(groups, groups, right=True) - 1
     return cs[:, last] - cs[:, first] + v[:, first]
