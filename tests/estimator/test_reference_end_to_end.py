@@ -33,7 +33,9 @@ REFERENCE_SETTINGS = dict(
     patience=250, min_delta=0.01, adam_betas=(0.9, 0.999), adam_eps=1e-8, max_dt_cells=512 * 1024 * 1024,
     lr_milestones=(), lr_gamma=0.5, truncation_mode="zero", cluster_loss_mean="all",
     # motion evidence (issue 29) is not part of the paper: off, the paper's output
-    evidence="off", evidence_margin=0.02, evidence_ratio=0.05)
+    evidence="off", evidence_margin=0.02, evidence_ratio=0.05,
+    # the accurate preset's ingredients (issue 33) are not part of the paper: off
+    velocity_search=False, rigid_refine=False)
 
 SCENES = [("crossing", 3), ("parking", 1), ("urban", 2)]
 

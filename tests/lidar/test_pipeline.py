@@ -117,7 +117,7 @@ def test_writers_drain_the_queue_on_more_threads_at_close():
 
 def test_sources_are_absolute_paths_of_the_frame_files(tmp_path, monkeypatch):
     from floxels_ext.lidar.io.sources import discover_input
-    from floxels_ext.lidar.run import absolute_sources
+    from floxels_ext.lidar.io.sources import absolute_sources
 
     d = tmp_path / "seq"
     d.mkdir()

@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from floxels_ext.estimator.scans import PreparedScans, prepare_scans, restore_output, warn_user
+from floxels_ext.estimator.scans import PreparedScans, prepare_scans, restore_output
+from floxels_ext.estimator.user_warnings import warn_user
 
 
 @dataclass

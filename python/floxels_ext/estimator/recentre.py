@@ -71,7 +71,7 @@ class Recentring:
             reach = float(max(np.abs(lo).max(), np.abs(hi).max()))
             if t.dtype == torch.float32 and not self.warned and \
                     float(np.spacing(np.float32(reach))) > FLOAT32_WARN_RESOLUTION:
-                from floxels_ext.estimator.scans import warn_user
+                from floxels_ext.estimator.user_warnings import warn_user
 
                 self.warned = True
                 warn_user(f"float32 scans reach {reach:.4g} m from the origin, where float32 resolves only "

@@ -15,9 +15,6 @@ Policy for bad input (documented in the README):
 from __future__ import annotations
 
 import math
-import os
-import sys
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -25,6 +22,7 @@ import numpy as np
 import torch
 
 from floxels_ext.estimator.recentre import Recentring
+from floxels_ext.estimator.user_warnings import warn_user
 from floxels_ext.ops.setup import stage_points
 
 
@@ -44,21 +42,6 @@ class PreparedScans:
     bounds: list[tuple[list[float], list[float]] | None] | None = None
     # the shift subtracted (in float64) from every scan before it became float32 (recentre.py)
     recentring: Recentring | None = None
-
-
-_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
-
-
-def warn_user(message: str, category=UserWarning) -> None:
-    """``warnings.warn`` attributed to the first caller outside this package (the user's
-    line), however deep inside the package it is raised."""
-    if sys.version_info >= (3, 12):
-        warnings.warn(message, category, skip_file_prefixes=(_PACKAGE_DIR,))
-        return
-    level, frame = 2, sys._getframe(1)
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
-        frame, level = frame.f_back, level + 1
-    warnings.warn(message, category, stacklevel=level)
 
 
 def check_times(times, n: int) -> list[float]:

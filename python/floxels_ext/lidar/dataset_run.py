@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-__all__ = ["add_dataset_arguments", "maybe_run_dataset", "remove_temps", "common_options"]
+__all__ = ["add_dataset_arguments", "maybe_run_dataset", "common_options"]
 
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
@@ -67,16 +67,6 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
 def common_options(args) -> dict:
     """The run options every task of the job shares (all but the per-task and driver ones)."""
     return {k: v for k, v in vars(args).items() if k not in _DRIVER_KEYS}
-
-
-def remove_temps(out_dir: Path, names=None) -> int:
-    """Removes the temporary files of interrupted writes in out_dir (only those of the frames
-    ``names``, output names without ``.npz``, when given); a missing directory has none."""
-    from floxels_ext.lidar.outputs import cleanup_temps
-
-    if not Path(out_dir).is_dir():
-        return 0
-    return cleanup_temps(Path(out_dir), None if names is None else {f"{n}.npz" for n in names})
 
 
 def _check_options(args, dataset: bool) -> None:

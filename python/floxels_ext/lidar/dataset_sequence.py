@@ -50,7 +50,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
     from floxels_ext.lidar.io.sources import InputError, discover_input
     from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
     from floxels_ext.lidar.resume import input_records
-    from floxels_ext.lidar.run import absolute_sources
+    from floxels_ext.lidar.io.sources import absolute_sources
     from floxels_ext.lidar.run_args import check_out_dir, check_resume
     from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
 

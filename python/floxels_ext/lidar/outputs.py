@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["OUTPUT", "FORMAT_VERSION", "OutputError", "write_output", "read_flow_output", "cleanup_temps",
-           "read_settings", "read_resume_record", "settings_mismatch", "run_outputs", "points_crc32"]
+           "remove_temps", "read_settings", "read_resume_record", "settings_mismatch", "run_outputs", "points_crc32"]
 
 FORMAT_VERSION = 2
 
@@ -286,3 +286,11 @@ def read_flow_output(path, *, points: bool = True) -> dict:
     out["timestamp_ns"] = int(d["timestamp_ns"]) if "timestamp_ns" in d else None
     out["elapsed_s"] = float(d["elapsed_s"]) if "elapsed_s" in d else None
     return out
+
+
+def remove_temps(out_dir: Path, names=None) -> int:
+    """Removes the temporary files of interrupted writes in out_dir (only those of the frames
+    ``names``, output names without ``.npz``, when given); a missing directory has none."""
+    if not Path(out_dir).is_dir():
+        return 0
+    return cleanup_temps(Path(out_dir), None if names is None else {f"{n}.npz" for n in names})

@@ -236,7 +236,7 @@ class FloxelsWorker:
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.dataset_run import remove_temps
+    from floxels_ext.lidar.outputs import remove_temps
     from floxels_ext.lidar.progress import DatasetProgress
 
     verbosity = int(getattr(args, "verbosity", 0) or 0)

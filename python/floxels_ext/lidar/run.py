@@ -133,19 +133,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def absolute_sources(seq, frames) -> dict[int, str]:
-    """The absolute path of each frame's file, as outputs record it (``source``): each
-    directory resolved once (resolving every path took ~0.1 ms a frame of system calls)."""
-    dirs: dict = {}
-    out = {}
-    for i in frames:
-        path = seq.frames[i].path
-        if path.parent not in dirs:
-            dirs[path.parent] = path.parent.resolve()
-        out[i] = str(dirs[path.parent] / path.name)
-    return out
-
-
 def run(args) -> int:
     from floxels_ext.lidar.run_args import (check_args, check_out_dir, check_resume, host_cores, parse_frames,
                                              reader_plan)
@@ -162,7 +149,7 @@ def run(args) -> int:
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.poses import PoseFormatError
-    from floxels_ext.lidar.io.sources import InputError, discover_input
+    from floxels_ext.lidar.io.sources import InputError, absolute_sources, discover_input
     from floxels_ext.methods import available_methods, get_method
     from floxels_ext.lidar.frame_writer import DRAIN_WRITERS, FrameOutput, WriterPool
     from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps

@@ -24,7 +24,7 @@ import numpy as np
 from floxels_ext.lidar.io.poses import PoseFormatError, match_timestamps, read_av2_poses, read_poses
 from floxels_ext.lidar.io.readers import SUFFIXES, LidarFormatError, LidarScan, natural_key, read_points
 
-__all__ = ["FrameSource", "SequenceInput", "discover_input", "InputError"]
+__all__ = ["FrameSource", "SequenceInput", "discover_input", "InputError", "absolute_sources"]
 
 
 class InputError(ValueError):
@@ -140,3 +140,16 @@ def _frame_poses(poses: np.ndarray, n: int, pose_path, root) -> np.ndarray:
 
 # re-exported for callers that catch everything an input can raise
 INPUT_ERRORS = (InputError, PoseFormatError, LidarFormatError)
+
+
+def absolute_sources(seq, frames) -> dict[int, str]:
+    """The absolute path of each frame's file, as outputs record it (``source``): each
+    directory resolved once (resolving every path took ~0.1 ms a frame of system calls)."""
+    dirs: dict = {}
+    out = {}
+    for i in frames:
+        path = seq.frames[i].path
+        if path.parent not in dirs:
+            dirs[path.parent] = path.parent.resolve()
+        out[i] = str(dirs[path.parent] / path.name)
+    return out
