@@ -12,10 +12,8 @@ from __future__ import annotations
 import json
 import os
 import statistics
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
 
 from floxels_ext.lidar.dataset_stream import SeqJob
 
@@ -48,11 +46,12 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
-    from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
+    from floxels_ext.lidar.outputs import cleanup_temps
     from floxels_ext.lidar.resume import input_records
     from floxels_ext.lidar.io.sources import absolute_sources
     from floxels_ext.lidar.run_args import check_out_dir, check_resume
-    from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
+    from floxels_ext.lidar.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
+    from floxels_ext.lidar.run_inputs import run_settings as run_settings_of
 
     args, spec = ctx.args, task.seq
     out = Path(task.out_dir)
@@ -68,22 +67,14 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
         pose_mode, poses = resolve_poses(seq, args_seq, out, ctx.report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    run_settings = {"method": args.method, "num_scans": args.scans, "options": ctx.options,
-                    "preprocess": asdict(ctx.settings), "ego_motion": pose_mode,
-                    "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
-                    "dynamic_threshold": args.dynamic_threshold}
+    run_settings = run_settings_of(args, ctx.options, ctx.settings, pose_mode, seq)
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
     stamps = [f.timestamp_ns for f in seq.frames]
     times_s, _ = frame_times(seq, stamps, ctx.report)
     # what each frame's output depends on, recorded and compared as by floxels run (lidar/resume.py)
     inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
     todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=ctx.report)
-    meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
-            "options": np.str_(json.dumps(ctx.options, default=str)),
-            "settings": np.str_(json.dumps(run_settings, default=str)),
-            "dynamic_threshold": np.float64(args.dynamic_threshold), "format": np.int32(FORMAT_VERSION),
-            "bin_columns": np.int32(seq.bin_columns or 0),
-            "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
+    meta = output_meta(args, ctx.options, run_settings, seq)
     write_one = FrameOutput(out_path=out_path, sources=absolute_sources(seq, todo), stamps=stamps, meta=meta,
                             dynamic_threshold=args.dynamic_threshold, compress=args.compress,
                             self_contained=args.self_contained, inputs=inputs)
@@ -91,15 +82,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
                          keep_points=args.self_contained, stages=ctx.stages,
                          warn=lambda m: ctx.report(f"floxels: warning: {m}"))
 
-    def next_pose(i):
-        if i + 1 >= len(seq) or pose_mode == "seqio":
-            return None
-        if pose_mode == "table":
-            return poses[i + 1]
-        if pose_mode == "identity":
-            return np.eye(4)
-        nxt = loader.peek(i + 1)
-        return None if nxt is None else nxt.to_world
+    next_pose = next_pose_reader(seq, pose_mode, poses, loader)
 
     info = {"out": out, "selected": selected, "skipped": len(selected) - len(todo), "settings": run_settings,
             "task": task}

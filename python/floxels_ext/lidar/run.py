@@ -27,10 +27,7 @@ import os
 import statistics
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
-
-import numpy as np
 
 from floxels_ext.lidar.outputs import OUTPUT, write_output  # noqa: F401  (write_output: re-exported for callers)
 
@@ -137,7 +134,8 @@ def run(args) -> int:
     from floxels_ext.lidar.run_args import (check_args, check_out_dir, check_resume, host_cores, parse_frames,
                                              reader_plan)
     from floxels_ext.lidar.resume import input_records
-    from floxels_ext.lidar.run_inputs import frame_times, resolve_poses
+    from floxels_ext.lidar.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
+    from floxels_ext.lidar.run_inputs import run_settings as run_settings_of
 
     from floxels_ext.lidar.dataset_run import maybe_run_dataset
 
@@ -152,7 +150,7 @@ def run(args) -> int:
     from floxels_ext.lidar.io.sources import InputError, absolute_sources, discover_input
     from floxels_ext.methods import available_methods, get_method
     from floxels_ext.lidar.frame_writer import DRAIN_WRITERS, FrameOutput, WriterPool
-    from floxels_ext.lidar.outputs import FORMAT_VERSION, cleanup_temps
+    from floxels_ext.lidar.outputs import cleanup_temps
     from floxels_ext.lidar.frame_loader import FrameLoader, Stages, single_threaded_blas
     from floxels_ext.lidar.pipeline import EstimationError, run_pipeline
     from floxels_ext.lidar.preprocess import Preprocess
@@ -206,11 +204,7 @@ def run(args) -> int:
         pose_mode, poses = resolve_poses(seq, args, out, report)
     except (PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    run_settings = {"method": args.method, "num_scans": args.scans, "options": options,
-                    "preprocess": asdict(settings), "ego_motion": pose_mode,
-                    # resolved: a resume names the same file by another path (relative, a link)
-                    "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
-                    "dynamic_threshold": args.dynamic_threshold}
+    run_settings = run_settings_of(args, options, settings, pose_mode, seq)
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
     # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
     # pipeline passes them to methods whose estimate_sequence takes ``times``
@@ -227,12 +221,7 @@ def run(args) -> int:
 
     if times_source is not None:
         info(f"frame times from {times_source}: window offsets follow them, flow stays per frame step")
-    meta = {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
-            "options": np.str_(json.dumps(options, default=str)),
-            "settings": np.str_(json.dumps(run_settings, default=str)),
-            "dynamic_threshold": np.float64(args.dynamic_threshold), "format": np.int32(FORMAT_VERSION),
-            "bin_columns": np.int32(seq.bin_columns or 0),
-            "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
+    meta = output_meta(args, options, run_settings, seq)
     write_one = FrameOutput(out_path=out_path, sources=absolute_sources(seq, todo), stamps=stamps, meta=meta,
                             dynamic_threshold=args.dynamic_threshold, compress=args.compress,
                             self_contained=args.self_contained, inputs=inputs)
@@ -250,15 +239,7 @@ def run(args) -> int:
         writer.close()
         raise
 
-    def next_pose(i):
-        if i + 1 >= len(seq) or pose_mode == "seqio":
-            return None
-        if pose_mode == "table":
-            return poses[i + 1]
-        if pose_mode == "identity":
-            return np.eye(4)
-        nxt = loader.peek(i + 1)
-        return None if nxt is None else nxt.to_world
+    next_pose = next_pose_reader(seq, pose_mode, poses, loader)
 
     bar = Progress(len(todo), verbosity=verbosity)
     t0 = time.perf_counter()

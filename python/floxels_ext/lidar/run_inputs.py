@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["resolve_poses", "odometry_poses", "frame_times"]
+__all__ = ["resolve_poses", "odometry_poses", "frame_times", "run_settings", "output_meta", "next_pose_reader"]
 
 
 def resolve_poses(seq, args, out: Path, report):
@@ -106,3 +106,48 @@ def frame_times(seq, stamps: list, report) -> tuple[list[float] | None, str | No
         if len(steps) and np.all(steps > 0) and len(set(steps.tolist())) > 1:
             return [float(v - num[0]) for v in num], "gaps in the frame numbers"
     return None, None
+
+
+# What a sequence's outputs record of the run: one definition for the plain run (run.py) and
+# the dataset pipeline (dataset_sequence.py), so a resume compares like with like.
+
+def run_settings(args, options: dict, settings, pose_mode: str, seq) -> dict:
+    """The settings an output was computed with (``settings`` in every frame; a resume with
+    others stops): method, window, the method's options, preprocessing, ego-motion source."""
+    from dataclasses import asdict
+
+    return {"method": args.method, "num_scans": args.scans, "options": options,
+            "preprocess": asdict(settings), "ego_motion": pose_mode,
+            # resolved: a resume names the same file by another path (relative, a link)
+            "pose_source": str(Path(seq.pose_source).resolve()) if seq.pose_source else None,
+            "dynamic_threshold": args.dynamic_threshold}
+
+
+def output_meta(args, options: dict, settings: dict, seq) -> dict:
+    """The fields every output frame of a sequence carries besides its own (lidar/outputs.py)."""
+    import json
+
+    from floxels_ext.lidar.outputs import FORMAT_VERSION
+
+    return {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
+            "options": np.str_(json.dumps(options, default=str)),
+            "settings": np.str_(json.dumps(settings, default=str)),
+            "dynamic_threshold": np.float64(args.dynamic_threshold), "format": np.int32(FORMAT_VERSION),
+            "bin_columns": np.int32(seq.bin_columns or 0),
+            "points_frame": np.str_("world" if seq.kind == "seqio" else "native")}
+
+
+def next_pose_reader(seq, pose_mode: str, poses, loader):
+    """``next_pose(i)``: the world pose of frame i + 1 (outputs record the ego motion to it), or
+    None where there is none; per-frame poses are read from the loader's prepared frame."""
+    def next_pose(i):
+        if i + 1 >= len(seq) or pose_mode == "seqio":
+            return None
+        if pose_mode == "table":
+            return poses[i + 1]
+        if pose_mode == "identity":
+            return np.eye(4)
+        nxt = loader.peek(i + 1)
+        return None if nxt is None else nxt.to_world
+    return next_pose
+
