@@ -226,3 +226,14 @@ def test_accurate_preset_on_the_sliding_box():
     err = lambda f: np.linalg.norm(f[:n] - [v, 0, 0], axis=1).mean()  # noqa: E731
     assert err(acc) <= err(paper) + 0.02 and err(acc) < 0.1
     assert np.abs(acc[n:]).max() < 0.05  # the wall stays put
+
+
+@pytest.mark.cuda
+def test_accurate_preset_same_bytes_twice_on_cuda():
+    # issue 31 for the preset's ingredients: their cluster and vertex sums must not add with
+    # float atomics, so two runs of the same input give the same bytes
+    v, offsets = 1.7, (-2, -1, 0, 1, 2)
+    scans, _ = sliding_box(v, offsets)
+    cfg = FloxelsConfig.preset("accurate", num_scans=5, velocity_search=True)
+    runs = [estimate_flow(scans, 2, cfg, device="cuda") for _ in range(3)]
+    assert all(np.array_equal(runs[0], r) for r in runs[1:])

@@ -129,11 +129,18 @@ def _subsample(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> torch
     return rows[keep]
 
 
+def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """(rows, ...) sums of ``values`` (m, ...) by ``index`` (m,). ``index_put_`` with
+    accumulate sorts the keys stably and adds each row's terms in order, so the sums are the
+    same bits on every CUDA run (``index_add_`` adds with float atomics: issue 31)."""
+    out = torch.zeros((rows,) + tuple(values.shape[1:]), dtype=values.dtype, device=values.device)
+    return out.index_put_((index,), values, accumulate=True)
+
+
 def _cluster_mean(values: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
     """Mean of ``values`` (..., m) over each cluster's columns -> (..., C)."""
-    shape = values.shape[:-1] + (C,)
-    s = torch.zeros(shape, dtype=values.dtype, device=values.device).index_add_(-1, cid, values)
-    n = torch.zeros(C, dtype=values.dtype, device=values.device).index_add_(0, cid, torch.ones_like(cid, dtype=values.dtype))
+    s = _segment_sum(C, cid, values.movedim(-1, 0)).movedim(0, -1)
+    n = _segment_sum(C, cid, torch.ones_like(cid, dtype=values.dtype))
     return s / n.clamp_min(1)
 
 
@@ -226,8 +233,8 @@ def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
     idx = corner_idx.reshape(-1).to(torch.int64)
     w = corner_w.reshape(-1, 1).to(point_vel.dtype)
     v = point_vel.repeat_interleave(8, 0)
-    num = torch.zeros(num_vertices, 3, dtype=point_vel.dtype, device=point_vel.device).index_add_(0, idx, w * v)
-    den = torch.zeros(num_vertices, 1, dtype=point_vel.dtype, device=point_vel.device).index_add_(0, idx, w)
+    num = _segment_sum(num_vertices, idx, w * v)
+    den = _segment_sum(num_vertices, idx, w)
     return num / den.clamp_min(1e-12)
 
 
@@ -288,9 +295,9 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
             d, g = _lookup(s, q + s.t * u, grad=True)
             ok = (d < tau).to(dt) * (s.w / wsum)
             J = s.t * torch.stack([g[:, 0], g[:, 1], g[:, 1] * rel[:, 0] - g[:, 0] * rel[:, 1]], 1)  # (m, 3)
-            H.index_add_(0, cid, ok[:, None, None] * J[:, :, None] * J[:, None, :])
-            b.index_add_(0, cid, (ok * d)[:, None] * J)
-        n = torch.zeros(C, dtype=dt, device=dev).index_add_(0, cid, torch.ones_like(cid, dtype=dt)).clamp_min(1)
+            H += _segment_sum(C, cid, ok[:, None, None] * J[:, :, None] * J[:, None, :])
+            b += _segment_sum(C, cid, (ok * d)[:, None] * J)
+        n = _segment_sum(C, cid, torch.ones_like(cid, dtype=dt)).clamp_min(1)
         H, b = H / n[:, None, None], b / n[:, None]
         # Marquardt damping plus a small absolute term: unconstrained directions keep their value
         A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-3 * eye)
