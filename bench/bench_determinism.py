@@ -19,7 +19,6 @@ table and writes bench/results/determinism_<device>.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -29,6 +28,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(__file__))
+from _timing import write_results  # noqa: E402
 from bench_speed import _frames  # noqa: E402  (the same simulated frame and sequence)
 
 from floxels_ext import Floxels, FloxelsConfig, estimate_sequence  # noqa: E402
@@ -156,11 +156,7 @@ def main() -> None:
         if mode != "default":
             print(f"{mode} ({', '.join(f'{k}={v}' for k, v in modes[mode].items())}) vs default: frame time "
                   f"x{r['frame_time_vs_default']:.3f}, sequence frames/s x{r['seq_fps_vs_default']:.3f}")
-    path = args.json or os.path.join(os.path.dirname(__file__), "results", f"determinism_{dev.split(':')[0]}.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as fh:
-        json.dump(out, fh, indent=1, default=float)
-    print(f"wrote {path}")
+    write_results(out, args.json, f"determinism_{dev.split(':')[0]}.json")
 
 
 if __name__ == "__main__":

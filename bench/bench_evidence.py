@@ -29,7 +29,6 @@ All print a table and write JSON (``--json``, default bench/results/bench_eviden
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -40,6 +39,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _timing import write_results  # noqa: E402
 from compare import SCENE_SEED, load_sim_scene  # noqa: E402
 
 from floxels_ext import FloxelsConfig  # noqa: E402
@@ -299,12 +299,7 @@ def main(argv=None) -> int:
     out = {"accuracy": accuracy, "time": timing, "real": real}[args.mode](args)
     out.update(mode=args.mode, device=args.device, lidar=args.lidar, host=platform.node(), torch=torch.__version__,
                gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None)
-    path = args.json or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                     f"bench_evidence_{args.mode}.json")
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as fh:
-        json.dump(out, fh, indent=1, default=float)
-    print(f"wrote {path}")
+    write_results(out, args.json, f"bench_evidence_{args.mode}.json")
     return 0
 
 

@@ -15,7 +15,6 @@ same accuracy; the reference (``floxels_ext.reference.estimator``) gives the rat
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -24,6 +23,7 @@ import time
 import numpy as np
 import torch
 
+from _timing import write_results
 from floxels_ext import Floxels, FloxelsConfig, estimate_sequence
 from floxels_ext.evaluation.metrics import flow_metrics
 from floxels_ext.evaluation.protocol import protocol_mask
@@ -169,11 +169,7 @@ def main() -> None:
             m = out[key]
             print(f"{name:<10} {m['dynamic_epe']:>8.4f} {m['dynamic_acc5']:>8.3f} {m['dynamic_acc10']:>8.3f} "
                   f"{m['static_epe']:>10.4f}")
-    path = args.json or os.path.join(os.path.dirname(__file__), "results", f"speed_{dev.split(':')[0]}.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as fh:
-        json.dump(out, fh, indent=1, default=float)
-    print(f"wrote {path}")
+    write_results(out, args.json, f"speed_{dev.split(':')[0]}.json")
 
 
 if __name__ == "__main__":
