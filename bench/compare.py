@@ -28,8 +28,11 @@ the label with precision and recall >= 0.97 (printed). Before issue 29 scan 1's 
 "within 0.15 m of a labelled ground point of scan 0", which left 7,558 ground points in scan 1.
 
 Metrics are point-weighted over all evaluated frames (``floxels_ext.evaluation.metrics.evaluate_sequence``).
-Time per frame is the wall time of the method's sequence runs divided by the number of
-evaluated frames, after a warm-up (3 iterations) on the first frame. Each part writes its JSON
+Time per frame is the wall time of the method's sequence run divided by the number of
+evaluated frames: per row an untimed warm-up (the first frame with the row's own options, so
+every path it takes, e.g. the rigid refinement's linear solves, is initialised; ``--warmup``),
+then ``--repeat`` timed runs (default 3, synchronised on CUDA), of which the median counts; the
+predictions are the first run's (the accuracy figures do not depend on ``--repeat``). Each part writes its JSON
 and an NPZ of every prediction and ground truth next to it; ``--merge`` recomputes the
 metrics of rows split over parts (e.g. scenes) from the NPZ files and prints the tables.
 """
@@ -167,29 +170,50 @@ def load_av2_pair(path, max_points=0):
     return [np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None]
 
 
-def run_rows(rows, data, dev, progress=True):
-    """Run every row on every scene; returns {row key: {scene: (seconds, {frame: flow})}}."""
+def _sync(dev: str) -> None:
+    if dev.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def _same_flows(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(np.array_equal(np.asarray(a[f]), np.asarray(b[f])) for f in a)
+
+
+def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):
+    """Run every row on every scene; returns {row key: {scene: (seconds, {frame: flow}, [seconds
+    of each run])}}. Per row, first an untimed warm-up on the first scene's first frame with the
+    row's own options (``warmup="full"``: every code path the row takes, e.g. the rigid
+    refinement's solver, is initialised before it is timed; ``"short"``: 3 iterations, which
+    leaves paths that need a converged flow cold; ``"none"``), then ``repeat`` timed runs of
+    each scene's sequence, synchronised on CUDA before and after; the seconds are their median
+    and the predictions are the first run's (the others are checked to be the same bytes)."""
     out = {}
-    warmed = set()
     for key, label, name, opts, _group in rows:
         method = methods.get_method(name)
-        if (name, tuple(sorted(opts.items()))) not in warmed:
+        if warmup != "none":
             scans, _, frames, _ = data[0]
-            w = {**opts, "max_iters": 3}
+            w = opts if warmup == "full" else {**opts, "max_iters": 3}
             method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow, *extra: None)
-            warmed.add((name, tuple(sorted(opts.items()))))
+            _sync(dev)
         out[key] = {}
         t_row = time.perf_counter()
         for scans, _truth, frames, scene in data:
-            preds = {}
-            t0 = time.perf_counter()
-            method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: preds.__setitem__(f, flow))
-            if dev.startswith("cuda"):
-                torch.cuda.synchronize()
-            out[key][scene] = (time.perf_counter() - t0, preds)
-        secs = sum(s for s, _ in out[key].values())
-        nfr = sum(len(p) for _, p in out[key].values())
-        log(f"  {label}: {secs / max(nfr, 1):.2f} s/frame ({time.perf_counter() - t_row:.1f} s)")
+            runs, preds = [], None
+            for i in range(repeat):
+                got = {}
+                _sync(dev)
+                t0 = time.perf_counter()
+                method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: got.__setitem__(f, flow))
+                _sync(dev)
+                runs.append(time.perf_counter() - t0)
+                if preds is None:
+                    preds = got
+                elif not _same_flows(preds, got):
+                    log(f"  note: {label}, {scene}: run {i + 1} differs from run 1 (not deterministic)")
+            out[key][scene] = (float(np.median(runs)), preds, runs)
+        secs = sum(s for s, *_ in out[key].values())
+        nfr = sum(len(p) for _, p, _ in out[key].values())
+        log(f"  {label}: {secs / max(nfr, 1):.3f} s/frame (median of {repeat}; {time.perf_counter() - t_row:.1f} s)")
     return out
 
 
@@ -255,6 +279,12 @@ def parse_args(argv=None):
                     help="main-table rows (default: floxels nsfp fastnsf)")
     ap.add_argument("--ablations", nargs="*", default=None, help=f"ablation groups: none, all or of {GROUPS}")
     ap.add_argument("--iters-scale", type=float, default=1.0, help="scale every iteration limit (smoke runs)")
+    ap.add_argument("--repeat", type=int, default=None,
+                    help="timed runs of each row and scene; the time is their median (default 3, quick 1; 1 "
+                         "for accuracy-only runs, e.g. on a loaded CPU)")
+    ap.add_argument("--warmup", choices=("full", "short", "none"), default=None,
+                    help="untimed run per row before timing: the first frame with the row's options (full, "
+                         "default), with 3 iterations (short, the old warm-up; quick's default) or none")
     ap.add_argument("--no-npz", action="store_true", help="skip the NPZ of predictions (merge then uses the JSON metrics)")
     ap.add_argument("--part", default=None, help="name of this part (file names, merge provenance)")
     ap.add_argument("--json", default=None)
@@ -269,6 +299,8 @@ def parse_args(argv=None):
     args.lidar = args.lidar or ("small" if q else "full")
     args.max_range = args.max_range or (30.0 if q else 50.0)
     args.max_points = args.max_points if args.max_points is not None else (1000 if q else 0)
+    args.repeat = args.repeat if args.repeat is not None else (1 if q else 3)
+    args.warmup = args.warmup or ("short" if q else "full")
     args.iter_caps = {"floxels": 250, "nsfp": 250, "fastnsf": 250} if q else {}
     args.methods = ["floxels", "nsfp", "fastnsf"] if args.methods is None else args.methods
     abl = ["all"] if args.ablations is None else args.ablations
@@ -290,6 +322,8 @@ def parse_args(argv=None):
     args.sim = sim
     if args.frames < 1:
         ap.error("--frames must be >= 1")
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         ap.error("--device cuda requested but no CUDA device is available")
     return args
@@ -347,11 +381,12 @@ def main(argv=None) -> int:
             o = {**opts, "num_scans": 2} if two_scan else opts
             rows.append((f"abl:{group}:{label}", label, "floxels", scaled(o, "floxels", args.iters_scale, args.iter_caps), group))
 
-    results = run_rows(rows, data, dev)
+    results = run_rows(rows, data, dev, args.repeat, args.warmup)
     truth_of = {(scene, f): truth[f] for _s, truth, frames, scene in data for f in frames}
     records = [{"key": k, "label": lab, "method": n, "options": o, "group": g,
                 "frames": {sc: sorted(results[k][sc][1]) for sc in results[k]},
-                "seconds": {sc: results[k][sc][0] for sc in results[k]}} for k, lab, n, o, g in rows]
+                "seconds": {sc: results[k][sc][0] for sc in results[k]},
+                "seconds_runs": {sc: results[k][sc][2] for sc in results[k]}} for k, lab, n, o, g in rows]
     evaluate_rows(records, lambda k, sc, f: results[k][sc][1][f], lambda sc, f: truth_of[(sc, f)])
 
     pts = [len(s[f]) for s, _, fr, _ in data for f in fr]
@@ -373,7 +408,7 @@ def main(argv=None) -> int:
     os.makedirs(os.path.dirname(os.path.abspath(jpath)), exist_ok=True)
     npz = {}
     for k, *_ in rows:
-        for sc, (_, preds) in results[k].items():
+        for sc, (_, preds, _) in results[k].items():
             for f, flow in preds.items():
                 npz[f"pred|{k}|{sc}|{f}"] = np.asarray(flow, np.float32)
     for (sc, f), t in truth_of.items():

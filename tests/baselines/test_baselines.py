@@ -369,6 +369,7 @@ def test_compare_bench_smoke(tmp_path):
     assert [r["key"] for r in d["rows"]][:3] == ["floxels", "nsfp", "fastnsf"]
     assert sum(r["group"] == "loss" for r in d["rows"]) == 4
     assert {"dynamic_epe", "static_acc10", "mean_dynamic_normalized_epe"} <= set(d["rows"][0]["metrics"])
+    assert len(d["rows"][0]["seconds_runs"]["crossing"]) == 1  # --quick: one timed run
     merged = tmp_path / "m.json"
     assert mod.main(["--merge", *parts, "--json", str(merged), "--md", str(tmp_path / "m.md")]) == 0
     rows = json.loads(merged.read_text())["rows"]
