@@ -261,7 +261,8 @@ class Solving:
             if cfg.rigid_refine:  # (before the evidence test, which then judges the refined flow)
                 p = pr.problems[k]
                 flow_s = rigid_refine(p.points, flow_s, p.labels,
-                                      supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell))
+                                      supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell),
+                                      num_clusters=p.num_clusters)
             if evidence is not None:
                 ev = problem_evidence(cfg, pr.problems[k], flow_s)
                 if cfg.evidence == "zero":

@@ -89,13 +89,8 @@ def _lookup(s: Support, x: torch.Tensor, grad: bool = False):
 def robust_residual(points: torch.Tensor, motion: torch.Tensor, supports: list[Support], tau: float = TAU):
     """Per point, the loss-weighted mean over support scans of ``min(DT_t(p + t u), tau)``
     for per-frame motions ``motion`` (n, 3) (or broadcastable to ``points``)."""
-    total = torch.zeros(points.shape[0], dtype=points.dtype, device=points.device)
-    wsum = 0.0
-    for s in supports:
-        d, _ = _lookup(s, points + s.t * motion)
-        total += s.w * d.clamp_max(tau)
-        wsum += s.w
-    return total / max(wsum, 1e-12)
+    wsum = sum(s.w for s in supports)
+    return _weighted_residual(supports, points, motion.expand_as(points), tau, squared=False) / max(wsum, 1e-12)
 
 
 def _cluster_index(labels: torch.Tensor, min_points: int):
@@ -113,20 +108,16 @@ def _cluster_index(labels: torch.Tensor, min_points: int):
 
 def _subsample(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> torch.Tensor:
     """Rows of at most ``k`` points per cluster, evenly spread over each cluster's rows
-    (deterministic)."""
-    valid = torch.nonzero(lab >= 0).squeeze(1)
-    if valid.numel() == 0:
-        return valid
-    cl = lab[valid]
-    order = torch.argsort(cl, stable=True)
-    rows, cl = valid[order], cl[order]
-    start = torch.zeros(C + 1, dtype=torch.int64, device=lab.device)
-    start[1:] = torch.cumsum(counts, 0)
-    rank = torch.arange(rows.numel(), device=lab.device) - start[cl]
-    n = counts[cl]
-    stride = torch.clamp((n + k - 1) // k, min=1)
-    keep = (rank % stride == 0)
-    return rows[keep]
+    (deterministic), grouped by cluster in row order. ``counts``: points of each cluster with
+    ``lab >= 0``. One host synchronisation (the number of rows kept)."""
+    key = torch.where(lab >= 0, lab, torch.full_like(lab, C))  # points of no cluster sort last
+    order = torch.argsort(key, stable=True)
+    ks = key[order]
+    counts = torch.cat([counts, counts.new_zeros(1)])
+    start = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+    rank = torch.arange(ks.numel(), device=lab.device) - start[ks]
+    stride = torch.clamp((counts[ks] + k - 1) // k, min=1)
+    return order[(ks < C) & (rank % stride == 0)]
 
 
 def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -238,8 +229,38 @@ def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
     return num / den.clamp_min(1e-12)
 
 
+def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor, tau: float,
+                       squared: bool) -> torch.Tensor:
+    """Per point, ``sum_k w_k c(min(DT_k(q + t_k u), tau))`` over the support scans, with
+    ``c(d) = d^2`` (``squared``) or ``d``; the weights are the supports' loss weights."""
+    total = torch.zeros(q.shape[0], dtype=q.dtype, device=q.device)
+    for s in supports:
+        d, _ = _lookup(s, q + s.t * u)
+        d = d.clamp_max(tau)
+        total += s.w * (d * d if squared else d)
+    return total
+
+
+def _samples(supports: list[Support], q: torch.Tensor, u: torch.Tensor):
+    """DT values (K, m) and their gradients (K, m, 3) at ``q + t_k u`` in every support k."""
+    d, g = zip(*(_lookup(s, q + s.t * u, grad=True) for s in supports))
+    return torch.stack(d), torch.stack(g)
+
+
+def _solve3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``A^-1 b`` of symmetric positive definite (C, 3, 3) ``A`` by the adjugate (rows: cross
+    products of the other two rows), in float64: a few elementwise ops, no host
+    synchronisation (``torch.linalg.solve`` checks its pivots on the host) and no solver
+    library call."""
+    r0, r1, r2 = A.to(torch.float64).unbind(1)
+    cof = torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], 1)
+    det = (r0 * cof[:, 0]).sum(-1)
+    return (cof.transpose(1, 2) @ b.to(torch.float64).unsqueeze(-1)).squeeze(-1) / det[:, None]
+
+
 def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
-                 tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS) -> torch.Tensor:
+                 tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS,
+                 num_clusters: int | None = None) -> torch.Tensor:
     """The flow (n, 3) with every moving cluster (mean flow >= ``min_speed`` m/frame)
     replaced by its best planar rigid motion (horizontal translation v and yaw rate w about
     the cluster's centroid c: u(p) = v + w z x (p - c) per frame, the vertical velocity kept
@@ -247,78 +268,89 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     started from (mean flow, 0). A cluster keeps its Floxels
     flow unless the rigid motion explains the support scans clearly better than zero flow.
     (Not compared with the Floxels flow itself: a non-rigid flow fits one support scan
-    better than the true rigid motion does, by sliding points onto surfaces.)"""
+    better than the true rigid motion does, by sliding points onto surfaces.)
+    ``num_clusters``: ``labels.max() + 1`` if known (saves a host synchronisation).
+
+    Every cluster is solved at once: per LM iteration one look-up per support scan, then the
+    clusters' normal equations from one segment sum (their order fixed: no float atomics,
+    issue 31) and a closed-form 3 x 3 solve; the only host synchronisation is the number of
+    sample points (plus ``labels.max()`` without ``num_clusters``)."""
     if labels is None or points.shape[0] == 0 or not supports:
         return flow
-    lab, C, counts = _cluster_index(labels, MIN_CLUSTER_POINTS)
-    if C == 0:
+    lab = labels.to(torch.int64)
+    C = int(num_clusters) if num_clusters is not None else (int(lab.max()) + 1 if lab.numel() else 0)
+    if C <= 0:
         return flow
     dev, dt = points.device, points.dtype
-    has = lab >= 0
-    mean_flow = _cluster_mean(flow[has].T, lab[has], C).T
-    speed = mean_flow[:, :2].norm(dim=1)
-    sel = (speed >= min_speed) & (counts >= MIN_CLUSTER_POINTS)
-    if not bool(sel.any()):
+    # clusters' mean flow and size (points of no cluster summed into a spare row C)
+    seg = torch.where(lab >= 0, lab, torch.full_like(lab, C))
+    sums = _segment_sum(C + 1, seg, torch.cat([flow, torch.ones_like(flow[:, :1])], 1))[:C]
+    size = sums[:, 3]
+    mean_flow = sums[:, :3] / size.clamp_min(1)[:, None]
+    sel = (mean_flow[:, :2].norm(dim=1) >= min_speed) & (size >= MIN_CLUSTER_POINTS)
+    lab = torch.where((lab >= 0) & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
+    rows = _subsample(lab, C, torch.where(sel, size, torch.zeros_like(size)).to(torch.int64), REFINE_POINTS)
+    if rows.numel() == 0:  # (the one host synchronisation)
         return flow
-    lab = torch.where(has & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
-    counts = torch.where(sel, counts, torch.zeros_like(counts))
-    rows = _subsample(lab, C, counts, REFINE_POINTS)
     q, cid = points[rows], lab[rows]
-    cen = _cluster_mean(q.T, cid, C).T  # (C, 3)
+    n = _segment_sum(C, cid, torch.ones_like(q[:, 0])).clamp_min(1)  # sample points per cluster
+    cen = _segment_sum(C, cid, q) / n[:, None]  # (C, 3)
     rel = q - cen[cid]
     # planar rigid motion (vx, vy, yaw rate); the vertical velocity stays the flow's mean (the
     # scans of vertical faces hardly constrain it, and road users move on the road)
     theta = torch.cat([mean_flow[:, :2], torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 3)
     vz = mean_flow[:, 2]
     wsum = sum(s.w for s in supports)
+    tk = torch.tensor([s.t for s in supports], dtype=dt, device=dev)
+    wk = torch.tensor([s.w / wsum for s in supports], dtype=dt, device=dev)
+    # u(p) = M(p) (vx, vy, w, vz): M = [[1, 0, -r_y, 0], [0, 1, r_x, 0], [0, 0, 0, 1]]; the
+    # Jacobian of q + t_k u in DT_k is then t_k g_k^T M[:, :3]
+    o, z = torch.ones_like(rel[:, 0]), torch.zeros_like(rel[:, 0])
+    M = torch.stack([torch.stack([o, z, -rel[:, 1], z], 1), torch.stack([z, o, rel[:, 0], z], 1),
+                     torch.stack([z, z, z, o], 1)], 1)  # (m, 3, 4)
+    Mt = M[:, :, :3]
+    ia, ib = [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]  # upper triangle of the 3 x 3 normal matrix
+    sym = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]], device=dev)
+    damp = 1e-3 * torch.eye(3, dtype=dt, device=dev)
 
-    def motion(th, vert=vz):
-        c = th[cid]
-        return torch.stack([c[:, 0] - c[:, 2] * rel[:, 1], c[:, 1] + c[:, 2] * rel[:, 0], vert[cid]], 1)
+    def sample(th, vert=vz):  # DT values (K, m) and gradients (K, m, 3) under motion th
+        u = (M @ torch.cat([th, vert[:, None]], 1)[cid].unsqueeze(-1)).squeeze(-1)
+        return _samples(supports, q, u)
 
-    def cost(th, vert=vz):  # per cluster: mean of the loss-weighted squared robust residuals
-        u = motion(th, vert)
-        total = torch.zeros(q.shape[0], dtype=dt, device=dev)
-        for s in supports:
-            d, _ = _lookup(s, q + s.t * u)
-            total += s.w * d.clamp_max(tau) ** 2
-        return _cluster_mean((total / wsum)[None], cid, C)[0]
+    def cost(d):  # per cluster: mean of the loss-weighted squared robust residuals
+        r = (wk[:, None] * d.clamp_max(tau).square()).sum(0)
+        return _segment_sum(C, cid, r) / n
 
-    cur = cost(theta)
+    # Levenberg-Marquardt, every cluster at once; one look-up per support and iteration: the
+    # trial motion's samples give its cost and, where it is taken, the next linearisation
+    d, g = sample(theta)
+    cur = cost(d)
     lam = torch.full((C,), 1e-2, dtype=dt, device=dev)
-    eye = torch.eye(3, dtype=dt, device=dev)
     for _ in range(iters):
-        u = motion(theta)
-        H = torch.zeros(C, 3, 3, dtype=dt, device=dev)
-        b = torch.zeros(C, 3, dtype=dt, device=dev)
-        for s in supports:
-            d, g = _lookup(s, q + s.t * u, grad=True)
-            ok = (d < tau).to(dt) * (s.w / wsum)
-            J = s.t * torch.stack([g[:, 0], g[:, 1], g[:, 1] * rel[:, 0] - g[:, 0] * rel[:, 1]], 1)  # (m, 3)
-            H += _segment_sum(C, cid, ok[:, None, None] * J[:, :, None] * J[:, None, :])
-            b += _segment_sum(C, cid, (ok * d)[:, None] * J)
-        n = _segment_sum(C, cid, torch.ones_like(cid, dtype=dt)).clamp_min(1)
-        H, b = H / n[:, None, None], b / n[:, None]
+        J = tk[:, None, None] * (g.unsqueeze(-2) @ Mt).squeeze(-2)  # (K, m, 3)
+        wJ = ((d < tau).to(dt) * wk[:, None])[..., None] * J  # inliers, loss weights
+        # per point: upper triangle of sum_k wJ J^T, and sum_k wJ d; then one segment sum
+        per = torch.cat([(wJ[..., ia] * J[..., ib]).sum(0), (wJ * d[..., None]).sum(0)], 1)  # (m, 9)
+        S = _segment_sum(C, cid, per) / n[:, None]
+        H, b = S[:, :6][:, sym], S[:, 6:]
         # Marquardt damping plus a small absolute term: unconstrained directions keep their value
-        A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-3 * eye)
-        step = -torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
-        step = torch.where(sel[:, None], step, torch.zeros_like(step))
+        A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + damp)
+        step = torch.where(sel[:, None], -_solve3(A, b).to(dt), torch.zeros_like(theta))
         trial = theta + step
-        new = cost(trial)
+        d1, g1 = sample(trial)
+        new = cost(d1)
         better = new < cur
         theta = torch.where(better[:, None], trial, theta)
         cur = torch.where(better, new, cur)
         lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
+        took = better[cid]
+        d, g = torch.where(took, d1, d), torch.where(took[:, None], g1, g)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
-    zero_cost = cost(torch.zeros_like(theta), torch.zeros_like(vz))
+    zero_cost = cost(torch.stack([_lookup(s, q)[0] for s in supports]))
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
-    take = (lab >= 0) & accept[lab.clamp_min(0)]
-    out = flow.clone()
-    if bool(take.any()):
-        cl = lab[take]
-        rel_all = points[take] - cen[cl]
-        th = theta[cl]
-        out[take] = torch.stack([th[:, 0] - th[:, 2] * rel_all[:, 1], th[:, 1] + th[:, 2] * rel_all[:, 0],
-                                 vz[cl]], 1)
-    return out
+    cl = lab.clamp_min(0)
+    take = (lab >= 0) & accept[cl]
+    rel_all, th = points - cen[cl], theta[cl]
+    rigid = torch.stack([th[:, 0] - th[:, 2] * rel_all[:, 1], th[:, 1] + th[:, 2] * rel_all[:, 0], vz[cl]], 1)
+    return torch.where(take[:, None], rigid, flow)
