@@ -1,13 +1,13 @@
 """Label-free real-data report (issue 29): the 13 shared KITTI raw sweeps as a user runs them,
 and the Argoverse 2 pair's comparison with scan 1's ground removed like scan 0's.
 
-    python bench/bench_real.py [--device cpu|cuda] [--frames A:B] [--scans 5] [--work DIR]
+    python bench/bench_real.py [--device cpu|cuda] [--frames A:B] [--preset paper|accurate] [--scans N] [--work DIR]
                                [--png-dir DIR] [--no-kitti] [--no-av2] [--av2-methods floxels2 zero ...]
                                [--av2-max-points N] [--data DIR] [--poses FILE] [--json PATH]
 
 KITTI: writes the sweeps of ``../shared/data/kitti_raw_13f`` as ``velodyne/NNNNNN.bin`` (the
-data README's recipe), runs ``floxels run velodyne --odometry kiss-icp --scans 5`` through the
-CLI (``--frames`` limits the estimated frames, e.g. ``0:3`` on a CPU; all 13 sweeps still serve
+data README's recipe), runs ``floxels run velodyne --odometry kiss-icp --preset paper`` (``--preset``; the
+preset's window, paper 5 scans, accurate 9, unless ``--scans``) through the CLI (``--frames`` limits the estimated frames, e.g. ``0:3`` on a CPU; all 13 sweeps still serve
 as odometry input and support scans) and reads every output back: per frame the shares of the
 file's points that were kept (optimised), removed as ground, removed as outliers (the run
 summary's ``point_classes``), the share of kept points moving (``dynamic``), the share of moving
@@ -69,8 +69,8 @@ def kitti_report(args) -> dict:
     out = work / "kitti_out"
     raw = _has_flag("--raw-flow")
     ego = ["--poses", str(Path(args.poses).resolve())] if args.poses else ["--odometry", "kiss-icp"]
-    argv = ["run", str(velo), "--out", str(out), *ego, "--scans", str(args.scans),
-            "--device", args.device, "--force", "-q"]
+    argv = ["run", str(velo), "--out", str(out), *ego, "--preset", args.preset,
+            *(["--scans", str(args.scans)] if args.scans else []), "--device", args.device, "--force", "-q"]
     if args.frames:
         argv += ["--frames", args.frames]
     if raw:
@@ -101,7 +101,8 @@ def kitti_report(args) -> dict:
         show = moving & expl if expl is not None else None
         flow = d["flow"] if show is None else np.where(show[:, None], d["flow"], 0.0)
         plot_flow_bev(png_dir / f"kitti_{f.stem}.png", d["points"], flow, mask=d["mask"], frame_period=0.1,
-                      title=f"KITTI raw sweep {f.stem}: floxels run --odometry kiss-icp --scans {args.scans}"
+                      title=f"KITTI raw sweep {f.stem}: floxels run --preset {args.preset}"
+                            + (f" --scans {args.scans}" if args.scans else "")
                             + (" (explained motion)" if show is not None else ""),
                       view=((-40, 40), (-40, 40)))
     return {"command": "floxels " + " ".join(argv), "raw_flow": raw, "wall_s": wall, "rows": rows,
@@ -116,6 +117,10 @@ def kitti_table(rep: dict) -> str:
         lines.append(f"| {r['frame']} | {r['points']} | {pct(r['kept'])} | {pct(r['ground'])} | {r['outliers']} | "
                      f"{pct(r['moving'])} | {pct(r['unexplained'])} | "
                      f"{'n/a' if r['s_per_frame'] is None else format(r['s_per_frame'], '.2f')} |")
+    mean = lambda k: (None if not rep["rows"] or any(r[k] is None for r in rep["rows"])  # noqa: E731
+                      else float(np.mean([r[k] for r in rep["rows"]])))
+    lines.append(f"| mean | | {pct(mean('kept'))} | {pct(mean('ground'))} | | {pct(mean('moving'))} | "
+                 f"{pct(mean('unexplained'))} | {'n/a' if mean('s_per_frame') is None else format(mean('s_per_frame'), '.2f')} |")
     return "\n".join(lines)
 
 
@@ -163,7 +168,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--frames", default=None, help="KITTI frames to estimate (slice A:B; default all 13)")
-    ap.add_argument("--scans", type=int, default=5)
+    ap.add_argument("--scans", type=int, default=None, help="scans per window (default: the preset's: paper 5, "
+                    "accurate 9)")
+    ap.add_argument("--preset", default="paper", help="floxels run --preset (paper, accurate)")
     ap.add_argument("--work", default=None, help="directory for the .bin files and outputs (default: a temp dir)")
     ap.add_argument("--png-dir", default=None)
     ap.add_argument("--no-kitti", action="store_true")

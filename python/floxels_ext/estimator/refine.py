@@ -272,7 +272,7 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     ``num_clusters``: ``labels.max() + 1`` if known (saves a host synchronisation).
 
     Every cluster is solved at once: per LM iteration one look-up per support scan, then the
-    clusters' normal equations from one segment sum (their order fixed: no float atomics,
+    clusters' normal equations and costs from one segment sum (their order fixed: no float atomics,
     issue 31) and a closed-form 3 x 3 solve; the only host synchronisation is the number of
     sample points (plus ``labels.max()`` without ``num_clusters``)."""
     if labels is None or points.shape[0] == 0 or not supports:
@@ -309,45 +309,44 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     M = torch.stack([torch.stack([o, z, -rel[:, 1], z], 1), torch.stack([z, o, rel[:, 0], z], 1),
                      torch.stack([z, z, z, o], 1)], 1)  # (m, 3, 4)
     Mt = M[:, :, :3]
-    ia, ib = [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]  # upper triangle of the 3 x 3 normal matrix
+    ia = torch.tensor([0, 0, 0, 1, 1, 2], device=dev)  # upper triangle of the 3 x 3 normal matrix
+    ib = torch.tensor([0, 1, 2, 1, 2, 2], device=dev)
     sym = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]], device=dev)
     damp = 1e-3 * torch.eye(3, dtype=dt, device=dev)
+    tk3, wk1 = tk[:, None, None], wk[:, None]
 
-    def sample(th, vert=vz):  # DT values (K, m) and gradients (K, m, 3) under motion th
-        u = (M @ torch.cat([th, vert[:, None]], 1)[cid].unsqueeze(-1)).squeeze(-1)
-        return _samples(supports, q, u)
+    def normal(th):
+        """Per cluster (C, 10): the normal equations of the LM step at motion ``th`` (upper
+        triangle of H = mean J^T W J, b = mean J^T W d) and its cost (mean of the loss-weighted
+        squared robust residuals), all from one look-up per support and one segment sum."""
+        u = (M @ torch.cat([th, vz[:, None]], 1)[cid].unsqueeze(-1)).squeeze(-1)
+        d, g = _samples(supports, q, u)  # (K, m), (K, m, 3)
+        # Jacobian of q + t_k u(th) in DT_k: t_k g_k^T M[:, :3] = t_k (g_x, g_y, g_y r_x - g_x r_y)
+        J = tk3 * (g.unsqueeze(-2) @ Mt).squeeze(-2)  # (K, m, 3)
+        wJ = ((d < tau) * wk1).unsqueeze(-1) * J  # inliers, loss weights
+        per = torch.cat([(wJ[..., ia] * J[..., ib]).sum(0), (wJ * d.unsqueeze(-1)).sum(0),
+                         (wk1 * d.clamp_max(tau).square()).sum(0).unsqueeze(-1)], 1)  # (m, 10)
+        return _segment_sum(C, cid, per) / n[:, None]
 
-    def cost(d):  # per cluster: mean of the loss-weighted squared robust residuals
-        r = (wk[:, None] * d.clamp_max(tau).square()).sum(0)
-        return _segment_sum(C, cid, r) / n
-
-    # Levenberg-Marquardt, every cluster at once; one look-up per support and iteration: the
-    # trial motion's samples give its cost and, where it is taken, the next linearisation
-    d, g = sample(theta)
-    cur = cost(d)
+    # Levenberg-Marquardt, every cluster at once; per iteration one look-up per support: the
+    # trial motion's sums give its cost and, where it is taken, the next step's equations
+    # (clusters with no sample points have b = 0, so their step is 0 and they never change)
+    S = normal(theta)
     lam = torch.full((C,), 1e-2, dtype=dt, device=dev)
     for _ in range(iters):
-        J = tk[:, None, None] * (g.unsqueeze(-2) @ Mt).squeeze(-2)  # (K, m, 3)
-        wJ = ((d < tau).to(dt) * wk[:, None])[..., None] * J  # inliers, loss weights
-        # per point: upper triangle of sum_k wJ J^T, and sum_k wJ d; then one segment sum
-        per = torch.cat([(wJ[..., ia] * J[..., ib]).sum(0), (wJ * d[..., None]).sum(0)], 1)  # (m, 9)
-        S = _segment_sum(C, cid, per) / n[:, None]
-        H, b = S[:, :6][:, sym], S[:, 6:]
+        H = S[:, sym]
         # Marquardt damping plus a small absolute term: unconstrained directions keep their value
         A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + damp)
-        step = torch.where(sel[:, None], -_solve3(A, b).to(dt), torch.zeros_like(theta))
-        trial = theta + step
-        d1, g1 = sample(trial)
-        new = cost(d1)
-        better = new < cur
+        trial = theta - _solve3(A, S[:, 6:9]).to(dt)
+        St = normal(trial)
+        better = St[:, 9] < S[:, 9]
         theta = torch.where(better[:, None], trial, theta)
-        cur = torch.where(better, new, cur)
+        S = torch.where(better[:, None], St, S)
         lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
-        took = better[cid]
-        d, g = torch.where(took, d1, d), torch.where(took[:, None], g1, g)
+    cur = S[:, 9]
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
-    zero_cost = cost(torch.stack([_lookup(s, q)[0] for s in supports]))
+    zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     cl = lab.clamp_min(0)
     take = (lab >= 0) & accept[cl]
