@@ -12,7 +12,8 @@ ground removed as bench/compare.py does):
 * ``trim q``: mean of the lowest fraction q of the distances (trimmed mean),
 * ``sym tau``: the symmetric residual, the above forward term plus the backward one: the
   points of scan 1 near the cluster (within 1 m of the cluster swept over the candidate speeds)
-  moved back by -s e onto the DT of the cluster's own points of scan 0, capped at tau.
+  moved back by -s e onto the DT of the cluster's own points of scan 0, capped at tau
+  (``sym-scan``: onto the DT of the whole scan 0).
 
 Prints, per cluster and cost, the speed of the lowest cost and its ratio to the label's speed,
 and writes the curves of the largest cluster (and a PNG of them with ``--png``). No part of the
@@ -78,6 +79,7 @@ def main(argv=None) -> int:
     car = t["dynamic"] & (np.asarray(t["classes"]) == META_CLASSES.index("car"))
     lab = dbscan(torch.from_numpy(s0), 0.5, 4).numpy()
     dt1 = dt_of(s1)
+    dt0 = dt_of(s0)  # the whole target scan's DT (the symmetric residual's second form)
     print(f"{int(car.sum())} dynamic car points; clusters with most points dynamic car:")
     res = []
     for c in np.unique(lab[lab >= 0]):
@@ -101,9 +103,12 @@ def main(argv=None) -> int:
             d = lookup(dt1, q + u)
             cs = costs_of(d)
             db = lookup(dt0c, p1 - u) if len(p1) else np.zeros(0)
+            df = lookup(dt0, p1 - u) if len(p1) else np.zeros(0)
             for tau in (1.0, 0.3):
                 cs[f"sym {tau}"] = float((np.minimum(d, tau).sum() + np.minimum(db, tau).sum())
                                          / max(len(d) + len(db), 1))
+            cs["sym-scan 1.0"] = float((np.minimum(d, 1.0).sum() + np.minimum(df, 1.0).sum())
+                                       / max(len(d) + len(df), 1))
             for k, val in cs.items():
                 curves.setdefault(k, []).append(val)
         best = {k: float(speeds[int(np.argmin(v_))]) for k, v_ in curves.items()}

@@ -19,7 +19,8 @@ left out of it (static highway barriers get the ego's speed: bench/RESULTS.md).
 Both score a motion with the robust residual ``min(DT_t(p + t u), tau)`` over the loss's
 support scans, weighted like the loss (``w(t) = 1/t^2``); a cluster's result is kept only if it
 explains the scans better than the alternative by a margin. Everything is ordinary tensor
-work and ``floxels::trilinear_gather`` look-ups, so it runs on the CPU and CUDA alike.
+work and ``floxels::dt_residual`` / ``floxels::dt_sample`` look-ups (one launch for all support
+scans), so it runs on the CPU and CUDA alike.
 """
 
 from __future__ import annotations
@@ -72,18 +73,6 @@ class Support:
 def supports_of(dts, origins, offsets, weights, spacing: float) -> list[Support]:
     return [Support(d, list(o), float(spacing), float(t), float(w))
             for d, o, t, w in zip(dts, origins, offsets, weights)]
-
-
-def _lookup(s: Support, x: torch.Tensor, grad: bool = False):
-    """DT values (n,) at ``x`` (n, 3) and, with ``grad``, their gradients (n, 3)."""
-    grid = s.values.unsqueeze(0)
-    if not grad:
-        return F.trilinear_gather(grid, x.contiguous(), s.origin, s.spacing)[:, 0], None
-    with torch.enable_grad():
-        xg = x.detach().contiguous().requires_grad_(True)
-        d = F.trilinear_gather(grid, xg, s.origin, s.spacing)[:, 0]
-        (g,) = torch.autograd.grad(d.sum(), xg)
-    return d.detach(), g
 
 
 def robust_residual(points: torch.Tensor, motion: torch.Tensor, supports: list[Support], tau: float = TAU):
@@ -229,22 +218,23 @@ def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
     return num / den.clamp_min(1e-12)
 
 
+def _packed(supports: list[Support]):
+    """The supports as the ``floxels::dt_*`` look-ups take them: (dts, flat origins, spacing,
+    time offsets, weights)."""
+    spacing = supports[0].spacing
+    if any(s.spacing != spacing for s in supports):
+        raise ValueError("the support scans' distance transforms must share one sample spacing")
+    return ([s.values for s in supports], [float(v) for s in supports for v in s.origin], spacing,
+            [s.t for s in supports], [s.w for s in supports])
+
+
 def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor, tau: float,
                        squared: bool) -> torch.Tensor:
     """Per point, ``sum_k w_k c(min(DT_k(q + t_k u), tau))`` over the support scans, with
-    ``c(d) = d^2`` (``squared``) or ``d``; the weights are the supports' loss weights."""
-    total = torch.zeros(q.shape[0], dtype=q.dtype, device=q.device)
-    for s in supports:
-        d, _ = _lookup(s, q + s.t * u)
-        d = d.clamp_max(tau)
-        total += s.w * (d * d if squared else d)
-    return total
-
-
-def _samples(supports: list[Support], q: torch.Tensor, u: torch.Tensor):
-    """DT values (K, m) and their gradients (K, m, 3) at ``q + t_k u`` in every support k."""
-    d, g = zip(*(_lookup(s, q + s.t * u, grad=True) for s in supports))
-    return torch.stack(d), torch.stack(g)
+    ``c(d) = d^2`` (``squared``) or ``d``; the weights are the supports' loss weights. One
+    ``floxels::dt_residual`` launch for all of them."""
+    dts, origins, spacing, ts, ws = _packed(supports)
+    return F.dt_residual(q.contiguous(), u.contiguous(), dts, origins, spacing, ts, ws, float(tau), bool(squared))
 
 
 def _solve3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -314,13 +304,15 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     sym = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]], device=dev)
     damp = 1e-3 * torch.eye(3, dtype=dt, device=dev)
     tk3, wk1 = tk[:, None, None], wk[:, None]
+    dts, origins, spacing, ts, _ = _packed(supports)
 
     def normal(th):
         """Per cluster (C, 10): the normal equations of the LM step at motion ``th`` (upper
         triangle of H = mean J^T W J, b = mean J^T W d) and its cost (mean of the loss-weighted
         squared robust residuals), all from one look-up per support and one segment sum."""
         u = (M @ torch.cat([th, vz[:, None]], 1)[cid].unsqueeze(-1)).squeeze(-1)
-        d, g = _samples(supports, q, u)  # (K, m), (K, m, 3)
+        smp = F.dt_sample(q, u, dts, origins, spacing, ts)  # (K, m, 4): DT value, gradient
+        d, g = smp[..., 0], smp[..., 1:]
         # Jacobian of q + t_k u(th) in DT_k: t_k g_k^T M[:, :3] = t_k (g_x, g_y, g_y r_x - g_x r_y)
         J = tk3 * (g.unsqueeze(-2) @ Mt).squeeze(-2)  # (K, m, 3)
         wJ = ((d < tau) * wk1).unsqueeze(-1) * J  # inliers, loss weights
