@@ -359,17 +359,21 @@ def test_compare_bench_smoke(tmp_path):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     parts = []
-    for scene in ("crossing", "urban"):  # one row split over two parts, then merged
+    for scene, timing in (("crossing", []), ("urban", ["--repeat", "2", "--warmup", "full"])):
+        # one row split over two parts, then merged
         out = tmp_path / f"c_{scene}.json"
         assert mod.main(["--quick", "--frames", "1", "--max-points", "150", "--iters-scale", "0.0001",
                          "--scenes", scene, "--methods", "floxels", "nsfp", "fastnsf", "--ablations", "loss",
-                         "--json", str(out)]) == 0
+                         "--json", str(out), *timing]) == 0
         parts.append(str(out))
     d = json.loads(Path(parts[0]).read_text())
     assert [r["key"] for r in d["rows"]][:3] == ["floxels", "nsfp", "fastnsf"]
     assert sum(r["group"] == "loss" for r in d["rows"]) == 4
     assert {"dynamic_epe", "static_acc10", "mean_dynamic_normalized_epe"} <= set(d["rows"][0]["metrics"])
     assert len(d["rows"][0]["seconds_runs"]["crossing"]) == 1  # --quick: one timed run
+    runs = json.loads(Path(parts[1]).read_text())["rows"][0]["seconds_runs"]["urban"]
+    assert len(runs) == 2 and json.loads(Path(parts[1]).read_text())["rows"][0]["seconds"]["urban"] == \
+        pytest.approx(sum(runs) / 2)  # the median of two
     merged = tmp_path / "m.json"
     assert mod.main(["--merge", *parts, "--json", str(merged), "--md", str(tmp_path / "m.md")]) == 0
     rows = json.loads(merged.read_text())["rows"]

@@ -338,16 +338,16 @@ def test_motion_evidence_fields_switch_and_resume(seq, tmp_path, capsys):
 
 
 def test_preset_accurate(seq, tmp_path, capsys, fake):
-    """--preset accurate: the preset's fields are the run's options, its 9-scan window unless
+    """--preset accurate: the preset's fields are the run's options, its 11-scan window unless
     --scans is given; with another method it is a user error."""
     save_sequence(tmp_path / "sim", seq)
     args = [tmp_path / "sim", "--max-iters", "3", "--frames", "2:3", "--preset", "accurate"]
     rc, cap = _run([*args, "--out", tmp_path / "acc"], capsys)
     assert rc == 0, cap.err
     d = read_flow_output(tmp_path / "acc" / "000002.npz")
-    assert d["settings"]["num_scans"] == 9
+    assert d["settings"]["num_scans"] == 11
     opts = d["settings"]["options"]
-    assert opts["rigid_refine"] is True and opts["evidence"] == "zero" and "velocity_search" not in opts
+    assert opts["rigid_refine"] is True and opts["refine_max_supports"] == 2 and opts["evidence"] == "zero" and "velocity_search" not in opts
     rc, cap = _run([*args, "--out", tmp_path / "acc3", "--scans", "3"], capsys)
     assert rc == 0, cap.err
     assert read_flow_output(tmp_path / "acc3" / "000002.npz")["settings"]["num_scans"] == 3

@@ -169,7 +169,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk), with
     ``result.flow`` in ``flow_unit``. ``preset``: a named configuration instead of ``config``
-    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 9-scan windows).
+    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 11-scan windows).
     """
     cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:

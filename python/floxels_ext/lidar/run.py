@@ -69,10 +69,10 @@ def add_parser(sub) -> None:
     p.add_argument("--method", default="floxels", help="scene-flow method (see --list-methods; default floxels)")
     p.add_argument("--list-methods", action="store_true", help="print the available methods and exit")
     p.add_argument("--scans", type=int, default=None,
-                   help="scans per window, target in the middle (default: the preset's, paper 5, accurate 9)")
+                   help="scans per window, target in the middle (default: the preset's, paper 5, accurate 11)")
     p.add_argument("--preset", default="paper",
                    help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
-                        "9 scans, rigid refinement of moving clusters, motion evidence; "
+                        "11 scans, motion evidence, rigid refinement of moving clusters in windows of 2-3 scans; "
                         "README 'Beyond the paper')")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
