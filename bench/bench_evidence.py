@@ -318,7 +318,8 @@ def launches(args) -> dict:
             torch.cuda.synchronize()
     ev = [e for e in prof.events() if e.device_type.name == "CPU" and e.name.startswith(("aten::", "floxels::"))]
     top = [e for e in ev if e.cpu_parent is None or not e.cpu_parent.name.startswith(("aten::", "floxels::"))]
-    kernels = [e for e in prof.events() if e.device_type.name == "CUDA"]
+    kernels = [e for e in prof.events()
+               if e.device_type.name == "CUDA" and not e.name.startswith(("Memcpy", "Memset"))]
     counts: dict[str, int] = {}
     for e in top:
         counts[e.name] = counts.get(e.name, 0) + 1
@@ -328,6 +329,8 @@ def launches(args) -> dict:
           f"{len(ev)} ops in all" + (f", {len(kernels)} CUDA kernels" if dev.type == "cuda" else ""))
     for name, c in sorted(counts.items(), key=lambda kv: -kv[1]):
         print(f"  {c:3d}  {name}")
+    for e in kernels:
+        print(f"  kernel {e.name[:100]}")
     return out
 
 
