@@ -5,6 +5,7 @@
 #include <c10/util/Exception.h>
 
 #include <cmath>
+#include <string_view>
 
 #include "common/check.h"
 #include "kernels/dt_loss.h"
@@ -52,6 +53,59 @@ inline void check_dt_loss_grad(const at::Tensor& grad, const at::Tensor& points)
   FLX_CHECK(grad.numel() == 1, "floxels: dt_loss_backward grad must be a scalar, got shape ",
               grad.sizes());
   check_same_device(grad, points, "grad", "points");
+}
+
+// dt_residual / dt_sample / dt_evidence: points and motion (N, 3) of one dtype and device, 1 to
+// kMaxScans float32 (Z, Y, X) DTs there, finite origins / time offsets / weights (weights may be
+// empty: dt_sample takes none) and, where given, a positive finite cap.
+inline void check_dt_query_args(std::string_view op, const at::Tensor& points, const at::Tensor& motion,
+                                at::TensorList dts, c10::ArrayRef<double> origins, double spacing,
+                                c10::ArrayRef<double> time_offsets, const c10::ArrayRef<double>* weights,
+                                const double* cap, std::string_view motion_name = "motion") {
+  check_points(points, "points");
+  check_points(motion, motion_name);
+  FLX_CHECK(motion.size(0) == points.size(0), "floxels: ", op, ": ", motion_name, " must have the shape of points ",
+            points.sizes(), ", got ", motion.sizes());
+  check_same_dtype(points, motion, "points", motion_name);
+  check_same_device(points, motion, "points", motion_name);
+  const int64_t K = static_cast<int64_t>(dts.size());
+  FLX_CHECK(K >= 1, "floxels: ", op, " needs at least one distance transform");
+  FLX_CHECK(K <= dt_loss::kMaxScans, "floxels: ", op, " supports at most ", dt_loss::kMaxScans,
+            " distance transforms, got ", K);
+  for (int64_t k = 0; k < K; ++k) {
+    const at::Tensor& d = dts[k];
+    FLX_CHECK(d.dim() == 3, "floxels: ", op, ": dts[", k, "] must be a (Z, Y, X) grid, got shape ", d.sizes());
+    FLX_CHECK(d.scalar_type() == at::kFloat, "floxels: ", op, ": dts[", k, "] must be float32, got ",
+              d.scalar_type());
+    FLX_CHECK(d.numel() > 0, "floxels: ", op, ": dts[", k, "] must not be empty, got shape ", d.sizes());
+    FLX_CHECK(d.device() == points.device(), "floxels: ", op, ": dts[", k, "] is on ", d.device(),
+              " but points are on ", points.device());
+  }
+  FLX_CHECK(static_cast<int64_t>(origins.size()) == 3 * K, "floxels: ", op, ": origins needs 3 values per "
+            "distance transform (", 3 * K, " for ", K, "), got ", origins.size());
+  FLX_CHECK(static_cast<int64_t>(time_offsets.size()) == K, "floxels: ", op, ": time_offsets needs ", K,
+            " values (one per distance transform), got ", time_offsets.size());
+  for (double v : origins) FLX_CHECK(std::isfinite(v), "floxels: ", op, ": origins must be finite, got ", origins);
+  for (double v : time_offsets)
+    FLX_CHECK(std::isfinite(v), "floxels: ", op, ": time_offsets must be finite, got ", time_offsets);
+  if (weights != nullptr) {
+    FLX_CHECK(static_cast<int64_t>(weights->size()) == K, "floxels: ", op, ": weights needs ", K,
+              " values (one per distance transform), got ", weights->size());
+    for (double v : *weights) FLX_CHECK(std::isfinite(v), "floxels: ", op, ": weights must be finite, got ", *weights);
+  }
+  check_spacing(spacing);
+  if (cap != nullptr) {
+    FLX_CHECK(std::isfinite(*cap) && *cap > 0.0, "floxels: ", op, ": cap must be positive and finite, got ", *cap);
+  }
+}
+
+// dt_evidence's group keys: (N,) int32/int64 on the points' device (any stride).
+inline void check_group_keys(const at::Tensor& keys, const at::Tensor& points, std::string_view name) {
+  FLX_CHECK(keys.dim() == 1 && keys.size(0) == points.size(0), "floxels: dt_evidence: ", name,
+            " must have shape (", points.size(0), ",), got ", keys.sizes());
+  FLX_CHECK(keys.scalar_type() == at::kInt || keys.scalar_type() == at::kLong, "floxels: dt_evidence: ", name,
+            " must be int32 or int64, got ", keys.scalar_type());
+  check_same_device(keys, points, name, "points");
 }
 
 }  // namespace floxels

@@ -135,4 +135,76 @@ FLX_HD T point_loss(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, 
   return loss;
 }
 
+// --- data-only look-ups of the same distance transforms (dt_residual, dt_sample, dt_evidence) ---
+// These use Scan::coef as the plain weight (no 1/N) and Scan::t as the query's time offset:
+// query = p + t * m for a per-point motion m. Border clamping as above.
+
+// Value of scan s at p + s.t * m and, if kGrad, its spatial gradient d DT / d query (per
+// metre: the gradient trilinear_gather's backward gives, 0 along a clamped axis).
+template <bool kGrad, typename T, typename Index>
+FLX_HD T scan_sample(const Scan<T, Index>& s, T px, T py, T pz, T mx, T my, T mz, T inv_spacing, T* g) {
+  const T ux = (px + s.t * mx - s.ox) * inv_spacing;
+  const T uy = (py + s.t * my - s.oy) * inv_spacing;
+  const T uz = (pz + s.t * mz - s.oz) * inv_spacing;
+  T gx = T(0), gy = T(0), gz = T(0);
+  const T v = trilinear_value_grad<kGrad, T, Index>(s.data, s.nx, s.ny, s.nz, ux, uy, uz, gx, gy, gz);
+  if constexpr (kGrad) {
+    g[0] = gx * inv_spacing;
+    g[1] = gy * inv_spacing;
+    g[2] = gz * inv_spacing;
+  }
+  return v;
+}
+
+// min(v, cap) that keeps a NaN (like torch.clamp_max), unlike the loss's select.
+template <typename T>
+FLX_HD T cap_value(T v, T cap) {
+  return v > cap ? cap : v;
+}
+
+// sum_k coef_k * c(min(DT_k(p + t_k m), cap)), c = identity or square (kSquared).
+template <bool kSquared, typename T, typename Index>
+FLX_HD T point_residual(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T mx, T my, T mz,
+                        T inv_spacing, T cap) {
+  T r = T(0);
+#if defined(__CUDA_ARCH__)
+#pragma unroll 4
+#endif
+  for (int k = 0; k < k_scans; ++k) {
+    const T v = cap_value(scan_sample<false, T, Index>(scans[k], px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
+    r += scans[k].coef * (kSquared ? v * v : v);
+  }
+  return r;
+}
+
+// The two residuals of the motion evidence in one walk over the scans: with the motion m
+// (rf) and with zero motion (rz), sum_k coef_k * min(DT_k(.), cap) each.
+template <typename T, typename Index>
+FLX_HD void point_residual_pair(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T mx, T my, T mz,
+                                T inv_spacing, T cap, T& rf, T& rz) {
+  T a = T(0), b = T(0);
+#if defined(__CUDA_ARCH__)
+#pragma unroll 4
+#endif
+  for (int k = 0; k < k_scans; ++k) {
+    const Scan<T, Index>& s = scans[k];
+    a += s.coef * cap_value(scan_sample<false, T, Index>(s, px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
+    b += s.coef * cap_value(scan_sample<false, T, Index>(s, px, py, pz, T(0), T(0), T(0), inv_spacing, nullptr), cap);
+  }
+  rf = a;
+  rz = b;
+}
+
+// Motion-evidence test of one group from its residual sums (double) over `count` points:
+// out = (gain, rf, rz) in T and the explained flag; a non-finite sum gives NaN and false.
+template <typename T>
+FLX_HD bool evidence_test(double sum_f, double sum_z, double count, T margin, T ratio, T& gain, T& rf, T& rz) {
+  rf = static_cast<T>(sum_f / count);
+  rz = static_cast<T>(sum_z / count);
+  gain = rz - rf;
+  T thr = rz * ratio;
+  thr = thr < margin ? margin : thr;
+  return gain > thr;  // false for NaN
+}
+
 }  // namespace floxels::dt_loss

@@ -26,3 +26,22 @@ def test_compiled_loss_and_gradients_match_eager():
     (gc,) = torch.autograd.grad(out, grid)
     torch.testing.assert_close(out, eager)
     torch.testing.assert_close(gc, ge)
+
+
+def test_compiled_data_only_dt_ops_match_eager():
+    g = torch.Generator().manual_seed(1)
+    pts = torch.rand(300, 3, generator=g) * 3
+    motion = torch.randn(300, 3, generator=g) * 0.2
+    dts = [torch.rand(10, 12, 14, generator=g) * 3, torch.rand(8, 9, 10, generator=g) * 2]
+    origins = [0.0, 0.0, 0.0, 0.1, -0.2, 0.0]
+    cells = torch.arange(300) // 7
+
+    def evaluate(motion):
+        r = F.dt_residual(pts, motion, dts, origins, 0.3, [1.0, -1.0], [0.6, 0.4], 1.0, True)
+        s = F.dt_sample(pts, motion, dts, origins, 0.3, [1.0, -1.0])
+        score, explained, rf, rz = F.dt_evidence(pts, motion, None, cells, dts, origins, 0.3, [1.0, -1.0],
+                                                 [0.6, 0.4], 1.0, 0.02, 0.05)
+        return r + s[:, :, 1:].abs().sum((0, 2)) + torch.where(explained, score, rf - rz)
+
+    compiled = torch.compile(evaluate, backend="aot_eager", fullgraph=True)
+    torch.testing.assert_close(compiled(motion), evaluate(motion))

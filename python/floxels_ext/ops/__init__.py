@@ -9,6 +9,7 @@ from floxels_ext.ops.corners import CompactCorners, compact_corners, corner_gath
 from floxels_ext.ops.cluster import cluster_consistency_fwd_bwd, cluster_consistency_loss, cluster_mean
 from floxels_ext.ops.dbscan import dbscan
 from floxels_ext.ops.dt_loss import dt_loss, dt_loss_fwd_bwd
+from floxels_ext.ops.dt_query import dt_evidence, dt_residual, dt_sample
 from floxels_ext.ops.edt import distance_transform, edt, points_to_occupancy
 from floxels_ext.ops.grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_points
 from floxels_ext.ops.lidar import frame_flow, lidar_keep_mask, lidar_point_classes, lidar_select, rigid_transform
@@ -21,6 +22,7 @@ __all__ = [
     "trilinear_gather", "trilinear_scatter",
     "edt", "points_to_occupancy", "distance_transform",
     "dt_loss", "dt_loss_fwd_bwd",
+    "dt_residual", "dt_sample", "dt_evidence",
     "dbscan",
     "cluster_mean", "cluster_consistency_loss", "cluster_consistency_fwd_bwd",
     "corner_gather", "corner_scatter", "compact_corners", "CompactCorners",

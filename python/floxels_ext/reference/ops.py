@@ -31,6 +31,9 @@ __all__ = [
     "points_to_occupancy",
     "edt",
     "dt_loss",
+    "dt_residual",
+    "dt_sample",
+    "dt_evidence",
     "cluster_mean",
     "cluster_consistency_loss",
     "corner_gather",
@@ -187,6 +190,72 @@ def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor
         v = torch.where(ok[:, 0], v, torch.full_like(v, math.nan))
         total = total + weights[k] * v.sum() / n
     return total
+
+
+def _dt_queries(points, motion, time_offset):
+    """Queries ``p + t m`` with non-finite rows at 0 (masked by the callers) and finite overflow
+    clamped like the kernels; and the (N,) mask of finite rows."""
+    ok = (_finite_rows(points) & _finite_rows(motion))[:, None]
+    p = torch.where(ok, points, torch.zeros_like(points))
+    m = torch.where(ok, motion, torch.zeros_like(motion))
+    big = torch.finfo(points.dtype).max
+    return (p + time_offset * m).clamp(-big, big), ok[:, 0]
+
+
+def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
+                spacing: float, time_offsets: Sequence[float], weights: Sequence[float], cap: float,
+                squared: bool) -> torch.Tensor:
+    """(N,): sum_k w_k * c(min(DT_k(p + t_k m), cap)), c = x or x^2; NaN for a non-finite point
+    or motion row."""
+    total = points.new_zeros(points.shape[0])
+    for k, d in enumerate(dts):
+        q, ok = _dt_queries(points, motion, time_offsets[k])
+        v = trilinear_gather(d[None].to(points.dtype), q, origins[3 * k : 3 * k + 3], spacing)[:, 0].clamp_max(cap)
+        v = torch.where(ok, v, torch.full_like(v, math.nan))
+        total = total + weights[k] * (v * v if squared else v)
+    return total
+
+
+def dt_sample(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
+              spacing: float, time_offsets: Sequence[float]) -> torch.Tensor:
+    """(K, N, 4): DT_k at p + t_k m and its gradient with respect to the query (autograd through
+    :func:`trilinear_gather`: 0 along a clamped axis); NaN value and zero gradient for a
+    non-finite row."""
+    out = []
+    for k, d in enumerate(dts):
+        q, ok = _dt_queries(points, motion, time_offsets[k])
+        with torch.enable_grad():
+            q = q.detach().requires_grad_(True)
+            v = trilinear_gather(d[None].to(points.dtype), q, origins[3 * k : 3 * k + 3], spacing)[:, 0]
+            (g,) = torch.autograd.grad(v.sum(), q, allow_unused=True)
+        g = torch.zeros_like(q) if g is None else g
+        v = torch.where(ok, v.detach(), torch.full_like(v, math.nan))
+        out.append(torch.cat([v[:, None], torch.where(ok[:, None], g, torch.zeros_like(g))], 1))
+    return torch.stack(out) if out else points.new_zeros(0, points.shape[0], 4)
+
+
+def dt_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
+                dts: Sequence[torch.Tensor], origins: Sequence[float], spacing: float, time_offsets: Sequence[float],
+                weights: Sequence[float], cap: float, margin: float, ratio: float):
+    """Motion evidence per group = run of consecutive rows with equal labels (for label < 0 or
+    no labels: equal cells). rf / rz: the group's mean :func:`dt_residual` with ``flow`` / zero
+    flow (float64 sums); per row (rz - rf, rz - rf > max(ratio * rz, margin), rf, rz). A group
+    with a non-finite residual: NaN, False."""
+    n = points.shape[0]
+    rf = dt_residual(points, flow, dts, origins, spacing, time_offsets, weights, cap, False)
+    rz = dt_residual(points, torch.zeros_like(flow), dts, origins, spacing, time_offsets, weights, cap, False)
+    lab = labels.long() if labels is not None else torch.full((n,), -1, dtype=torch.long, device=points.device)
+    same = (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | (cells[1:].long() == cells[:-1].long()))
+    gid = torch.cumsum(torch.cat([torch.ones(min(n, 1), dtype=torch.long, device=points.device),
+                                  (~same).long()]), 0) - 1
+    sums = torch.zeros(n, 2, dtype=torch.float64, device=points.device).index_add_(
+        0, gid, torch.stack([rf, rz], 1).double())
+    count = torch.bincount(gid, minlength=n).double()
+    m = sums[gid] / count[gid, None]
+    mf, mz = m[:, 0].to(points.dtype), m[:, 1].to(points.dtype)
+    gain = mz - mf
+    explained = gain > torch.clamp(mz * ratio, min=margin)
+    return gain, explained, mf, mz
 
 
 def cluster_mean(values: torch.Tensor, labels: torch.Tensor, num_clusters: int) -> torch.Tensor:
