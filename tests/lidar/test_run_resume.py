@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from floxels_ext import cli, methods
-from floxels_ext.lidar.outputs import read_flow_output, write_output
+from floxels_ext.lidar.io.outputs import read_flow_output, write_output
 from floxels_ext.lidar.preprocess import transform_points
 
 N_FRAMES = 7
@@ -276,7 +276,7 @@ def test_outputs_of_earlier_versions_are_kept_with_a_warning(done, fake, capsys)
 
 
 def test_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
-    """A dataset's sequences are checked as ``floxels run`` checks one (lidar/dataset_sequence.py),
+    """A dataset's sequences are checked as ``floxels run`` checks one (lidar/dataset/sequence.py),
     for every sequence that has work left; the other sequence is not touched."""
     from floxels_ext.evaluation.seqio import save_sequence
     from floxels_ext.evaluation.sim import simulate_sequence

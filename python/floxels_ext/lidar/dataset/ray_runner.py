@@ -2,9 +2,9 @@
 ``--gpus-per-task`` share, or per ``--cpus-per-task`` CPUs on a CPU cluster).
 
 Each worker is a Ray actor (:class:`FloxelsWorker`) that keeps its process, its CUDA context,
-the loaded extension and one pipeline (``dataset_worker.run_tasks``: readers, writers and the
+the loaded extension and one pipeline (``worker.run_tasks``: readers, writers and the
 method's stream) for the whole job, so Ray's and CUDA's start are paid once per worker, not
-per task. Workers pull tasks (``dataset.Task``: a sequence, or a frame range of a long one)
+per task. Workers pull tasks (``tasks.Task``: a sequence, or a frame range of a long one)
 from a :class:`Dispatcher` actor that the driver starts; a worker asks for the next task as
 its read-ahead reaches the end of the current one, so the pipeline never drains between
 tasks. Input and output must be on storage every node sees at the same path.
@@ -198,7 +198,7 @@ class FloxelsWorker:
 
         import ray
 
-        from floxels_ext.lidar.dataset_worker import run_tasks
+        from floxels_ext.lidar.dataset.worker import run_tasks
 
         args = task_args(common, device, self.threads)
         log: list[str] = []
@@ -236,8 +236,8 @@ class FloxelsWorker:
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import remove_temps
-    from floxels_ext.lidar.progress import DatasetProgress
+    from floxels_ext.lidar.io.outputs import remove_temps
+    from floxels_ext.lidar.pipeline.progress import DatasetProgress
 
     verbosity = int(getattr(args, "verbosity", 0) or 0)
     out_dirs = sorted({t.out_dir for t in tasks})

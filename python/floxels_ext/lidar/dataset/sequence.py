@@ -1,4 +1,4 @@
-"""One sequence of ``floxels run DATASET`` in the shared pipeline (``dataset_stream``): opening
+"""One sequence of ``floxels run DATASET`` in the shared pipeline (``stream``): opening
 it as the plain ``floxels run SEQ --frames A:B`` does (frames, poses, resume, output metadata;
 the same checks, the same files) and, once its frames are done, its ``run_summary.json`` and
 failure lines, as the plain run writes them.
@@ -15,7 +15,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from floxels_ext.lidar.dataset_stream import SeqJob
+from floxels_ext.lidar.dataset.stream import SeqJob
 
 __all__ = ["DatasetContext", "open_sequence", "write_sequence_summary", "failure_lines"]
 
@@ -37,21 +37,21 @@ class DatasetContext:
 
 
 def open_sequence(task, ctx: DatasetContext) -> SeqJob:
-    """The job of ``task`` (``dataset.Task``: a sequence's frames [start, stop) and its output
+    """The job of ``task`` (``tasks.Task``: a sequence's frames [start, stop) and its output
     directory). Raises CLIError (or the readers' errors) when the sequence cannot run; only
     this task's own temporaries are removed (tasks of one sequence may share its directory)."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.frame_loader import FrameLoader
-    from floxels_ext.lidar.frame_writer import FrameOutput
+    from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
+    from floxels_ext.lidar.pipeline.frame_writer import FrameOutput
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
-    from floxels_ext.lidar.outputs import cleanup_temps
-    from floxels_ext.lidar.resume import input_records
+    from floxels_ext.lidar.io.outputs import cleanup_temps
+    from floxels_ext.lidar.pipeline.resume import input_records
     from floxels_ext.lidar.io.sources import absolute_sources
-    from floxels_ext.lidar.run_args import check_out_dir, check_resume
-    from floxels_ext.lidar.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
-    from floxels_ext.lidar.run_inputs import run_settings as run_settings_of
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, check_resume
+    from floxels_ext.lidar.pipeline.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
+    from floxels_ext.lidar.pipeline.run_inputs import run_settings as run_settings_of
 
     args, spec = ctx.args, task.seq
     out = Path(task.out_dir)
@@ -71,7 +71,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
     stamps = [f.timestamp_ns for f in seq.frames]
     times_s, _ = frame_times(seq, stamps, ctx.report)
-    # what each frame's output depends on, recorded and compared as by floxels run (lidar/resume.py)
+    # what each frame's output depends on, recorded and compared as by floxels run (lidar/pipeline/resume.py)
     inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
     todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=ctx.report)
     meta = output_meta(args, ctx.options, run_settings, seq)

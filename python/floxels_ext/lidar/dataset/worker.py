@@ -3,8 +3,8 @@ and each Ray worker (``ray_runner``) run :func:`run_tasks`.
 
 The run's options are checked once (``run_args.check_args``: a mistake there is the user's and
 stops the job, CLIError); the readers, transform threads and writers are made once; the tasks
-(``dataset.Task``) are opened one ahead of the stream (``dataset_sequence.open_sequence``) and
-their frames go through ``dataset_stream.run_stream``. A task that cannot be opened (its
+(``tasks.Task``) are opened one ahead of the stream (``sequence.open_sequence``) and
+their frames go through ``stream.run_stream``. A task that cannot be opened (its
 poses, its output written with other settings) fails alone; the others go on.
 """
 
@@ -33,14 +33,14 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
 
     from floxels_ext.cli import CLIError
     from floxels_ext.evaluation.seqio import SequenceFormatError
-    from floxels_ext.lidar.dataset_sequence import DatasetContext, failure_lines, open_sequence, write_sequence_summary
-    from floxels_ext.lidar.dataset_stream import run_stream
-    from floxels_ext.lidar.frame_loader import LoaderPools, Stages, single_threaded_blas
-    from floxels_ext.lidar.frame_writer import DRAIN_WRITERS, WriterPool
+    from floxels_ext.lidar.dataset.sequence import DatasetContext, failure_lines, open_sequence, write_sequence_summary
+    from floxels_ext.lidar.dataset.stream import run_stream
+    from floxels_ext.lidar.pipeline.frame_loader import LoaderPools, Stages, single_threaded_blas
+    from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS, WriterPool
     from floxels_ext.lidar.io import MissingDependencyError
-    from floxels_ext.lidar.pipeline import EstimationError
-    from floxels_ext.lidar.preprocess import Preprocess
-    from floxels_ext.lidar.run_args import check_args, host_cores, reader_plan
+    from floxels_ext.lidar.pipeline.estimate_loop import EstimationError
+    from floxels_ext.lidar.preprocess.settings import Preprocess
+    from floxels_ext.lidar.pipeline.run_args import check_args, host_cores, reader_plan
     from floxels_ext.methods import get_method
 
     device, options = check_args(args, torch)

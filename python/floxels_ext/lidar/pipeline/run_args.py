@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["parse_options", "parse_frames", "check_args", "check_out_dir", "check_resume", "reader_plan"]
+__all__ = ["parse_options", "parse_frame_range", "parse_frames", "check_args", "check_out_dir", "check_resume",
+           "reader_plan"]
 
 
 def parse_options(items: list[str], max_iters: int | None, config: type | None) -> dict:
@@ -42,10 +43,29 @@ def parse_options(items: list[str], max_iters: int | None, config: type | None) 
     return opts
 
 
+def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
+    """``--frames`` (A:B, A:, :B or A; Python slice semantics) as a [start, stop) range of n frames."""
+    from floxels_ext.cli import CLIError
+
+    if not text:
+        return 0, n
+    try:
+        if ":" in text:
+            a, b = text.split(":", 1)
+            sl = slice(int(a) if a.strip() else None, int(b) if b.strip() else None)
+        else:
+            k = int(text)
+            sl = slice(k, k + 1 if k != -1 else None)
+    except ValueError:
+        raise CLIError(f"--frames expects A:B, A:, :B or A (integers), got {text!r}") from None
+    start, stop, _ = sl.indices(n)
+    if stop <= start:
+        raise CLIError(f"--frames {text} selects no frame of the {n}")
+    return start, stop
+
+
 def parse_frames(text: str | None, n: int) -> list[int]:
     """``--frames`` as the list of selected frame indices (the dataset path's range, listed)."""
-    from floxels_ext.lidar.dataset import parse_frame_range
-
     start, stop = parse_frame_range(text, n)
     return list(range(start, stop))
 
@@ -134,13 +154,13 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
                  report=None) -> list[int]:
     """Frames to estimate: those without an output, those whose output cannot be read
     (truncated by a crash, not an output), those whose inputs changed since they were written
-    (``inputs``: ``{frame: JSON record}`` of :func:`floxels_ext.lidar.resume.input_records`), and
+    (``inputs``: ``{frame: JSON record}`` of :func:`floxels_ext.lidar.pipeline.resume.input_records`), and
     (with --force) all. An output written with other settings (method, options, preprocessing,
     poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
     carry no input record: they count as done, and ``report`` says so."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import read_resume_record, settings_mismatch
-    from floxels_ext.lidar.resume import inputs_diff
+    from floxels_ext.lidar.io.outputs import read_resume_record, settings_mismatch
+    from floxels_ext.lidar.pipeline.resume import inputs_diff
 
     if force:
         return list(selected)
