@@ -39,17 +39,11 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
     from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS, WriterPool
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.pipeline.estimate_loop import EstimationError
-    from floxels_ext.lidar.preprocess.settings import Preprocess
-    from floxels_ext.lidar.pipeline.run_args import check_args, host_cores, reader_plan
+    from floxels_ext.lidar.pipeline.run_args import check_args, host_cores, preprocess_settings, reader_plan
     from floxels_ext.methods import get_method
 
     device, options = check_args(args, torch)
-    try:
-        settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
-                              remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
-                              ground_window=args.ground_window, ground_threshold=args.ground_threshold)
-    except ValueError as e:
-        raise CLIError(str(e)) from None
+    settings = preprocess_settings(args)  # the plain run's, --outlier-below/--outlier-above included
     pre_dev, workers, writers, kind = reader_plan(args, device)
     if kind == "process" and pre_dev is not None:
         raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["parse_options", "parse_frame_range", "parse_frames", "check_args", "check_out_dir", "check_resume",
-           "reader_plan"]
+__all__ = ["parse_options", "parse_frame_range", "parse_frames", "check_args", "method_options",
+           "preprocess_settings", "apply_cpu_default", "check_out_dir", "check_resume", "reader_plan"]
 
 
 def parse_options(items: list[str], max_iters: int | None, config: type | None) -> dict:
@@ -92,9 +92,9 @@ def resolve_preset(args) -> dict:
 def check_args(args, torch):
     """Validate the plain arguments; returns (device, options). Raises CLIError."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.methods import available_methods, get_method
+    from floxels_ext.methods import available_methods
 
-    preset_fields = resolve_preset(args)
+    resolve_preset(args)
     if not args.input or not args.out:
         raise CLIError("floxels run needs INPUT and --out OUT_DIR")
     if args.method not in available_methods():
@@ -118,6 +118,19 @@ def check_args(args, torch):
         raise CLIError("--device cuda requested but no CUDA device is available")
     if args.preprocess_device == "cuda" and not torch.cuda.is_available():
         raise CLIError("--preprocess-device cuda requested but no CUDA device is available")
+    return device, method_options(args)
+
+
+def method_options(args) -> dict:
+    """The method's options as the outputs record them (``--option``, ``--max-iters``, the
+    preset, the window, the motion evidence), checked; no device needed, so the dataset driver
+    compares resumes with them too. Raises CLIError."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.methods import available_methods, get_method
+
+    preset_fields = resolve_preset(args)
+    if args.method not in available_methods():
+        raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
     options = parse_options(args.option, args.max_iters, get_method(args.method).config)
     if "num_scans" in options and options["num_scans"] != args.scans:
         raise CLIError(f"--option num_scans={options['num_scans']} contradicts --scans {args.scans}; "
@@ -134,7 +147,32 @@ def check_args(args, torch):
             FloxelsConfig(**options)
         except (TypeError, ValueError) as e:
             raise CLIError(f"bad --option for floxels: {e}") from None
-    return device, options
+    return options
+
+
+def preprocess_settings(args):
+    """The per-scan preprocessing (``Preprocess``) of the run's options; CLIError when they
+    contradict each other. One definition for one sequence and a dataset."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.preprocess.settings import Preprocess
+
+    try:
+        return Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
+                          remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
+                          ground_window=args.ground_window, ground_threshold=args.ground_threshold,
+                          outlier_below=args.outlier_below, outlier_above=args.outlier_above)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+
+
+def apply_cpu_default(args, device: str, report=None) -> None:
+    """On the CPU, torch's threads as every command's CPU work sets them
+    (:func:`floxels_ext.cpu_threads.apply_cpu_threads`), unless a Ray worker has set them to the
+    CPUs it was given (``args.cpu_limit``). ``report(msg)`` says what was chosen."""
+    if device == "cpu" and not getattr(args, "cpu_limit", None):
+        from floxels_ext.cpu_threads import apply_cpu_threads
+
+        apply_cpu_threads(report)
 
 
 def check_out_dir(out: Path, seq) -> None:

@@ -39,7 +39,7 @@ def run_sequence(args) -> int:
 
     from floxels_ext.lidar.pipeline.resume import input_records
     from floxels_ext.lidar.pipeline.run_args import (check_args, check_out_dir, check_resume, host_cores,
-                                                      parse_frames, reader_plan)
+                                                      parse_frames, preprocess_settings, reader_plan)
     from floxels_ext.lidar.pipeline.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
     from floxels_ext.lidar.pipeline.run_inputs import run_settings as run_settings_of
 
@@ -52,7 +52,6 @@ def run_sequence(args) -> int:
     from floxels_ext.lidar.io.outputs import cleanup_temps
     from floxels_ext.lidar.pipeline.frame_loader import FrameLoader, Stages, single_threaded_blas
     from floxels_ext.lidar.pipeline.estimate_loop import EstimationError, run_pipeline
-    from floxels_ext.lidar.preprocess.settings import Preprocess
     from floxels_ext.lidar.pipeline.progress import Progress
 
     verbosity = int(getattr(args, "verbosity", 0) or 0)
@@ -65,13 +64,7 @@ def run_sequence(args) -> int:
         from floxels_ext.cpu_threads import apply_cpu_threads
 
         apply_cpu_threads((lambda m: print(m, file=sys.stderr)) if verbosity > 0 else None)
-    try:
-        settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
-                              remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
-                              ground_window=args.ground_window, ground_threshold=args.ground_threshold,
-                              outlier_below=args.outlier_below, outlier_above=args.outlier_above)
-    except ValueError as e:
-        raise CLIError(str(e)) from None
+    settings = preprocess_settings(args)
     out = Path(args.out)
     try:
         seq = discover_input(args.input, poses_file=args.poses, calib=args.calib, bin_columns=args.bin_columns,
