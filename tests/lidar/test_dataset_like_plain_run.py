@@ -1,5 +1,6 @@
 """``floxels run DATASET`` applies to each sequence what ``floxels run SEQ`` applies to one
-(issue 32): the preprocessing options (--outlier-below/--outlier-above included)."""
+(issue 32): the preprocessing options (--outlier-below/--outlier-above included) and, on the CPU,
+the default of torch's threads (floxels_ext.cpu_threads)."""
 
 from pathlib import Path
 
@@ -52,3 +53,21 @@ def test_outlier_options_apply_to_a_dataset(data, tmp_path, scaled):
     assert any(not np.array_equal(default[k], ds[k]) for k in ds)  # the option changes the masks
     for name, m in plain.items():
         np.testing.assert_array_equal(ds[f"s0/{name}"], m, err_msg=name)
+
+
+def test_cpu_thread_default_applies_to_a_dataset(data, tmp_path, scaled, monkeypatch, capsys):
+    import argparse
+
+    import floxels_ext.cpu_threads as cpu_threads
+    from floxels_ext.lidar.pipeline.run_args import apply_cpu_default
+
+    calls = []
+    monkeypatch.setattr(cpu_threads, "apply_cpu_threads", lambda report=None: calls.append(report))
+    assert cli.main(["run", str(data / "s0"), "--out", str(tmp_path / "plain"), *FLAGS]) == 0
+    assert calls == [None]                      # the plain run: once, silent without -v
+    assert cli.main(["-v", "run", str(data), "--out", str(tmp_path / "ds"), *FLAGS]) == 0
+    assert len(calls) == 2 and callable(calls[1])  # the dataset: once for the job, said with -v
+    # a Ray worker keeps the threads it set to its CPUs (cpu_limit); a GPU run leaves them alone
+    apply_cpu_default(argparse.Namespace(cpu_limit=2), "cpu")
+    apply_cpu_default(argparse.Namespace(), "cuda")
+    assert len(calls) == 2

@@ -39,10 +39,13 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
     from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS, WriterPool
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.pipeline.estimate_loop import EstimationError
-    from floxels_ext.lidar.pipeline.run_args import check_args, host_cores, preprocess_settings, reader_plan
+    from floxels_ext.lidar.pipeline.run_args import (apply_cpu_default, check_args, host_cores, preprocess_settings,
+                                                      reader_plan)
     from floxels_ext.methods import get_method
 
     device, options = check_args(args, torch)
+    # on the CPU, the threads the plain run uses (a Ray worker has set its own: args.cpu_limit)
+    apply_cpu_default(args, device, report if int(getattr(args, "verbosity", 0) or 0) > 0 else None)
     settings = preprocess_settings(args)  # the plain run's, --outlier-below/--outlier-above included
     pre_dev, workers, writers, kind = reader_plan(args, device)
     if kind == "process" and pre_dev is not None:

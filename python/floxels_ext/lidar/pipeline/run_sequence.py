@@ -38,8 +38,8 @@ def run_sequence(args) -> int:
     import torch
 
     from floxels_ext.lidar.pipeline.resume import input_records
-    from floxels_ext.lidar.pipeline.run_args import (check_args, check_out_dir, check_resume, host_cores,
-                                                      parse_frames, preprocess_settings, reader_plan)
+    from floxels_ext.lidar.pipeline.run_args import (apply_cpu_default, check_args, check_out_dir, check_resume,
+                                                      host_cores, parse_frames, preprocess_settings, reader_plan)
     from floxels_ext.lidar.pipeline.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
     from floxels_ext.lidar.pipeline.run_inputs import run_settings as run_settings_of
 
@@ -60,10 +60,7 @@ def run_sequence(args) -> int:
             print(f"{name:<12} {get_method(name).description}")
         return 0
     device, options = check_args(args, torch)
-    if device == "cpu" and not getattr(args, "cpu_limit", None):  # a Ray task has its threads set
-        from floxels_ext.cpu_threads import apply_cpu_threads
-
-        apply_cpu_threads((lambda m: print(m, file=sys.stderr)) if verbosity > 0 else None)
+    apply_cpu_default(args, device, (lambda m: print(m, file=sys.stderr)) if verbosity > 0 else None)
     settings = preprocess_settings(args)
     out = Path(args.out)
     try:
