@@ -101,7 +101,9 @@ MUTATIONS = [
     ("resume records no times", RES, '"times": None if times_s is None else', '"times": None if True else',
      [RESUME]),
     ("dataset sequences resume without the input check", "python/floxels_ext/lidar/dataset/sequence.py",
-     "args.force, inputs=inputs, report=ctx.report)", "args.force)", [RESUME]),
+     "args.force, inputs=inputs, report=report)", "args.force)", [RESUME]),
+    ("written dataset sequences skipped unchecked", "python/floxels_ext/lidar/dataset/run.py",
+     "_check_written_tasks([t for t in tasks if not t.todo], args)", "pass", [RESUME]),
     ("temporaries of other frames swept", OUTS, 'if m and (names is None or m.group("name") in names):', "if m:",
      [RESUME]),
 ]

@@ -92,6 +92,20 @@ def _resources(ray, args) -> tuple[float, float, str]:
     return gpus, cpus, device
 
 
+def _rewrites(tasks) -> bool:
+    """Whether any frame to do already has an output (recomputed: its inputs changed)."""
+    present: dict = {}
+    for t in tasks:
+        if t.out_dir not in present:
+            try:
+                present[t.out_dir] = {e.name[:-4] for e in os.scandir(t.out_dir) if e.name.endswith(".npz")}
+            except OSError:
+                present[t.out_dir] = set()
+        if any(n in present[t.out_dir] for n in t.todo):
+            return True
+    return False
+
+
 def _count_written(task, since: float | None) -> int:
     """Frames of task.todo whose output file exists (written after ``since`` when given: --force)."""
     try:
@@ -255,7 +269,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     ray = connect(args.ray)
     gpus, cpus, device = _resources(ray, args)
     todo = sum(len(t.todo) for t in todo_tasks)
-    since = time.time() - 1.0 if args.force else None
+    # frames whose old output is recomputed (--force, inputs changed) count once written again
+    since = time.time() - 1.0 if args.force or _rewrites(todo_tasks) else None
     nodes = _alive_nodes(ray)
     cap = task_slots(nodes, gpus, cpus)
     n_workers = max(1, min(cap if args.max_tasks is None else min(args.max_tasks, cap), len(todo_tasks)))

@@ -131,12 +131,34 @@ def maybe_run_dataset(args) -> int | None:
     for t in tasks:  # what is left to do (the run skips written frames the same way)
         t.todo = list(t.names) if args.force else \
             [n for n in t.names if not (t.out_dir / f"{n}.npz").is_file()]
+    _check_written_tasks([t for t in tasks if not t.todo], args)
     common = common_options(args)
     if args.ray is not None:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
         return run_on_ray(tasks, args, common, n_sequences=len(specs))
     return _run_here(tasks, args, common, n_sequences=len(specs))
+
+
+def _check_written_tasks(tasks, args) -> None:
+    """Tasks whose outputs all exist get the resume check of ``floxels run SEQ``
+    (``sequence.resume_todo``): outputs written from other inputs (their window's scans, poses
+    or times changed since) are estimated again. A task that cannot be checked (other settings,
+    unreadable poses) goes to the workers, whose ``open_sequence`` fails it with the reason."""
+    if not tasks:
+        return
+    from floxels_ext.cli import CLIError
+    from floxels_ext.evaluation.seqio import SequenceFormatError
+    from floxels_ext.lidar.dataset.sequence import resume_todo
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.pipeline.run_args import method_options, preprocess_settings
+
+    options, settings = method_options(args), preprocess_settings(args)  # what the workers' check_args gives
+    for t in tasks:
+        try:
+            t.todo = resume_todo(t, args, options, settings)
+        except (CLIError, SequenceFormatError, MissingDependencyError, OSError, ValueError):
+            t.todo = list(t.names)
 
 
 def _run_here(tasks, args, common: dict, n_sequences: int) -> int:

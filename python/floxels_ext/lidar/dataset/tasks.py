@@ -41,7 +41,8 @@ class SequenceSpec:
 
 @dataclass
 class Task:
-    """Frames [start, stop) of one sequence; ``names`` are their output stems, ``todo`` those not written yet."""
+    """Frames [start, stop) of one sequence; ``names`` are their output stems, ``todo`` those to
+    estimate (not written yet, or written from inputs that changed since: the resume check)."""
 
     seq: SequenceSpec
     out_dir: Path
