@@ -227,7 +227,7 @@ def next_scan_check(points, flow, moving, nxt, labels) -> int:
 
 
 def real(args) -> dict:
-    from floxels_ext.lidar.outputs import read_flow_output, run_outputs
+    from floxels_ext.lidar.io.outputs import read_flow_output, run_outputs
     from floxels_ext.ops import dbscan
 
     files = run_outputs(args.out_dir)

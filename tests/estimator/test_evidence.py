@@ -192,8 +192,8 @@ def test_cuda_evidence_same_bytes_every_run():
         assert np.array_equal(r.explained, runs[0].explained)
 
 def test_output_fields_round_trip(tmp_path):
-    from floxels_ext.lidar.frame_writer import evidence_rows
-    from floxels_ext.lidar.outputs import OutputError, read_flow_output, write_output
+    from floxels_ext.lidar.pipeline.frame_writer import evidence_rows
+    from floxels_ext.lidar.io.outputs import OutputError, read_flow_output, write_output
 
     mask = np.array([True, False, True, True, False])
     fields = evidence_rows(mask, {"evidence": np.float32([0.5, -0.01, 0.02]), "explained": np.array([1, 0, 0], bool)})

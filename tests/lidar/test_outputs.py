@@ -4,7 +4,7 @@ import zipfile
 
 import numpy as np
 
-from floxels_ext.lidar.outputs import write_output
+from floxels_ext.lidar.io.outputs import write_output
 
 
 def test_direct_npz_reads_back_like_np_savez(tmp_path):

@@ -47,7 +47,7 @@ Output: OUT_DIR/<frame name>.npz per frame (np.savez; --compress: zip-compressed
   ego_motion  (4,4) float64  the frame's coordinates -> the next frame's (when the next pose
                              is known, the last selected frame included)
   points      (N,3) float32  the input points (same order): only with --self-contained;
-                             otherwise read back from 'source' (floxels_ext.lidar.outputs.
+                             otherwise read back from 'source' (floxels_ext.lidar.io.outputs.
                              read_flow_output does either)
   source, bin_columns, points_frame  the frame file and how to read it again
   source_crc32               CRC-32 of the frame's points as read (float32 x y z rows): a
@@ -164,7 +164,7 @@ def read_settings(path: Path) -> dict | None:
 def read_resume_record(path: Path) -> dict | None:
     """What a resumed run compares: ``{"settings": ..., "inputs": ...}`` of an output
     (``settings`` as :func:`read_settings` gives it; ``inputs``, the record of
-    :mod:`floxels_ext.lidar.resume`, None for outputs of earlier versions). None when the file
+    :mod:`floxels_ext.lidar.pipeline.resume`, None for outputs of earlier versions). None when the file
     cannot be read as an output (truncated, not a zip, no ``flow``, no settings): not done."""
     try:
         with np.load(path, allow_pickle=False) as z:
