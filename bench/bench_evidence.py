@@ -5,6 +5,7 @@ simulator, and what it costs per frame.
                                             [--seeds 0 1] [--frames 2] [--lidar small|full]
     python bench/bench_evidence.py time --device cuda [--frames 48] [--repeats 5]
     python bench/bench_evidence.py real OUT_DIR     (outputs of floxels run ... --raw-flow)
+    python bench/bench_evidence.py launches [--device cpu|cuda] [--points 50000] [--supports 4]
 
 ``accuracy``: Floxels (5 scans, paper settings) on simulated sequences, evaluated
 (``evaluate_sequence``: point-weighted dynamic / static EPE) with the raw flow (the paper's
@@ -23,6 +24,9 @@ optimised points (eps 0.5, min 4; unclustered points alone), is the mean nearest
 distance to the next frame's optimised points (moved into this frame with the poses) with the
 flow lower than with zero flow? The share of moving points in clusters where it is not (issue
 29's "~21 %" measure).
+``launches``: the ops (torch.profiler; top-level = dispatched from Python, all = with the ops
+they call) and, on CUDA, the kernels of one ``problem_evidence`` call (the estimator's
+evidence step) on a synthetic problem sorted like the solver's points.
 All print a table and write JSON (``--json``, default bench/results/bench_evidence_<mode>.json).
 """
 
@@ -45,7 +49,7 @@ from compare import SCENE_SEED, load_sim_scene  # noqa: E402
 from floxels_ext import FloxelsConfig  # noqa: E402
 from floxels_ext.estimator.api import Floxels, estimate_sequence, window_for  # noqa: E402
 from floxels_ext.estimator.distance import build_dt  # noqa: E402
-from floxels_ext.estimator.evidence import group_ids, motion_evidence  # noqa: E402
+from floxels_ext.estimator.evidence import group_ids, motion_evidence, run_evidence  # noqa: E402
 from floxels_ext.evaluation.metrics import evaluate_sequence  # noqa: E402
 
 GRID = [(m, r) for m in (0.01, 0.02, 0.03, 0.05) for r in (0.05, 0.1, 0.15, 0.25, 0.33)]
@@ -75,10 +79,9 @@ def residuals(scans, frame, res, cfg, device, presorted_groups=False):
         pts, flow, labels = pts[order], flow[order], labels[order]
         cells = group_ids(pts, None, cfg.voxel_size, res.grid_origin, presorted=False)
 
-        def ev(margin, ratio):
-            g = group_ids(pts, labels, cfg.voxel_size, presorted=True, cells=cells)
-            return motion_evidence(pts, flow, g, dts, origins, offsets, weights, dt_cell=cfg.dt_cell,
-                                   truncation=cfg.truncation, margin=margin, ratio=ratio, runs=True)
+        def ev(margin, ratio):  # the estimator's call (problem_evidence): runs of (label, cell)
+            return run_evidence(pts, flow, labels, cells, dts, origins, offsets, weights, dt_cell=cfg.dt_cell,
+                                truncation=cfg.truncation, margin=margin, ratio=ratio)
         return ev
     return lambda margin, ratio: motion_evidence(pts, flow, groups, dts, origins, offsets, weights,
                                                  dt_cell=cfg.dt_cell, truncation=cfg.truncation,
@@ -224,7 +227,7 @@ def next_scan_check(points, flow, moving, nxt, labels) -> int:
 
 
 def real(args) -> dict:
-    from floxels_ext.lidar.outputs import read_flow_output, run_outputs
+    from floxels_ext.lidar.io.outputs import read_flow_output, run_outputs
     from floxels_ext.ops import dbscan
 
     files = run_outputs(args.out_dir)
@@ -278,9 +281,62 @@ def real(args) -> dict:
     return dict(frames=rows, summary=summary, out_dir=str(args.out_dir))
 
 
+def launches(args) -> dict:
+    """Ops and kernels of one problem_evidence call (a synthetic problem, solver order)."""
+    from types import SimpleNamespace
+
+    from torch.profiler import ProfilerActivity, profile
+
+    from floxels_ext.estimator.group import problem_evidence
+
+    cfg = FloxelsConfig(evidence="score")
+    dev = torch.device(args.device)
+    g = torch.Generator().manual_seed(0)
+    n = args.points
+    pts = torch.rand(n, 3, generator=g) * torch.tensor([60.0, 60.0, 4.0])
+    lab = torch.randint(-1, 60, (n,), generator=g)  # ~1/60 unclustered
+    cell = ((pts / cfg.voxel_size).floor().long() * torch.tensor([1, 1000, 1000000])).sum(1)
+    order = torch.argsort(torch.where(lab >= 0, lab + (1 << 40), cell), stable=True)  # the solver's (cluster, cell)
+    pts, lab, cell = pts[order], lab[order], cell[order]
+    compact = torch.unique(cell, return_inverse=True)[1].to(torch.int32)
+    dts, origins, offsets, weights = [], [], [], []
+    for k, t in enumerate([-2.0, -1.0, 1.0, 2.0, 3.0, -3.0][:args.supports]):
+        d = build_dt((pts + torch.tensor([0.3 * t, 0.0, 0.0])).to(dev), cfg)
+        dts.append(d.values)
+        origins.append(d.origin)
+        offsets.append(t)
+        weights.append(cfg.lambda_d * cfg.time_weight(int(t)))
+    problem = SimpleNamespace(points=pts.to(dev), labels=lab.to(dev),
+                              corners=SimpleNamespace(corner_idx=compact[:, None].expand(n, 8).to(dev)),
+                              dts=dts, origins=origins, time_offsets=offsets, weights=weights)
+    flow = (torch.randn(n, 3, generator=g) * 0.3).to(dev)
+    problem_evidence(cfg, problem, flow)  # warm-up
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    with profile(activities=acts) as prof:
+        problem_evidence(cfg, problem, flow)
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+    ev = [e for e in prof.events() if e.device_type.name == "CPU" and e.name.startswith(("aten::", "floxels::"))]
+    top = [e for e in ev if e.cpu_parent is None or not e.cpu_parent.name.startswith(("aten::", "floxels::"))]
+    kernels = [e for e in prof.events()
+               if e.device_type.name == "CUDA" and not e.name.startswith(("Memcpy", "Memset"))]
+    counts: dict[str, int] = {}
+    for e in top:
+        counts[e.name] = counts.get(e.name, 0) + 1
+    out = dict(points=n, supports=args.supports, top_level_ops=len(top), all_ops=len(ev),
+               cuda_kernels=len(kernels) if dev.type == "cuda" else None, top_level=counts)
+    print(f"problem_evidence, {n} points, {args.supports} support scans, {dev.type}: {len(top)} top-level ops, "
+          f"{len(ev)} ops in all" + (f", {len(kernels)} CUDA kernels" if dev.type == "cuda" else ""))
+    for name, c in sorted(counts.items(), key=lambda kv: -kv[1]):
+        print(f"  {c:3d}  {name}")
+    for e in kernels:
+        print(f"  kernel {e.name[:100]}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("accuracy", "time", "real"))
+    ap.add_argument("mode", choices=("accuracy", "time", "real", "launches"))
     ap.add_argument("out_dir", nargs="?", help="real: the OUT_DIR of a floxels run --raw-flow")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--scenes", nargs="+", default=["urban", "crossing", "highway"])
@@ -289,6 +345,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lidar", choices=("small", "full"), default=None,
                     help="32 x 512 or 64 x 1024 simulated lidar (default: small on the CPU, full on CUDA)")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--points", type=int, default=50000, help="launches: points of the problem")
+    ap.add_argument("--supports", type=int, default=4, help="launches: support scans (1-6)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--dump", default=None, help="accuracy: NPZ of every frame's raw flow, truth and group residuals")
     args = ap.parse_args(argv)
@@ -296,7 +354,7 @@ def main(argv=None) -> int:
     args.frames = args.frames or (2 if args.mode == "accuracy" else 48)
     if args.mode == "real" and not args.out_dir:
         ap.error("real needs the OUT_DIR of a floxels run --raw-flow")
-    out = {"accuracy": accuracy, "time": timing, "real": real}[args.mode](args)
+    out = {"accuracy": accuracy, "time": timing, "real": real, "launches": launches}[args.mode](args)
     out.update(mode=args.mode, device=args.device, lidar=args.lidar, host=platform.node(), torch=torch.__version__,
                gpu=torch.cuda.get_device_name() if args.device.startswith("cuda") else None)
     write_results(out, args.json, f"bench_evidence_{args.mode}.json")

@@ -61,8 +61,8 @@ def _has_flag(flag: str) -> bool:
 
 def kitti_report(args) -> dict:
     from floxels_ext import cli
-    from floxels_ext.lidar.flow_plot import plot_flow_bev
-    from floxels_ext.lidar.outputs import read_flow_output
+    from floxels_ext.lidar.viz.flow_plot import plot_flow_bev
+    from floxels_ext.lidar.io.outputs import read_flow_output
 
     work = Path(args.work)
     velo = write_kitti_bins(SHARED / "kitti_raw_13f" / "kitti_raw_2011_09_26_13f.npz", work / "kitti")

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
@@ -52,12 +51,12 @@ import torch
 
 from floxels_ext import methods
 from floxels_ext.estimator.config import PRESETS
-from floxels_ext.evaluation.metrics import evaluate_sequence
-from floxels_ext.evaluation.protocol import AV2_CATEGORY_MAP, META_CLASSES, map_categories, protocol_mask
+from floxels_ext.evaluation.protocol import AV2_CATEGORY_MAP, map_categories, protocol_mask
 from floxels_ext.evaluation.sim import simulate_sequence
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from compare_tables import ablation_table, beyond_table, fmt, main_table  # noqa: E402
+from compare_rows import clean, evaluate_rows, log  # noqa: E402
 
 # Paper's baseline settings (appendix "Baseline details"): NSFP lr 0.0008, FastNSF lr 0.001,
 # no weight decay, patience 100, min delta 1e-4, at most 5000 iterations.
@@ -104,10 +103,6 @@ ABLATIONS = [
 GROUPS = sorted({g for g, _, _ in ABLATIONS})
 MAX_WINDOW = 11
 SCENE_SEED = {"urban": 0, "crossing": 1, "highway": 2, "parking": 3}
-
-def log(msg: str) -> None:
-    print(msg, flush=True)
-
 
 def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_options):
     """Protocol-cropped scans and ground truth of one simulated sequence."""
@@ -215,47 +210,6 @@ def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):
         nfr = sum(len(p) for _, p, _ in out[key].values())
         log(f"  {label}: {secs / max(nfr, 1):.3f} s/frame (median of {repeat}; {time.perf_counter() - t_row:.1f} s)")
     return out
-
-
-def evaluate_rows(records, preds_of, truth_of):
-    """Metrics of each row record over every (scene, frame) it has predictions for."""
-    for r in records:
-        P, G = [], []
-        for scene, frames in r["frames"].items():
-            for f in frames:
-                P.append(preds_of(r["key"], scene, f))
-                G.append(truth_of(scene, f))
-        r["metrics"] = evaluate_sequence(P, G)
-        r["metrics"]["car_speed_ratio"] = car_speed_ratio(P, G)
-        n = sum(len(v) for v in r["frames"].values())
-        r["seconds_per_frame"] = sum(r["seconds"].values()) / max(n, 1)
-    return records
-
-
-def car_speed_ratio(preds, truths) -> float:
-    """Median predicted / true speed over the evaluated dynamic car points (issue 33's
-    measure of speed shrinkage); NaN without any."""
-    r = []
-    for p, t in zip(preds, truths):
-        keep = t["dynamic"] & (np.asarray(t["classes"]) == META_CLASSES.index("car"))
-        if "ground" in t:
-            keep &= ~np.asarray(t["ground"], bool)
-        true = np.linalg.norm(t["flow"][keep], axis=1)
-        ok = true > 1e-6
-        r.append(np.linalg.norm(np.asarray(p, np.float64)[keep][ok], axis=1) / true[ok])
-    r = np.concatenate(r) if r else np.zeros(0)
-    return float(np.median(r)) if r.size else float("nan")
-
-
-def clean(o):
-    """JSON-safe copy: NaN -> None (strict JSON has no NaN), tuples -> lists."""
-    if isinstance(o, float):
-        return None if math.isnan(o) else o
-    if isinstance(o, dict):
-        return {str(k): clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [clean(v) for v in o]
-    return o
 
 
 def parse_args(argv=None):

@@ -10,7 +10,7 @@ import os
 
 import numpy as np
 
-from compare import clean, evaluate_rows, log
+from compare_rows import clean, evaluate_rows, log
 from compare_tables import ablation_table, main_table
 
 

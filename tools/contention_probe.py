@@ -58,7 +58,7 @@ def loads(files):
             s += i * i
 
     def frame():
-        from floxels_ext.lidar.frame_loader import load_frame
+        from floxels_ext.lidar.pipeline.frame_loader import load_frame
 
         class Seq:  # the one-file sequence load_frame reads
             frames = [type("F", (), {"path": files[2]})]

@@ -21,8 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_run import build  # noqa: E402
 
-from floxels_ext.lidar.frame_loader import load_frame  # noqa: E402
-from floxels_ext.lidar.frame_writer import FrameOutput  # noqa: E402
+from floxels_ext.lidar.pipeline.frame_loader import load_frame  # noqa: E402
+from floxels_ext.lidar.pipeline.frame_writer import FrameOutput  # noqa: E402
 from floxels_ext.lidar.io import read_points  # noqa: E402
 from floxels_ext.lidar.preprocess import Preprocess, preprocess_mask  # noqa: E402
 

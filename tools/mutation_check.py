@@ -41,9 +41,9 @@ CFG = "python/floxels_ext/estimator/config.py"
 REF = "python/floxels_ext/reference/estimator.py"
 SOLVER = "python/floxels_ext/ops/solver.py"
 STOP = "python/floxels_ext/estimator/early_stopping.py"
-ARGS = "python/floxels_ext/lidar/run_args.py"
-OUTS = "python/floxels_ext/lidar/outputs.py"
-RES = "python/floxels_ext/lidar/resume.py"
+ARGS = "python/floxels_ext/lidar/pipeline/run_args.py"
+OUTS = "python/floxels_ext/lidar/io/outputs.py"
+RES = "python/floxels_ext/lidar/pipeline/resume.py"
 
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34.
 MUTATIONS = [
@@ -100,8 +100,10 @@ MUTATIONS = [
     ("resume records no poses", RES, "if poses is not None else None", "if False else None", [RESUME]),
     ("resume records no times", RES, '"times": None if times_s is None else', '"times": None if True else',
      [RESUME]),
-    ("dataset sequences resume without the input check", "python/floxels_ext/lidar/dataset_sequence.py",
-     "args.force, inputs=inputs, report=ctx.report)", "args.force)", [RESUME]),
+    ("dataset sequences resume without the input check", "python/floxels_ext/lidar/dataset/sequence.py",
+     "args.force, inputs=inputs, report=report)", "args.force)", [RESUME]),
+    ("written dataset sequences skipped unchecked", "python/floxels_ext/lidar/dataset/run.py",
+     "_check_written_tasks([t for t in tasks if not t.todo], args)", "pass", [RESUME]),
     ("temporaries of other frames swept", OUTS, 'if m and (names is None or m.group("name") in names):', "if m:",
      [RESUME]),
 ]

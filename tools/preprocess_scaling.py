@@ -20,7 +20,7 @@ import numpy as np
 def _job(args):
     path, blas1 = args
     from floxels_ext.lidar.io import read_points
-    from floxels_ext.lidar.frame_loader import single_threaded_blas
+    from floxels_ext.lidar.pipeline.frame_loader import single_threaded_blas
     from floxels_ext.lidar.preprocess import Preprocess, preprocess_mask
 
     t0 = time.perf_counter()

@@ -28,9 +28,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_run import build, ceiling, run_cli  # noqa: E402
 
-import floxels_ext.lidar.pipeline as pipeline  # noqa: E402
-from floxels_ext.lidar.frame_loader import ChunkScans  # noqa: E402
-from floxels_ext.lidar.frame_writer import WriterPool  # noqa: E402
+import floxels_ext.lidar.pipeline.estimate_loop as pipeline  # noqa: E402
+from floxels_ext.lidar.pipeline.frame_loader import ChunkScans  # noqa: E402
+from floxels_ext.lidar.pipeline.frame_writer import WriterPool  # noqa: E402
 
 
 class PrereadScans(ChunkScans):

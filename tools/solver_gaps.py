@@ -47,9 +47,9 @@ from run_isolation import configure  # noqa: E402
 import floxels_ext.estimator.api as api  # noqa: E402
 import floxels_ext.estimator.group as group  # noqa: E402
 import floxels_ext.estimator.solver_run as solver_run  # noqa: E402
-import floxels_ext.lidar.frame_loader as frame_loader  # noqa: E402
-import floxels_ext.lidar.frame_writer as frame_writer  # noqa: E402
-from floxels_ext.lidar.frame_writer import WriterPool  # noqa: E402
+import floxels_ext.lidar.pipeline.frame_loader as frame_loader  # noqa: E402
+import floxels_ext.lidar.pipeline.frame_writer as frame_writer  # noqa: E402
+from floxels_ext.lidar.pipeline.frame_writer import WriterPool  # noqa: E402
 
 CHUNKS: list = []  # (run number, start event, end event)
 READY: list = []   # (run number of the next SolverRun, event after a batch's preparation on its stream)

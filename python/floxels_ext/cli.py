@@ -27,7 +27,7 @@ __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 # The order is the order of ``floxels --help``.
 SUBCOMMAND_MODULES: list[str] = ["floxels_ext.evaluation.simulate_cli", "floxels_ext.evaluation.eval_cli",
                                  "floxels_ext.evaluation.demo", "floxels_ext.lidar.run",
-                                 "floxels_ext.lidar.accumulate", "floxels_ext.lidar.show"]
+                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show"]
 _EXTRA: list[Callable] = []
 
 

@@ -179,9 +179,21 @@ def test_cuda_matches_cpu_and_estimator_on_cuda():
     assert isinstance(res.evidence, np.ndarray) and res.explained.dtype == bool
 
 
+
+@pytest.mark.cuda
+def test_cuda_evidence_same_bytes_every_run():
+    """issue 31: the evidence (floxels::dt_evidence, no atomics) is the same bits on every CUDA run."""
+    scans, t = _scans(seed=6)
+    cfg = FloxelsConfig(evidence="score", max_iters=30)
+    runs = [Floxels(cfg, "cuda").fit(scans, t) for _ in range(3)]
+    for r in runs[1:]:
+        assert np.array_equal(r.flow, runs[0].flow)
+        assert np.array_equal(r.evidence, runs[0].evidence, equal_nan=True)
+        assert np.array_equal(r.explained, runs[0].explained)
+
 def test_output_fields_round_trip(tmp_path):
-    from floxels_ext.lidar.frame_writer import evidence_rows
-    from floxels_ext.lidar.outputs import OutputError, read_flow_output, write_output
+    from floxels_ext.lidar.pipeline.frame_writer import evidence_rows
+    from floxels_ext.lidar.io.outputs import OutputError, read_flow_output, write_output
 
     mask = np.array([True, False, True, True, False])
     fields = evidence_rows(mask, {"evidence": np.float32([0.5, -0.01, 0.02]), "explained": np.array([1, 0, 0], bool)})
@@ -200,14 +212,35 @@ def test_output_fields_round_trip(tmp_path):
         read_flow_output(tmp_path / "c.npz")
 
 
-def test_run_sums_equal_index_add():
-    from floxels_ext.estimator.evidence import _run_sums
-
+def test_group_sums_equal_index_add_sorted_or_not():
+    """The group means are float64 sums (floxels::dt_evidence): arbitrary group ids (sorted
+    inside) and the same groups as runs give the index_add means of the per-point residuals."""
+    scans, t = _scans(seed=7)
+    pts = torch.as_tensor(scans[t])
+    n = len(pts)
     rng = np.random.default_rng(7)
-    groups = torch.as_tensor(np.sort(rng.integers(0, 40, 500)))
-    groups = torch.cumsum(torch.cat([torch.ones(1, dtype=torch.long), (groups[1:] != groups[:-1]).long()]), 0) - 1
-    vals = torch.as_tensor(rng.random((500, 3)), dtype=torch.float32)
-    ref = torch.zeros(500, 3, dtype=torch.float64).index_add_(0, groups, vals.double())[groups]
-    torch.testing.assert_close(_run_sums(vals.t().contiguous(), groups), ref.t())  # (C, N) rows
-    one = torch.zeros(1, dtype=torch.long)
-    torch.testing.assert_close(_run_sums(vals[:1].t().contiguous(), one), vals[:1].double().t())
+    groups = torch.as_tensor(rng.integers(0, 40, n))
+    flow = torch.as_tensor(rng.normal(0, 0.2, (n, 3)).astype(np.float32))
+    dts, origins, offsets, weights = [], [], [], []
+    for k, s in enumerate(scans):
+        if k != t:
+            d = build_dt(torch.as_tensor(s), CFG)
+            dts += [d.values]
+            origins += [d.origin]
+            offsets += [float(k - t)]
+            weights += [CFG.time_weight(k - t)]
+    kw = dict(dt_cell=CFG.dt_cell, truncation=CFG.truncation)
+    ev = motion_evidence(pts, flow, groups, dts, origins, offsets, weights, **kw)
+    flat = [x for o in origins for x in o]
+    w = [x / sum(weights) for x in weights]
+    res = [torch.ops.floxels.dt_residual(pts, f, dts, flat, CFG.dt_cell, offsets, w, CFG.truncation, False)
+           for f in (flow, torch.zeros_like(flow))]
+    sums = torch.zeros(40, 2, dtype=torch.float64).index_add_(0, groups, torch.stack(res, 1).double())
+    mean = (sums / torch.bincount(groups, minlength=40).double()[:, None].clamp(min=1))[groups].float()
+    torch.testing.assert_close(ev.residual_flow, mean[:, 0], rtol=0, atol=2e-7)
+    torch.testing.assert_close(ev.residual_zero, mean[:, 1], rtol=0, atol=2e-7)
+    order = torch.argsort(groups, stable=True)
+    runs = motion_evidence(pts[order], flow[order], groups[order], dts, origins, offsets, weights, runs=True, **kw)
+    for a, b in zip((runs.score, runs.explained, runs.residual_flow, runs.residual_zero),
+                    (ev.score, ev.explained, ev.residual_flow, ev.residual_zero)):
+        assert torch.equal(a, b[order])

@@ -83,7 +83,7 @@ def test_paper_text_states_the_values():
 def test_cli_default_window_is_five_scans():
     from floxels_ext import cli
 
-    from floxels_ext.lidar.run_args import resolve_preset
+    from floxels_ext.lidar.pipeline.run_args import resolve_preset
 
     args = cli.build_parser().parse_args(["run", "in", "--out", "o"])
     assert args.preset == "paper"

@@ -13,7 +13,7 @@ import pytest
 
 from floxels_ext import cli
 from floxels_ext.evaluation.seqio import Frame, SequenceFormatError, frame_path, load_sequence, read_frame, write_frame
-from floxels_ext.lidar.viz import bev_image, bev_png, hsv_to_rgb, write_png
+from floxels_ext.lidar.viz.bev_png import bev_image, bev_png, hsv_to_rgb, write_png
 
 # the subprocess must import the same floxels_ext as the tests (installed or in-place build)
 PYTHON_DIR = str(Path(floxels_ext.__file__).resolve().parents[1])

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from floxels_ext.lidar import ground_outliers as go
+from floxels_ext.lidar.preprocess import ground_outliers as go
 from floxels_ext.lidar.preprocess import (CROPPED, GROUND, KEPT, OUTLIER, Preprocess, preprocess_classes,
                                           preprocess_classes_numpy, preprocess_mask, preprocess_mask_numpy)
-from floxels_ext.lidar.preprocess_torch import preprocess_classes_torch
+from floxels_ext.lidar.preprocess.masks_torch import preprocess_classes_torch
 
 SENSOR_H = 1.73  # m above the road, as KITTI's Velodyne
 

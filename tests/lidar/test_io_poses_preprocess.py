@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from floxels_ext.lidar.accumulate import accumulate
+from floxels_ext.lidar.viz.accumulate import accumulate
 from floxels_ext.lidar.io import MissingDependencyError, PoseFormatError, read_poses
 from floxels_ext.lidar.io.poses import check_poses, match_timestamps, quat_to_matrix, read_av2_poses
 from floxels_ext.lidar.preprocess import (Preprocess, crop_mask, ground_mask, ground_surface, preprocess_mask,
@@ -153,7 +153,7 @@ _SETTINGS = [Preprocess(), Preprocess(max_range=None), Preprocess(remove_ground=
 def test_op_and_torch_preprocessing_give_the_numpy_masks(k):
     """The compiled op (the default) and the GPU path (run here on CPU tensors) must select
     exactly the numpy reference's points."""
-    from floxels_ext.lidar.preprocess_torch import preprocess_mask_torch
+    from floxels_ext.lidar.preprocess.masks_torch import preprocess_mask_torch
 
     for scene, seed in (("urban", 3), ("parking", 4)):
         _, ps = _sim_frame(scene, seed)
@@ -174,7 +174,7 @@ def test_torch_preprocessing_on_cuda_gives_the_numpy_masks():
 
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
-    from floxels_ext.lidar.preprocess_torch import preprocess_mask_torch
+    from floxels_ext.lidar.preprocess.masks_torch import preprocess_mask_torch
 
     _, ps = _sim_frame("urban", 6)
     for st in _SETTINGS:
@@ -205,7 +205,7 @@ def test_stray_far_points_neither_crash_nor_change_the_near_masks():
 def test_odometry_missing_package_message(monkeypatch):
     import importlib
 
-    from floxels_ext.lidar import odometry
+    from floxels_ext.lidar.preprocess import odometry
 
     real = importlib.import_module
 
@@ -221,7 +221,7 @@ def test_odometry_missing_package_message(monkeypatch):
 
 def test_odometry_kiss_icp_if_installed():
     pytest.importorskip("kiss_icp")
-    from floxels_ext.lidar.odometry import kiss_icp_poses
+    from floxels_ext.lidar.preprocess.odometry import kiss_icp_poses
 
     rng = np.random.default_rng(0)
     # a box-shaped room seen from a sensor moving 0.5 m per frame along x

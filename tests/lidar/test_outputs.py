@@ -3,8 +3,9 @@
 import zipfile
 
 import numpy as np
+import pytest
 
-from floxels_ext.lidar.outputs import write_output
+from floxels_ext.lidar.io.outputs import write_output
 
 
 def test_direct_npz_reads_back_like_np_savez(tmp_path):
@@ -33,3 +34,16 @@ def test_object_arrays_fall_back_to_np_savez(tmp_path):
     path = write_output(tmp_path / "c.npz", compress=True, x=np.arange(3))
     with zipfile.ZipFile(path) as z:
         assert z.getinfo("x.npy").compress_type == zipfile.ZIP_DEFLATED
+
+
+def test_old_outputs_module_path_still_reads_with_a_warning():
+    # the README documented floxels_ext.lidar.outputs before the package split (issue 32)
+    import importlib
+    import sys
+
+    from floxels_ext.lidar.io import outputs as new
+
+    sys.modules.pop("floxels_ext.lidar.outputs", None)
+    with pytest.warns(DeprecationWarning, match="lidar.io.outputs"):
+        old = importlib.import_module("floxels_ext.lidar.outputs")
+    assert old.read_flow_output is new.read_flow_output

@@ -16,7 +16,7 @@ import pytest
 ray = pytest.importorskip("ray")
 
 from floxels_ext import cli  # noqa: E402
-from floxels_ext.lidar.outputs import read_flow_output  # noqa: E402
+from floxels_ext.lidar.io.outputs import read_flow_output  # noqa: E402
 from floxels_ext.evaluation.seqio import save_sequence  # noqa: E402
 
 FLAGS = ["--device", "cpu", "--max-iters", "3", "--scans", "3", "--chunk", "1"]

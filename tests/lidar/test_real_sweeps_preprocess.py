@@ -52,7 +52,7 @@ def test_kitti_sweeps_keep_their_objects_and_lose_their_ground(kitti):
 
 
 def test_kitti_op_equals_the_numpy_reference(kitti):
-    from floxels_ext.lidar.preprocess_torch import preprocess_classes_torch
+    from floxels_ext.lidar.preprocess.masks_torch import preprocess_classes_torch
 
     for i in (0, 6, 12):
         a = preprocess_classes_numpy(kitti[i])

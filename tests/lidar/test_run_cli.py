@@ -10,7 +10,7 @@ import pytest
 
 from floxels_ext import cli, methods
 from floxels_ext.lidar.io.writers import write_ply
-from floxels_ext.lidar.outputs import read_flow_output
+from floxels_ext.lidar.io.outputs import read_flow_output
 from floxels_ext.lidar.preprocess import transform_points
 from floxels_ext.evaluation.seqio import save_sequence
 

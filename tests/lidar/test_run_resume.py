@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from floxels_ext import cli, methods
-from floxels_ext.lidar.outputs import read_flow_output, write_output
+from floxels_ext.lidar.io.outputs import read_flow_output, write_output
 from floxels_ext.lidar.preprocess import transform_points
 
 N_FRAMES = 7
@@ -276,7 +276,7 @@ def test_outputs_of_earlier_versions_are_kept_with_a_warning(done, fake, capsys)
 
 
 def test_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
-    """A dataset's sequences are checked as ``floxels run`` checks one (lidar/dataset_sequence.py),
+    """A dataset's sequences are checked as ``floxels run`` checks one (lidar/dataset/sequence.py),
     for every sequence that has work left; the other sequence is not touched."""
     from floxels_ext.evaluation.seqio import save_sequence
     from floxels_ext.evaluation.sim import simulate_sequence
@@ -303,3 +303,42 @@ def test_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
     # 000006 (missing), and the frames whose windows (3 scans) hold 000003: 000002 to 000004
     assert _rewritten(snap[0], out / "s0") == ["000002", "000003", "000004", "000006"]
     assert _rewritten(snap[1], out / "s1") == []
+
+
+def test_written_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
+    """A dataset sequence whose outputs all exist is not skipped unchecked: its inputs are
+    compared as ``floxels run SEQ`` compares them (lidar/dataset/run.py, issue 32); the frames
+    whose windows hold an edited scan are written again, the other sequence is not touched, and
+    a run with nothing changed writes nothing."""
+    from floxels_ext.evaluation.seqio import save_sequence
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    root, out = tmp_path / "data", tmp_path / "out"
+    for k in range(2):
+        save_sequence(root / f"s{k}", simulate_sequence("crossing", 6 - k, k, beams=8, azimuth_steps=180))
+    argv = ["run", str(root), "--out", str(out), "--device", "cpu", "--scans", "3", "--max-iters", "2"]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    snap = {k: _snapshot(out / f"s{k}") for k in range(2)}
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "11 frames, 11 already done" in err and "(0 done, 2 skipped, 0 failed)" in err, err
+    assert [_rewritten(snap[k], out / f"s{k}") for k in range(2)] == [[], []]
+    f = root / "s0" / "000003.npz"
+    with np.load(f) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["points"] = arrays["points"][:-1]  # a frame replaced by the user (one point fewer)
+    for k in ("flow", "dynamic", "labels", "ground"):
+        if k in arrays and len(arrays[k]) == len(arrays["points"]) + 1:
+            arrays[k] = arrays[k][:-1]
+    np.savez(f, **arrays)
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "11 frames, 7 already done" in err and "(1 done, 1 skipped, 0 failed)" in err, err
+    assert err.count("inputs changed") == 1  # said once, by the sequence's own check
+    # the frames whose windows (3 scans) hold 000003: 000002 to 000005 (the last frame's window is [3, 6))
+    assert _rewritten(snap[0], out / "s0") == ["000002", "000003", "000004", "000005"]
+    assert _rewritten(snap[1], out / "s1") == []
+    # outputs written with other settings: each such sequence fails, as the plain run stops (--force recomputes)
+    assert cli.main([*argv, "--max-iters", "3"]) == 1
+    err = capsys.readouterr().err
+    assert "s1/000000.npz was written with other settings" in err and "(0 done, 0 skipped, 2 failed)" in err, err

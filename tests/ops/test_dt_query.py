@@ -121,7 +121,9 @@ def test_evidence_matches_reference(dtype, with_labels):
     clear = (want[0] - torch.clamp(want[3] * 0.05, min=0.02)).abs() > 1e-4
     assert clear.float().mean() > 0.9 and torch.equal(got[1][clear], want[1][clear])
     # one value per group: runs of equal keys
-    same = (cells[1:] == cells[:-1]) if lab is None else (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | (cells[1:] == cells[:-1]))
+    same = cells[1:] == cells[:-1]
+    if lab is not None:
+        same = (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | same)
     assert torch.equal(got[3][1:][same], got[3][:-1][same])
 
 

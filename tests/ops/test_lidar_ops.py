@@ -1,5 +1,5 @@
 """The lidar pipeline's CPU ops against their numpy references: lidar_keep_mask (cropping and
-ground removal, floxels_ext.lidar.preprocess.preprocess_mask_numpy), rigid_transform, lidar_select,
+ground removal, floxels_ext.lidar.preprocess.masks.preprocess_mask_numpy), rigid_transform, lidar_select,
 frame_flow; strided rows (a file's x y z columns, not copied) read as their contiguous copy."""
 
 import numpy as np
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import floxels_ext  # noqa: F401
-from floxels_ext.lidar.preprocess import (MAX_GROUND_CELLS, Preprocess, _window_cells, preprocess_mask,
-                                          preprocess_mask_numpy)
+from floxels_ext.lidar.preprocess.masks import preprocess_mask, preprocess_mask_numpy
+from floxels_ext.lidar.preprocess.settings import MAX_GROUND_CELLS, Preprocess, _window_cells
 from floxels_ext.ops import frame_flow, lidar_keep_mask, lidar_select, rigid_transform
 
 

@@ -28,9 +28,13 @@ zeroing those cost more dynamic EPE than it saved static EPE (bench/RESULTS.md, 
 evidence"). Not caught: motion that does explain the scans, e.g. static structure following
 the sensor's ring pattern.
 
-Cost: one trilinear DT look-up of 2N points per support scan (the optimiser does one of N per
-scan and iteration) and segment sums over the groups; no host synchronisation (group ids come
-from runs of the sorted keys, buffers are sized N). Works with any device the ops support.
+Cost: one ``floxels::dt_evidence`` call (csrc/cuda/dt_query.cu): two trilinear DT look-ups
+per point and support scan (the optimiser does one per scan and iteration) and the group sums,
+in 4 CUDA kernels whatever the number of support scans (the groups are runs of the solver's
+point order; CUDA: float64 prefix sums differenced at each run's ends, CPU: each run summed in
+order in float64; no atomics, so the same bits on every run; no host synchronisation). The
+look-ups use the loss's own interpolation (kernels/dt_loss.h). Works with any device the ops
+support.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["MotionEvidence", "motion_evidence", "group_ids", "EVIDENCE_MODES"]
+__all__ = ["MotionEvidence", "motion_evidence", "run_evidence", "group_ids", "EVIDENCE_MODES"]
 
 F = torch.ops.floxels
 
@@ -119,47 +123,42 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
     offsets in frame periods and their weights in the loss (as the estimator builds them).
     Look-ups clamp at the DT border like the loss; values are capped at ``truncation``.
     Without support scans every group is unexplained with score 0. ``runs``: the groups are
-    contiguous runs with non-decreasing ids (``group_ids(..., presorted=True)``): the group sums
-    are then prefix-sum differences in float64, deterministic on every device (otherwise ``index_add_``, whose CUDA
-    atomics may change the last bits between runs).
+    contiguous runs (``group_ids(..., presorted=True)``), used as they are; otherwise the
+    points are sorted by group first (a stable sort and its inverse). Either way the group sums
+    are float64 and the same bits on every run of a device (no atomics)."""
+    if runs or points.shape[0] == 0 or not dts:
+        return run_evidence(points, flow, None, groups, dts, origins, offsets, weights, dt_cell=dt_cell,
+                            truncation=truncation, margin=margin, ratio=ratio)
+    key, order = torch.sort(groups, stable=True)
+    ev = run_evidence(points[order], flow[order], None, key, dts, origins, offsets, weights, dt_cell=dt_cell,
+                      truncation=truncation, margin=margin, ratio=ratio)
 
-    About 5 small kernels per support scan and 10 more (a frame's host cost on a GPU: tens of
-    microseconds); no host synchronisation."""
+    def back(x):
+        out = torch.empty_like(x)
+        out[order] = x
+        return out
+
+    return MotionEvidence(back(ev.score), back(ev.explained), back(ev.residual_flow), back(ev.residual_zero))
+
+
+def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
+                 dts: Sequence[torch.Tensor], origins: Sequence[Sequence[float]], offsets: Sequence[float],
+                 weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.02,
+                 ratio: float = 0.05) -> MotionEvidence:
+    """:func:`motion_evidence` for groups that are runs of consecutive points: equal ``labels``
+    (DBSCAN, (N,) int32/int64) and, for label -1 (or ``labels`` None), equal ``cells`` ((N,)
+    int32/int64, any stride: e.g. the compact index of each point's lower flow-grid corner) --
+    the groups of :func:`group_ids` on points in the solver's (cluster, cell) order, without
+    computing the ids. One ``floxels::dt_evidence`` call (no input checks here: the estimator's
+    points are validated, at most 32 support scans)."""
     n = points.shape[0]
     dev = points.device
     if n == 0 or not dts:
         zeros = torch.zeros(n, dtype=torch.float32, device=dev)
         return MotionEvidence(zeros, torch.zeros(n, dtype=torch.bool, device=dev), zeros, zeros.clone())
-    p = points.to(torch.float32).contiguous()
-    f = flow.to(torch.float32)
-    # rows [0, N): residual with the flow, [N, 2N): with zero flow, (2N, 3N): ones (the counts)
-    acc = torch.zeros(3 * n, dtype=torch.float32, device=dev)
-    acc[2 * n:] = 1.0
     wsum = float(sum(weights))
-    for d, o, t, w in zip(dts, origins, offsets, weights):
-        q = torch.cat([torch.add(p, f, alpha=float(t)), p])  # one look-up for both residuals
-        v = F.trilinear_gather(d[None], q, [float(x) for x in o], float(dt_cell)).view(-1)
-        acc[:2 * n].add_(v.clamp_(max=float(truncation)), alpha=float(w) / wsum)
-    m = _run_sums(acc.view(3, n), groups) if runs else \
-        torch.zeros(n, 3, dtype=torch.float32, device=dev).index_add_(0, groups, acc.view(3, n).t())[groups].t()
-    rf, rz = (m[0] / m[2]).float(), (m[1] / m[2]).float()
-    gain = rz - rf
-    explained = gain > (rz * float(ratio)).clamp_(min=float(margin))
-    return MotionEvidence(gain, explained, rf, rz)
-
-
-def _run_sums(values: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
-    """Per point, the sum of ``values`` (C, N) over its group, the groups being contiguous runs
-    with non-decreasing ids (as :func:`group_ids` ``(presorted=True)`` numbers them): float64
-    prefix sums differenced at each run's first and last point, found by binary search (no
-    atomics, no host synchronisation, so the same bits on every run). One prefix sum over the
-    C rows laid end to end (a row's earlier rows add a constant that the difference cancels):
-    CUDA scans one long contiguous vector fast, while a scan along a short dimension, or C rows
-    of N along the last, runs nearly sequentially (6.4 ms, then 0.14 ms per 100k points on an
-    H200)."""
-    c, n = values.shape
-    v = values.double()
-    cs = v.reshape(-1).cumsum(0).view(c, n)
-    first = torch.searchsorted(groups, groups)
-    last = torch.searchsorted(groups, groups, right=True) - 1
-    return cs[:, last] - cs[:, first] + v[:, first]
+    score, explained, rf, rz = F.dt_evidence(
+        points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells, list(dts),
+        [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
+        [float(w) / wsum for w in weights], float(truncation), float(margin), float(ratio))
+    return MotionEvidence(score, explained, rf, rz)

@@ -16,7 +16,7 @@ import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DtStreams, build_dt
-from floxels_ext.estimator.evidence import MotionEvidence, group_ids, motion_evidence
+from floxels_ext.estimator.evidence import MotionEvidence, run_evidence
 from floxels_ext.estimator.refine import cluster_velocity_search, rigid_refine, supports_of, vertex_init
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
@@ -314,14 +314,12 @@ class Solving:
 def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Tensor) -> MotionEvidence:
     """:func:`~floxels_ext.estimator.evidence.motion_evidence` of one solved problem (rows in
     the solver's order: sorted by (cluster, flow-grid cell), so the groups, clusters and the
-    unclustered points' cells, are runs), on the distance transforms its loss used."""
+    unclustered points' cells, are runs), on the distance transforms its loss used: one
+    ``floxels::dt_evidence`` call (:func:`~floxels_ext.estimator.evidence.run_evidence`)."""
     # cells: the compact index of each point's lower flow-grid corner (one per cell)
-    groups = group_ids(problem.points, problem.labels, cfg.voxel_size, presorted=True,
-                       cells=problem.corners.corner_idx[:, 0])
-    return motion_evidence(problem.points, flow, groups, problem.dts,
-                           problem.origins, problem.time_offsets,
-                           problem.weights, dt_cell=cfg.dt_cell, truncation=cfg.truncation,
-                           margin=cfg.evidence_margin, ratio=cfg.evidence_ratio, runs=True)
+    return run_evidence(problem.points, flow, problem.labels, problem.corners.corner_idx[:, 0], problem.dts,
+                        problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
+                        truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:

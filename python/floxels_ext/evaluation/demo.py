@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
 def _picture(png: Path, points, flow, gt, args) -> None:
     """The estimate beside the ground truth (flow_plot); skipped with a note without matplotlib."""
     from floxels_ext.lidar.io import MissingDependencyError
-    from floxels_ext.lidar.flow_plot import plot_flow_bev
+    from floxels_ext.lidar.viz.flow_plot import plot_flow_bev
 
     try:
         plot_flow_bev(png, points, flow, gt_flow=gt, frame_period=0.1,

@@ -183,7 +183,7 @@ def load_eval_pair(pred_dir, gt_dir, raw_classes: bool = False, frames: str | No
     import numpy as np
 
     from floxels_ext.evaluation import seqio
-    from floxels_ext.lidar.dataset import parse_frame_range
+    from floxels_ext.lidar.pipeline.run_args import parse_frame_range
 
     for d, what in ((pred_dir, "prediction"), (gt_dir, "ground-truth")):
         if not Path(d).is_dir():

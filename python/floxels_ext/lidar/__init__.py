@@ -1,13 +1,13 @@
-"""The lidar pipeline: from lidar files and poses to flow files.
+"""The lidar pipeline: from lidar files and poses to flow files, in five sub-packages.
 
-``io`` reads frames and poses; ``preprocess`` (numpy) / ``preprocess_torch`` (GPU) crop and
-remove the ground; ``odometry`` estimates poses when none are given; ``run`` is the
-``floxels run`` command, ``frame_loader`` and ``pipeline`` overlap reading, preprocessing,
-estimation and writing; ``outputs`` is the flow-file format; ``dataset`` (finding sequences,
-tasks), ``dataset_run`` (options, the local run), ``dataset_worker`` / ``dataset_sequence`` /
-``dataset_stream`` (every sequence through one pipeline) and ``ray_runner`` (one worker per
-GPU on a Ray cluster) run whole datasets; ``accumulate`` and ``show`` use the outputs
-(densified clouds, pictures).
+``io`` reads frames and poses, finds sequences on disk and owns the flow-file format
+(``io.outputs``); ``preprocess`` crops scans and removes the ground (numpy reference, compiled
+op, GPU path), transforms them rigidly and estimates poses (KISS-ICP); ``pipeline`` runs one
+sequence (``floxels run SEQ``: reading ahead, estimation, writing, resume); ``dataset`` runs
+many (``floxels run DATASET``, here or on Ray); ``viz`` uses the outputs (``floxels show``,
+``floxels accumulate``). ``run`` is the ``floxels run`` command: its options, and INPUT sent to
+``dataset`` or ``pipeline``.
 
-Kept light on import: the CLI imports the command modules when a command runs.
+Imports go one way: ``run`` -> ``dataset`` -> ``pipeline`` -> ``preprocess`` -> ``io``, and
+``viz`` -> ``io``. Kept light on import: the CLI imports the command modules when a command runs.
 """

@@ -1,4 +1,6 @@
-"""Lidar frame readers and pose files (see ``readers`` and ``poses``)."""
+"""Lidar files: frame readers (``readers``, ``pcd_ply``, ``scan``), pose files (``poses``), sequences
+on disk (``sources``), point-cloud writers (``writers``) and the flow-file format of ``floxels run``
+(``outputs``). The bottom of the lidar package: imports nothing else of it."""
 
 from floxels_ext.lidar.io._optional import MissingDependencyError
 from floxels_ext.lidar.io.poses import PoseFormatError, read_av2_poses, read_kitti_calib, read_poses

@@ -1,12 +1,13 @@
-"""Scan preprocessing for real lidar: rigid transforms (ego-motion compensation), range/height
-cropping as in the paper's protocol, and ground removal.
+"""Scan preprocessing for real lidar: range/height cropping as in the paper's protocol and ground
+removal, per point (masks and classes), with the numpy reference of the compiled op. The settings
+and classes are in ``settings``, the rigid transforms (ego-motion compensation) in ``transform``.
 
 Ground removal (:func:`ground_mask`) is a single-window *progressive morphological filter*
 (Zhang et al., "A progressive morphological filter for removing nonground measurements from
 airborne LIDAR data", IEEE TGRS 2003), applied to a bird's-eye-view grid:
 
 0. outliers far below the ground (multipath) or far above the sensor are found against a robust
-   reference height (:mod:`floxels_ext.lidar.ground_outliers`: block quartiles, a cone around
+   reference height (:mod:`floxels_ext.lidar.preprocess.ground_outliers`: block quartiles, a cone around
    the ground near the sensor); they build no cell, are never kept and are counted;
 1. keep the lowest z of every ``cell_size`` cell (a lower envelope of the scene);
 2. morphological *opening* of that height map with a square window of ``window`` metres
@@ -29,98 +30,15 @@ level rarely produces; raise ``window`` for large vehicles, lower it for steep t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-__all__ = ["transform_points", "host_rows", "relative_pose", "ground_estimate", "ground_surface", "ground_mask",
-           "crop_mask", "Preprocess", "preprocess_mask", "preprocess_mask_numpy", "preprocess_classes",
-           "preprocess_classes_numpy", "CROPPED", "KEPT", "GROUND", "OUTLIER"]
+from floxels_ext.lidar.preprocess.ground_plane import _plane_cap
+from floxels_ext.lidar.preprocess.settings import (CROPPED, GROUND, KEPT, MAX_GROUND_CELLS, OUTLIER, Preprocess,
+                                                   _check_ground_args, _window_cells)
+from floxels_ext.lidar.preprocess.transform import host_rows
 
-# Per-point classes of :func:`preprocess_classes` (uint8): dropped by the range/height crop or
-# non-finite, kept (optimised), removed as ground, removed as an outlier (step 0 below).
-CROPPED, KEPT, GROUND, OUTLIER = 0, 1, 2, 3
-
-
-def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 rigid transform to (N, 3) points (NaN rows stay NaN), in float64; float32 out.
-    (The compiled :func:`floxels_ext.ops.rigid_transform`: numpy's ``p @ R.T + t`` to the last
-    bit of the float32 result, without the GIL.)"""
-    import torch
-
-    from floxels_ext.ops.lidar import rigid_transform
-
-    out = rigid_transform(host_rows(np.asarray(points).reshape(-1, 3)), torch.from_numpy(np.asarray(T, np.float64)))
-    return out.numpy().astype(np.float32, copy=False)
-
-
-def host_rows(points: np.ndarray):
-    """``points`` as a CPU tensor for the lidar ops, without a copy where torch can view it
-    (float32/float64, positive strides, writeable; the ops read any strides); other dtypes
-    become float64."""
-    import torch
-
-    p = np.asarray(points)
-    if p.dtype not in (np.float32, np.float64):
-        p = p.astype(np.float64)
-    if not p.flags.writeable or any(s <= 0 or s % p.itemsize for s in p.strides):
-        p = np.ascontiguousarray(p)
-        if not p.flags.writeable:
-            p = p.copy()
-    return torch.from_numpy(p)
-
-
-def relative_pose(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
-    """Transform taking coordinates of the frame with sensor-to-world pose ``pose_from`` into
-    the frame with pose ``pose_to``: ``inv(pose_to) @ pose_from``."""
-    return np.linalg.solve(np.asarray(pose_to, np.float64), np.asarray(pose_from, np.float64))
-
-
-def _trimmed_plane(xy: np.ndarray, z: np.ndarray, iters: int = 6, keep_above: float = 0.2):
-    """z = a x + b y + c fitted to the cells, dropping those well above the fit (objects)."""
-    sel = np.ones(len(z), bool)
-    coef = None
-    A = np.c_[xy, np.ones(len(z))]
-    for _ in range(iters):
-        if sel.sum() < 10:
-            break
-        coef = np.linalg.lstsq(A[sel], z[sel], rcond=None)[0]
-        new = (z - A @ coef) <= keep_above
-        if np.array_equal(new, sel):
-            break
-        sel = new
-    return coef
-
-
-def _plane_cap(opened: np.ndarray, cell_size: float, max_rise: float | None) -> np.ndarray:
-    """Step 3 of the module docstring: cap the opened surface at the trimmed plane + max_rise.
-    Shared by the numpy and the torch implementations (the least-squares fit runs here, in
-    numpy, on the small grid, so both give identical surfaces)."""
-    if max_rise is None:
-        return opened
-    cells = np.argwhere(np.isfinite(opened))
-    coef = _trimmed_plane((cells + 0.5) * cell_size, opened[cells[:, 0], cells[:, 1]])
-    if coef is None:
-        return opened
-    shape = opened.shape
-    ci = np.indices(shape).reshape(2, -1).T
-    plane = (np.c_[(ci + 0.5) * cell_size, np.ones(len(ci))] @ coef).reshape(shape)
-    return np.minimum(opened, plane + max_rise)
-
-
-def _check_ground_args(cell_size, window, max_distance) -> None:
-    if not (cell_size > 0 and window > 0):
-        raise ValueError(f"cell_size and window must be > 0, got {cell_size}, {window}")
-    if max_distance is not None and not (np.isfinite(max_distance) and max_distance > 0):
-        raise ValueError(f"max_distance must be a finite number > 0 (or None), got {max_distance}")
-    if max_distance is not None and (2 * max_distance / cell_size + 1) ** 2 > MAX_GROUND_CELLS:
-        raise ValueError(f"a ground grid of {cell_size} m cells over +-{max_distance} m would have more than "
-                         f"{MAX_GROUND_CELLS:,} cells; lower max_distance or raise cell_size")
-
-
-# The ground grid covers at most this many cells (+-500 m at 0.5 m): the grid, not the points'
-# extent, bounds the memory, so a stray point kilometres away costs nothing.
-MAX_GROUND_CELLS = 2001 * 2001
+__all__ = ["ground_estimate", "ground_surface", "ground_mask", "crop_mask", "preprocess_mask", "preprocess_mask_numpy",
+           "preprocess_classes", "preprocess_classes_numpy"]
 
 
 def ground_estimate(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
@@ -134,7 +52,7 @@ def ground_estimate(points: np.ndarray, *, cell_size: float = 0.5, window: float
     be outliers. ``outlier_below`` / ``outlier_above`` None: no such outliers."""
     from scipy import ndimage
 
-    from floxels_ext.lidar.ground_outliers import ground_reference, outlier_flags
+    from floxels_ext.lidar.preprocess.ground_outliers import ground_reference, outlier_flags
 
     _check_ground_args(cell_size, window, max_distance)
     p = np.asarray(points, np.float64)
@@ -182,10 +100,6 @@ def ground_surface(points: np.ndarray, *, cell_size: float = 0.5, window: float 
                            outlier_below=outlier_below, outlier_above=outlier_above)[0]
 
 
-def _window_cells(window: float, cell_size: float) -> int:
-    return max(1, int(round(window / cell_size)) | 1)  # odd, so the window is centred
-
-
 def ground_mask(points: np.ndarray, *, cell_size: float = 0.5, window: float = 8.0,
                 max_rise: float | None = 0.5, height_threshold: float = 0.3,
                 surface: np.ndarray | None = None) -> np.ndarray:
@@ -218,55 +132,12 @@ def crop_mask(points: np.ndarray, *, min_range: float | None = 3.0, max_range: f
     return keep & np.isfinite(p).all(axis=1)
 
 
-@dataclass(frozen=True)
-class Preprocess:
-    """Per-scan preprocessing settings (the paper's protocol by default)."""
-
-    min_range: float | None = 3.0       # m, horizontal distance to the sensor
-    max_range: float | None = 50.0
-    max_height: float | None = 4.0      # m above the local ground surface
-    remove_ground: bool = True
-    ground_cell: float = 0.5            # m, grid cell of the lowest-point map
-    ground_window: float = 8.0          # m, opening window (wider than the largest object)
-    ground_threshold: float = 0.3       # m above the ground surface still counted as ground
-    ground_max_rise: float | None = 0.5  # m the surface may rise above the fitted plane (None: no cap)
-    # m: without max_range, only points this close (horizontally) build the ground grid; farther
-    # ones have no ground height (never ground; dropped by the max_height crop)
-    ground_max_distance: float = 200.0
-    # m under the robust reference height (ground_outliers.py) below which a point is an outlier
-    # (multipath), and m above the sensor above which it is one; None: no such test
-    outlier_below: float | None = 1.0
-    outlier_above: float | None = 20.0
-
-    def __post_init__(self) -> None:
-        for name in ("min_range", "max_range", "max_height", "outlier_below", "outlier_above"):
-            v = getattr(self, name)
-            if v is not None and not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0 (or None), got {v}")
-        if self.min_range is not None and self.max_range is not None and self.min_range >= self.max_range:
-            raise ValueError(f"min_range ({self.min_range}) must be below max_range ({self.max_range})")
-        for name in ("ground_cell", "ground_window", "ground_threshold", "ground_max_distance"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {v}")
-        _check_ground_args(self.ground_cell, self.ground_window, self.grid_distance)
-
-    @property
-    def grid_distance(self) -> float:
-        """Horizontal distance (m) of the points that build the ground grid: the range crop plus
-        one window (so the opening near the crop edge sees the same neighbourhood), the crop
-        first, so far-away points cannot blow the grid up."""
-        if self.max_range is None:
-            return self.ground_max_distance
-        return self.max_range + self.ground_window
-
-
 def preprocess_mask(points_sensor: np.ndarray, settings: Preprocess = Preprocess(), device=None) -> np.ndarray:
     """(N,) bool of the points of one scan (in its sensor frame, z up) kept by ``settings``.
 
     ``device`` None or "cpu": the compiled CPU op (:func:`floxels_ext.ops.lidar_keep_mask`, a few
     ms a 200k-point scan, without the GIL); a CUDA device: the grid work there
-    (:func:`floxels_ext.lidar.preprocess_torch.preprocess_mask_torch`). Both give the masks of
+    (:func:`floxels_ext.lidar.preprocess.masks_torch.preprocess_mask_torch`). Both give the masks of
     :func:`preprocess_mask_numpy`, the reference (tests compare them)."""
     if device is not None and str(device) != "cpu":
         return preprocess_classes(points_sensor, settings, device) == KEPT
@@ -280,7 +151,7 @@ def preprocess_classes(points_sensor: np.ndarray, settings: Preprocess = Preproc
     :data:`GROUND`, :data:`OUTLIER`; ``== KEPT`` is :func:`preprocess_mask`. Devices as there;
     reference: :func:`preprocess_classes_numpy`."""
     if device is not None and str(device) != "cpu":
-        from floxels_ext.lidar.preprocess_torch import preprocess_classes_torch
+        from floxels_ext.lidar.preprocess.masks_torch import preprocess_classes_torch
 
         return preprocess_classes_torch(points_sensor, settings, device)
     from floxels_ext.ops.lidar import lidar_point_classes

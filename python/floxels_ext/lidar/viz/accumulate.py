@@ -87,16 +87,16 @@ def accumulate(points: list, flows: list, reference: int, *, mode: str = "consta
 
 
 def _run_frames(run_dir: Path) -> list[Path]:
-    from floxels_ext.lidar.outputs import run_outputs
+    from floxels_ext.lidar.io.outputs import run_outputs
 
     return run_outputs(run_dir)
 
 
 def load_run_frame(path: Path) -> dict:
-    """One ``floxels run`` output (:func:`floxels_ext.lidar.outputs.read_flow_output`, points included:
+    """One ``floxels run`` output (:func:`floxels_ext.lidar.io.outputs.read_flow_output`, points included:
     stored or read back from the source file); errors name the file."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import OutputError, read_flow_output
+    from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
 
     try:
         return read_flow_output(path)

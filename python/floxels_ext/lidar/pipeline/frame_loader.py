@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from floxels_ext.lidar.preprocess import transform_points
+from floxels_ext.lidar.preprocess.transform import transform_points
 
 __all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "LoaderPools", "FrameLoader", "ChunkScans"]
 
@@ -95,8 +95,10 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
     frame; the file's ``pose`` locates the sensor for cropping)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
-    from floxels_ext.lidar.outputs import points_crc32
-    from floxels_ext.lidar.preprocess import KEPT, host_rows, preprocess_classes
+    from floxels_ext.lidar.io.outputs import points_crc32
+    from floxels_ext.lidar.preprocess.masks import preprocess_classes
+    from floxels_ext.lidar.preprocess.settings import KEPT
+    from floxels_ext.lidar.preprocess.transform import host_rows
     from floxels_ext.ops.lidar import lidar_select
 
     path = seq.frames[i].path
@@ -285,7 +287,7 @@ class LoaderPools:
         workers = max(1, workers)
         self.kind, self.fixed = kind, init_kwargs is not None
         if kind == "process":
-            from floxels_ext.lidar.worker_processes import process_pool
+            from floxels_ext.lidar.pipeline.worker_processes import process_pool
 
             self.read = process_pool(workers, _init_process, (init_kwargs,))
         else:
@@ -302,7 +304,7 @@ class LoaderPools:
 class FrameLoader:
     """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
     processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
-    host work; started at construction, see :mod:`floxels_ext.lidar.worker_processes`).
+    host work; started at construction, see :mod:`floxels_ext.lidar.pipeline.worker_processes`).
     ``pools``: shared :class:`LoaderPools` (a dataset's sequences), which :meth:`close` leaves open."""
 
     def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["parse_options", "parse_frames", "check_args", "check_out_dir", "check_resume", "reader_plan"]
+__all__ = ["parse_options", "parse_frame_range", "parse_frames", "check_args", "method_options",
+           "preprocess_settings", "apply_cpu_default", "check_out_dir", "check_resume", "reader_plan"]
 
 
 def parse_options(items: list[str], max_iters: int | None, config: type | None) -> dict:
@@ -42,10 +43,29 @@ def parse_options(items: list[str], max_iters: int | None, config: type | None) 
     return opts
 
 
+def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
+    """``--frames`` (A:B, A:, :B or A; Python slice semantics) as a [start, stop) range of n frames."""
+    from floxels_ext.cli import CLIError
+
+    if not text:
+        return 0, n
+    try:
+        if ":" in text:
+            a, b = text.split(":", 1)
+            sl = slice(int(a) if a.strip() else None, int(b) if b.strip() else None)
+        else:
+            k = int(text)
+            sl = slice(k, k + 1 if k != -1 else None)
+    except ValueError:
+        raise CLIError(f"--frames expects A:B, A:, :B or A (integers), got {text!r}") from None
+    start, stop, _ = sl.indices(n)
+    if stop <= start:
+        raise CLIError(f"--frames {text} selects no frame of the {n}")
+    return start, stop
+
+
 def parse_frames(text: str | None, n: int) -> list[int]:
     """``--frames`` as the list of selected frame indices (the dataset path's range, listed)."""
-    from floxels_ext.lidar.dataset import parse_frame_range
-
     start, stop = parse_frame_range(text, n)
     return list(range(start, stop))
 
@@ -72,9 +92,9 @@ def resolve_preset(args) -> dict:
 def check_args(args, torch):
     """Validate the plain arguments; returns (device, options). Raises CLIError."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.methods import available_methods, get_method
+    from floxels_ext.methods import available_methods
 
-    preset_fields = resolve_preset(args)
+    resolve_preset(args)
     if not args.input or not args.out:
         raise CLIError("floxels run needs INPUT and --out OUT_DIR")
     if args.method not in available_methods():
@@ -98,6 +118,19 @@ def check_args(args, torch):
         raise CLIError("--device cuda requested but no CUDA device is available")
     if args.preprocess_device == "cuda" and not torch.cuda.is_available():
         raise CLIError("--preprocess-device cuda requested but no CUDA device is available")
+    return device, method_options(args)
+
+
+def method_options(args) -> dict:
+    """The method's options as the outputs record them (``--option``, ``--max-iters``, the
+    preset, the window, the motion evidence), checked; no device needed, so the dataset driver
+    compares resumes with them too. Raises CLIError."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.methods import available_methods, get_method
+
+    preset_fields = resolve_preset(args)
+    if args.method not in available_methods():
+        raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
     options = parse_options(args.option, args.max_iters, get_method(args.method).config)
     if "num_scans" in options and options["num_scans"] != args.scans:
         raise CLIError(f"--option num_scans={options['num_scans']} contradicts --scans {args.scans}; "
@@ -114,7 +147,32 @@ def check_args(args, torch):
             FloxelsConfig(**options)
         except (TypeError, ValueError) as e:
             raise CLIError(f"bad --option for floxels: {e}") from None
-    return device, options
+    return options
+
+
+def preprocess_settings(args):
+    """The per-scan preprocessing (``Preprocess``) of the run's options; CLIError when they
+    contradict each other. One definition for one sequence and a dataset."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.preprocess.settings import Preprocess
+
+    try:
+        return Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
+                          remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
+                          ground_window=args.ground_window, ground_threshold=args.ground_threshold,
+                          outlier_below=args.outlier_below, outlier_above=args.outlier_above)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+
+
+def apply_cpu_default(args, device: str, report=None) -> None:
+    """On the CPU, torch's threads as every command's CPU work sets them
+    (:func:`floxels_ext.cpu_threads.apply_cpu_threads`), unless a Ray worker has set them to the
+    CPUs it was given (``args.cpu_limit``). ``report(msg)`` says what was chosen."""
+    if device == "cpu" and not getattr(args, "cpu_limit", None):
+        from floxels_ext.cpu_threads import apply_cpu_threads
+
+        apply_cpu_threads(report)
 
 
 def check_out_dir(out: Path, seq) -> None:
@@ -134,13 +192,13 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
                  report=None) -> list[int]:
     """Frames to estimate: those without an output, those whose output cannot be read
     (truncated by a crash, not an output), those whose inputs changed since they were written
-    (``inputs``: ``{frame: JSON record}`` of :func:`floxels_ext.lidar.resume.input_records`), and
+    (``inputs``: ``{frame: JSON record}`` of :func:`floxels_ext.lidar.pipeline.resume.input_records`), and
     (with --force) all. An output written with other settings (method, options, preprocessing,
     poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
     carry no input record: they count as done, and ``report`` says so."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import read_resume_record, settings_mismatch
-    from floxels_ext.lidar.resume import inputs_diff
+    from floxels_ext.lidar.io.outputs import read_resume_record, settings_mismatch
+    from floxels_ext.lidar.pipeline.resume import inputs_diff
 
     if force:
         return list(selected)

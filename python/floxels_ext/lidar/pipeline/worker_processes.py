@@ -15,7 +15,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 __all__ = ["process_pool"]
 
-_PRELOAD = ["floxels_ext.lidar.frame_loader", "floxels_ext.lidar.frame_writer"]
+_PRELOAD = ["floxels_ext.lidar.pipeline.frame_loader", "floxels_ext.lidar.pipeline.frame_writer"]
 
 
 def _init(initializer, initargs) -> None:

@@ -10,11 +10,11 @@ threads and writers serves every sequence, and the method gets one stream of tar
 laid end to end in one index space.
 
 * A segment is one chunk of one sequence, exactly as the plain run cuts it
-  (:func:`floxels_ext.lidar.pipeline.plan_chunks`: ``--chunk`` targets and their support
+  (:func:`floxels_ext.lidar.pipeline.estimate_loop.plan_chunks`: ``--chunk`` targets and their support
   scans, moved into one world frame re-centred on the chunk's first readable frame), so every
   window, anchor and flow equals the plain run's; windows never leave their segment, so no
   window mixes frames of two sequences, while a batch of the optimiser may hold targets of
-  both sides of a sequence end (``dataset_layout``: the segments, the scans, the targets).
+  both sides of a sequence end (``layout``: the segments, the scans, the targets).
 * Sequences are opened (files listed, poses, resume) one ahead on a thread of their own
   (``source``: an iterator of :class:`SeqJob`, :class:`Ahead`), and the read-ahead runs
   across sequence ends: the next sequence's first frames are read while the method still
@@ -36,9 +36,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from floxels_ext.lidar.dataset_layout import Layout, StreamScans, Targets
-from floxels_ext.lidar.frame_loader import FrameLoader
-from floxels_ext.lidar.pipeline import GIL_SWITCH_INTERVAL, EstimationError
+from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
+from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
+from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError
 
 __all__ = ["SeqJob", "Ahead", "run_stream"]
 

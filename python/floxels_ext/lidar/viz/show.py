@@ -1,7 +1,7 @@
 """``floxels show``: bird's-eye view of one ``floxels run`` output, and optionally a rerun
 recording (``pip install 'floxels_ext[viz]'``).
 
-With matplotlib (extra ``viz``) the picture is :func:`floxels_ext.lidar.flow_plot.plot_flow_bev`:
+With matplotlib (extra ``viz``) the picture is :func:`floxels_ext.lidar.viz.flow_plot.plot_flow_bev`:
 metres on the axes, a scale bar, moving points coloured by direction and speed (colour
 wheel), moving objects boxed with their speeds, zoom panels on them. Without matplotlib a
 plain raster (:func:`render_frame`) is written instead: optimised points coloured by height,
@@ -22,7 +22,7 @@ __all__ = ["add_parser", "run", "render_frame", "direction_wheel"]
 
 def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.ndarray:
     """Draw the heading colour legend (same mapping as ``viz.bev_image``) in the top-right corner."""
-    from floxels_ext.lidar.viz import hsv_to_rgb
+    from floxels_ext.lidar.viz.bev_png import hsv_to_rgb
 
     h, w, _ = img.shape
     r = min(radius, (min(h, w) - 2 * margin) // 2)
@@ -42,7 +42,7 @@ def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.nd
 def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, center=None,
                  flow_scale: float = 1.0, legend: bool = True) -> np.ndarray:
     """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask)."""
-    from floxels_ext.lidar.viz import BACKGROUND, bev_image
+    from floxels_ext.lidar.viz.bev_png import BACKGROUND, bev_image
 
     pts = np.asarray(data["points"], np.float64)
     ok = np.isfinite(pts).all(1)
@@ -101,7 +101,7 @@ def add_parser(sub) -> None:
 
 
 def _resolve(target: str, frame: str) -> Path:
-    from floxels_ext.lidar.accumulate import _run_frames
+    from floxels_ext.lidar.viz.accumulate import _run_frames
     from floxels_ext.cli import CLIError
 
     t = Path(target)
@@ -137,18 +137,18 @@ def write_rerun(path: Path, data: dict, name: str) -> None:
     if moving.any():
         v = flow[moving]
         hue = (np.arctan2(v[:, 1], v[:, 0]) + math.pi) / (2 * math.pi)
-        from floxels_ext.lidar.viz import hsv_to_rgb
+        from floxels_ext.lidar.viz.bev_png import hsv_to_rgb
 
         rgb = (hsv_to_rgb(hue, np.ones_like(hue), np.ones_like(hue)) * 255).astype(np.uint8)
         rr.log(f"{name}/flow", rr.Arrows3D(origins=pts[moving], vectors=v, colors=rgb))
 
 
 def load_flow_output(path: Path) -> dict:
-    """One ``floxels run`` output (:func:`floxels_ext.lidar.outputs.read_flow_output`: ``points``,
+    """One ``floxels run`` output (:func:`floxels_ext.lidar.io.outputs.read_flow_output`: ``points``,
     ``flow``, ``mask``, ``dynamic``, ...); anything else is a CLIError saying the file is not a
     floxels flow output and why."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import OutputError, read_flow_output
+    from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
 
     path = Path(path)
     not_output = f"{path}: not a floxels flow output (expected a .npz written by 'floxels run'"
@@ -167,7 +167,7 @@ def load_flow_output(path: Path) -> dict:
 def run(args: argparse.Namespace) -> int:
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
-    from floxels_ext.lidar.viz import write_png
+    from floxels_ext.lidar.viz.bev_png import write_png
     from floxels_ext.output_paths import check_output_file
 
     path = _resolve(args.target, args.frame)
@@ -186,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
     png = check_output_file(args.png if args.png else f"{path.stem}.png", "--png", f"{path.stem}.png")
     n_mov = int(data["dynamic"].sum())
     try:
-        from floxels_ext.lidar.flow_plot import plot_flow_bev
+        from floxels_ext.lidar.viz.flow_plot import plot_flow_bev
 
         if center is None:
             center = _default_center(data["points"])

@@ -1,9 +1,9 @@
 """Writing ``floxels run``'s outputs: :class:`FrameOutput` turns one estimated frame into its
-``.npz`` (layout: :data:`floxels_ext.lidar.outputs.OUTPUT`), :class:`WriterPool` runs it on
+``.npz`` (layout: :data:`floxels_ext.lidar.io.outputs.OUTPUT`), :class:`WriterPool` runs it on
 writer threads or processes while the optimiser goes on.
 
 Threads by default: an output is written in a few ms, mostly without the GIL (the flow math in
-one op, the ``.npz`` written directly: :func:`floxels_ext.lidar.outputs.write_output`), and
+one op, the ``.npz`` written directly: :func:`floxels_ext.lidar.io.outputs.write_output`), and
 writer processes (``--worker-kind process``: a GIL of their own, each frame pickled across as
 ~1.5 MB) were slower on the hosts measured (bench/RESULTS.md). Outputs are identical either way.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from floxels_ext.lidar.outputs import write_output
+from floxels_ext.lidar.io.outputs import write_output
 
 __all__ = ["FrameOutput", "WriterPool", "DRAIN_WRITERS"]
 
@@ -99,7 +99,7 @@ class WriterPool:
     (``"process"``); ``put`` blocks while ``depth`` results wait (flat memory). Frames are
     independent files, written atomically, so their order does not matter; a failed write
     fails its frame (``failures``), not the run. Processes start at construction
-    (:mod:`floxels_ext.lidar.worker_processes`). A dataset's sequences share one pool: each
+    (:mod:`floxels_ext.lidar.pipeline.worker_processes`). A dataset's sequences share one pool: each
     ``put`` then names its sequence's ``write_one`` and an ``on_done(i, error)`` callback (on a
     writer thread; ``error`` None when written)."""
 
@@ -112,7 +112,7 @@ class WriterPool:
         workers = max(1, workers)
         self.drain = max(workers, drain or 0)  # threads writing what is queued at close
         if kind == "process":
-            from floxels_ext.lidar.worker_processes import process_pool
+            from floxels_ext.lidar.pipeline.worker_processes import process_pool
 
             self._slots = threading.BoundedSemaphore(depth)
             self.pool = process_pool(workers, _child_init, (write_one,))

@@ -1,4 +1,4 @@
-"""One sequence of ``floxels run DATASET`` in the shared pipeline (``dataset_stream``): opening
+"""One sequence of ``floxels run DATASET`` in the shared pipeline (``stream``): opening
 it as the plain ``floxels run SEQ --frames A:B`` does (frames, poses, resume, output metadata;
 the same checks, the same files) and, once its frames are done, its ``run_summary.json`` and
 failure lines, as the plain run writes them.
@@ -15,9 +15,9 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from floxels_ext.lidar.dataset_stream import SeqJob
+from floxels_ext.lidar.dataset.stream import SeqJob
 
-__all__ = ["DatasetContext", "open_sequence", "write_sequence_summary", "failure_lines"]
+__all__ = ["DatasetContext", "open_sequence", "resume_todo", "write_sequence_summary", "failure_lines"]
 
 
 @dataclass
@@ -37,23 +37,58 @@ class DatasetContext:
 
 
 def open_sequence(task, ctx: DatasetContext) -> SeqJob:
-    """The job of ``task`` (``dataset.Task``: a sequence's frames [start, stop) and its output
+    """The job of ``task`` (``tasks.Task``: a sequence's frames [start, stop) and its output
     directory). Raises CLIError (or the readers' errors) when the sequence cannot run; only
     this task's own temporaries are removed (tasks of one sequence may share its directory)."""
+    from floxels_ext.lidar.io.sources import absolute_sources
+    from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
+    from floxels_ext.lidar.pipeline.frame_writer import FrameOutput
+    from floxels_ext.lidar.pipeline.run_inputs import next_pose_reader, output_meta
+
+    args = ctx.args
+    st = _resume_state(task, args, ctx.options, ctx.settings, ctx.report, sweep=True)
+    seq, todo = st["seq"], st["todo"]
+    meta = output_meta(args, ctx.options, st["settings"], seq)
+    write_one = FrameOutput(out_path=st["out_path"], sources=absolute_sources(seq, todo), stamps=st["stamps"],
+                            meta=meta, dynamic_threshold=args.dynamic_threshold, compress=args.compress,
+                            self_contained=args.self_contained, inputs=st["inputs"])
+    loader = FrameLoader(seq, ctx.settings, st["poses"], st["pose_mode"], ctx.report, pools=ctx.pools,
+                         pre_device=ctx.pre_device, keep_points=args.self_contained, stages=ctx.stages,
+                         warn=lambda m: ctx.report(f"floxels: warning: {m}"))
+
+    next_pose = next_pose_reader(seq, st["pose_mode"], st["poses"], loader)
+
+    info = {"out": st["out"], "selected": st["selected"], "skipped": len(st["selected"]) - len(todo),
+            "settings": st["settings"], "task": task}
+    return SeqJob(label=task.label, seq=seq, loader=loader, todo=todo, write_one=write_one, next_pose=next_pose,
+                  times_s=st["times_s"], info=info)
+
+
+def resume_todo(task, args, options: dict, settings) -> list[str]:
+    """The names of ``task``'s frames to estimate by the check :func:`open_sequence` (and
+    ``floxels run SEQ``) makes: outputs missing, unreadable, written from other inputs (their
+    window's scans, poses or times changed: ``pipeline/resume.py``), or all with --force. Said
+    nothing; raises as :func:`open_sequence` does (other settings: CLIError). The driver asks it
+    for the tasks whose outputs all exist, which it would otherwise skip unchecked."""
+    st = _resume_state(task, args, options, settings, lambda msg: None, sweep=False)
+    return [st["seq"].frames[i].name for i in st["todo"]]
+
+
+def _resume_state(task, args, options: dict, settings, report, *, sweep: bool) -> dict:
+    """The sequence of ``task`` opened as the plain run opens one (frames, output directory,
+    poses, times, settings) and the frames left to do; ``sweep``: remove this task's own
+    temporaries first."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.frame_loader import FrameLoader
-    from floxels_ext.lidar.frame_writer import FrameOutput
     from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.io.outputs import cleanup_temps
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
-    from floxels_ext.lidar.outputs import cleanup_temps
-    from floxels_ext.lidar.resume import input_records
-    from floxels_ext.lidar.io.sources import absolute_sources
-    from floxels_ext.lidar.run_args import check_out_dir, check_resume
-    from floxels_ext.lidar.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
-    from floxels_ext.lidar.run_inputs import run_settings as run_settings_of
+    from floxels_ext.lidar.pipeline.resume import input_records
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, check_resume
+    from floxels_ext.lidar.pipeline.run_inputs import frame_times, resolve_poses
+    from floxels_ext.lidar.pipeline.run_inputs import run_settings as run_settings_of
 
-    args, spec = ctx.args, task.seq
+    spec = task.seq
     out = Path(task.out_dir)
     try:
         seq = discover_input(spec.path, poses_file=spec.poses, calib=spec.calib, bin_columns=args.bin_columns,
@@ -61,33 +96,23 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
         check_out_dir(out, seq)
         selected = list(range(task.start, min(task.stop, len(seq))))
         out.mkdir(parents=True, exist_ok=True)
-        cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
+        if sweep:
+            cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
         args_seq = _with(args, poses=str(spec.poses) if spec.poses else None,
                          calib=str(spec.calib) if spec.calib else None)
-        pose_mode, poses = resolve_poses(seq, args_seq, out, ctx.report)
+        pose_mode, poses = resolve_poses(seq, args_seq, out, report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    run_settings = run_settings_of(args, ctx.options, ctx.settings, pose_mode, seq)
+    run_settings = run_settings_of(args, options, settings, pose_mode, seq)
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
     stamps = [f.timestamp_ns for f in seq.frames]
-    times_s, _ = frame_times(seq, stamps, ctx.report)
-    # what each frame's output depends on, recorded and compared as by floxels run (lidar/resume.py)
+    times_s, _ = frame_times(seq, stamps, report)
+    # what each frame's output depends on, recorded and compared as by floxels run (lidar/pipeline/resume.py)
     inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
-    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=ctx.report)
-    meta = output_meta(args, ctx.options, run_settings, seq)
-    write_one = FrameOutput(out_path=out_path, sources=absolute_sources(seq, todo), stamps=stamps, meta=meta,
-                            dynamic_threshold=args.dynamic_threshold, compress=args.compress,
-                            self_contained=args.self_contained, inputs=inputs)
-    loader = FrameLoader(seq, ctx.settings, poses, pose_mode, ctx.report, pools=ctx.pools, pre_device=ctx.pre_device,
-                         keep_points=args.self_contained, stages=ctx.stages,
-                         warn=lambda m: ctx.report(f"floxels: warning: {m}"))
-
-    next_pose = next_pose_reader(seq, pose_mode, poses, loader)
-
-    info = {"out": out, "selected": selected, "skipped": len(selected) - len(todo), "settings": run_settings,
-            "task": task}
-    return SeqJob(label=task.label, seq=seq, loader=loader, todo=todo, write_one=write_one, next_pose=next_pose,
-                  times_s=times_s, info=info)
+    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=report)
+    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses,
+            "settings": run_settings, "out_path": out_path, "stamps": stamps, "times_s": times_s,
+            "inputs": inputs, "todo": todo}
 
 
 def _with(args, **changes):

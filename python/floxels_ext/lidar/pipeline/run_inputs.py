@@ -46,8 +46,8 @@ def resolve_poses(seq, args, out: Path, report):
 def odometry_poses(seq, out: Path, report, verbosity: int = 0) -> np.ndarray:
     from floxels_ext.lidar.io import read_poses
     from floxels_ext.lidar.io.poses import PoseFormatError
-    from floxels_ext.lidar.odometry import kiss_icp_poses
-    from floxels_ext.lidar.progress import Progress
+    from floxels_ext.lidar.preprocess.odometry import kiss_icp_poses
+    from floxels_ext.lidar.pipeline.progress import Progress
 
     cache = out / "poses_kiss_icp.txt"
     if cache.is_file():
@@ -109,7 +109,7 @@ def frame_times(seq, stamps: list, report) -> tuple[list[float] | None, str | No
 
 
 # What a sequence's outputs record of the run: one definition for the plain run (run.py) and
-# the dataset pipeline (dataset_sequence.py), so a resume compares like with like.
+# the dataset pipeline (dataset/sequence.py), so a resume compares like with like.
 
 def run_settings(args, options: dict, settings, pose_mode: str, seq) -> dict:
     """The settings an output was computed with (``settings`` in every frame; a resume with
@@ -124,10 +124,10 @@ def run_settings(args, options: dict, settings, pose_mode: str, seq) -> dict:
 
 
 def output_meta(args, options: dict, settings: dict, seq) -> dict:
-    """The fields every output frame of a sequence carries besides its own (lidar/outputs.py)."""
+    """The fields every output frame of a sequence carries besides its own (lidar/io/outputs.py)."""
     import json
 
-    from floxels_ext.lidar.outputs import FORMAT_VERSION
+    from floxels_ext.lidar.io.outputs import FORMAT_VERSION
 
     return {"method": np.str_(args.method), "num_scans": np.int32(args.scans),
             "options": np.str_(json.dumps(options, default=str)),

@@ -1,12 +1,12 @@
 """``floxels run DATASET --out OUT [--ray [auto|ADDRESS]]``: every sequence of a dataset through
-one pipeline here (``dataset_worker``) or through one per worker on a Ray cluster (``ray_runner``).
+one pipeline here (``worker``) or through one per worker on a Ray cluster (``ray_runner``).
 
 ``floxels_ext.lidar.run`` calls two functions of this module: ``add_dataset_arguments(parser)`` while
 building its parser and ``maybe_run_dataset(args)`` first thing in ``run(args)``; the latter
 returns None when INPUT is one sequence and ``--ray`` is not given (the plain run goes on).
 
 A task is a sequence's frames ``[A, B)`` with the user's other options: its outputs are those
-of ``floxels run SEQ --out OUT/<rel> --frames A:B`` (``dataset_sequence`` opens it with the
+of ``floxels run SEQ --out OUT/<rel> --frames A:B`` (``sequence`` opens it with the
 plain run's checks, windows and metadata). Output files are written atomically under temporary
 names ``.<frame>.npz.<pid>.tmp``; several tasks of one sequence may share an output directory,
 so a task removes only the temporaries of its own frames (left by an earlier, killed attempt),
@@ -100,7 +100,7 @@ def _check_options(args, dataset: bool) -> None:
 def maybe_run_dataset(args) -> int | None:
     """Runs a dataset (or one sequence through Ray); None when the plain run should handle INPUT."""
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.dataset import SequenceSpec, discover_dataset, plan_tasks
+    from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 
     if getattr(args, "list_methods", False) or not args.input or not args.out:
         return None
@@ -113,7 +113,7 @@ def maybe_run_dataset(args) -> int | None:
             return None
         specs = [SequenceSpec(Path(args.input).resolve(), Path("."),
                               Path(args.poses) if args.poses else None, Path(args.calib) if args.calib else None)]
-    from floxels_ext.lidar.run_args import resolve_preset
+    from floxels_ext.lidar.pipeline.run_args import resolve_preset
 
     resolve_preset(args)  # --scans from the preset when not given
     if not 2 <= args.scans <= 13:
@@ -131,21 +131,43 @@ def maybe_run_dataset(args) -> int | None:
     for t in tasks:  # what is left to do (the run skips written frames the same way)
         t.todo = list(t.names) if args.force else \
             [n for n in t.names if not (t.out_dir / f"{n}.npz").is_file()]
+    _check_written_tasks([t for t in tasks if not t.todo], args)
     common = common_options(args)
     if args.ray is not None:
-        from floxels_ext.lidar.ray_runner import run_on_ray
+        from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
         return run_on_ray(tasks, args, common, n_sequences=len(specs))
     return _run_here(tasks, args, common, n_sequences=len(specs))
 
 
+def _check_written_tasks(tasks, args) -> None:
+    """Tasks whose outputs all exist get the resume check of ``floxels run SEQ``
+    (``sequence.resume_todo``): outputs written from other inputs (their window's scans, poses
+    or times changed since) are estimated again. A task that cannot be checked (other settings,
+    unreadable poses) goes to the workers, whose ``open_sequence`` fails it with the reason."""
+    if not tasks:
+        return
+    from floxels_ext.cli import CLIError
+    from floxels_ext.evaluation.seqio import SequenceFormatError
+    from floxels_ext.lidar.dataset.sequence import resume_todo
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.pipeline.run_args import method_options, preprocess_settings
+
+    options, settings = method_options(args), preprocess_settings(args)  # what the workers' check_args gives
+    for t in tasks:
+        try:
+            t.todo = resume_todo(t, args, options, settings)
+        except (CLIError, SequenceFormatError, MissingDependencyError, OSError, ValueError):
+            t.todo = list(t.names)
+
+
 def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
-    """Every sequence through one pipeline in this process (``dataset_worker.run_tasks``), with
+    """Every sequence through one pipeline in this process (``worker.run_tasks``), with
     one progress bar for the dataset."""
     import time
 
-    from floxels_ext.lidar.dataset_worker import run_tasks
-    from floxels_ext.lidar.progress import DatasetProgress
+    from floxels_ext.lidar.dataset.worker import run_tasks
+    from floxels_ext.lidar.pipeline.progress import DatasetProgress
 
     verbosity = int(getattr(args, "verbosity", 0) or 0)
     total = sum(len(t.names) for t in tasks)

@@ -1,10 +1,10 @@
 """The per-scan preprocessing of :mod:`floxels_ext.lidar.preprocess` in torch, for the GPU.
 
-Same steps, same float64 arithmetic, same masks as :func:`floxels_ext.lidar.preprocess.preprocess_mask`
+Same steps, same float64 arithmetic, same masks as :func:`floxels_ext.lidar.preprocess.masks.preprocess_mask`
 (tests run both on CPU tensors and compare): the lowest-point map is a ``scatter_reduce``
 (amin), the min/max filters of the morphological opening are ``max_pool2d`` (its implicit -inf
 padding is the numpy path's constant border), and the two steps on the small grid run in numpy
-on a copy (the outliers' block references, :mod:`floxels_ext.lidar.ground_outliers`, and the
+on a copy (the outliers' block references, :mod:`floxels_ext.lidar.preprocess.ground_outliers`, and the
 trimmed plane fit), so both paths pick the same references and fit exactly the same plane. Per 200k-point scan
 the host path costs tens of ms of one core; this moves the per-point work to the device.
 """
@@ -15,9 +15,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from floxels_ext.lidar.ground_outliers import block_cells, ground_reference
-from floxels_ext.lidar.preprocess import (CROPPED, GROUND, KEPT, MAX_GROUND_CELLS, OUTLIER, Preprocess, _plane_cap,
-                                          _window_cells)
+from floxels_ext.lidar.preprocess.ground_outliers import block_cells, ground_reference
+from floxels_ext.lidar.preprocess.ground_plane import _plane_cap
+from floxels_ext.lidar.preprocess.settings import (CROPPED, GROUND, KEPT, MAX_GROUND_CELLS, OUTLIER, Preprocess,
+                                                   _window_cells)
 
 __all__ = ["preprocess_mask_torch", "preprocess_classes_torch"]
 
@@ -68,13 +69,13 @@ def _opened_surface(q: torch.Tensor, settings: Preprocess):
 
 
 def preprocess_mask_torch(points_sensor, settings: Preprocess = Preprocess(), device="cpu") -> np.ndarray:
-    """:func:`floxels_ext.lidar.preprocess.preprocess_mask` computed with torch on ``device``;
+    """:func:`floxels_ext.lidar.preprocess.masks.preprocess_mask` computed with torch on ``device``;
     ``points_sensor`` a numpy array or tensor (N, 3). Returns a numpy (N,) bool array."""
     return preprocess_classes_torch(points_sensor, settings, device) == KEPT
 
 
 def preprocess_classes_torch(points_sensor, settings: Preprocess = Preprocess(), device="cpu") -> np.ndarray:
-    """:func:`floxels_ext.lidar.preprocess.preprocess_classes` computed with torch on ``device``;
+    """:func:`floxels_ext.lidar.preprocess.masks.preprocess_classes` computed with torch on ``device``;
     returns a numpy (N,) uint8 array."""
     p = torch.as_tensor(np.asarray(points_sensor) if not torch.is_tensor(points_sensor) else points_sensor)
     p = p.to(device=device).to(torch.float64)  # copy as stored (float32: half the bytes), widen there

@@ -25,7 +25,7 @@ import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks", "parse_frame_range",
+__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks",
            "MAX_DEPTH"]
 
 MAX_DEPTH = 4  # KITTI's dataset/sequences/NN/velodyne is depth 3
@@ -41,7 +41,8 @@ class SequenceSpec:
 
 @dataclass
 class Task:
-    """Frames [start, stop) of one sequence; ``names`` are their output stems, ``todo`` those not written yet."""
+    """Frames [start, stop) of one sequence; ``names`` are their output stems, ``todo`` those to
+    estimate (not written yet, or written from inputs that changed since: the resume check)."""
 
     seq: SequenceSpec
     out_dir: Path
@@ -187,27 +188,6 @@ def discover_dataset(input_path, out=None, patterns: list[str] | None = None) ->
     return sorted(specs, key=lambda s: s.rel.as_posix())
 
 
-def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
-    """``--frames`` (A:B, A:, :B or A; Python slice semantics) as a [start, stop) range of n frames."""
-    from floxels_ext.cli import CLIError
-
-    if not text:
-        return 0, n
-    try:
-        if ":" in text:
-            a, b = text.split(":", 1)
-            sl = slice(int(a) if a.strip() else None, int(b) if b.strip() else None)
-        else:
-            k = int(text)
-            sl = slice(k, k + 1 if k != -1 else None)
-    except ValueError:
-        raise CLIError(f"--frames expects A:B, A:, :B or A (integers), got {text!r}") from None
-    start, stop, _ = sl.indices(n)
-    if stop <= start:
-        raise CLIError(f"--frames {text} selects no frame of the {n}")
-    return start, stop
-
-
 def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, align: int = 1
                ) -> tuple[list[Task], list[str]]:
     """Lists every sequence's frames (as ``floxels run`` will) and cuts them into tasks of at most
@@ -217,6 +197,7 @@ def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, 
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
+    from floxels_ext.lidar.pipeline.run_args import parse_frame_range
 
     tasks: list[Task] = []
     problems: list[str] = []

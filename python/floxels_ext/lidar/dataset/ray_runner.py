@@ -2,9 +2,9 @@
 ``--gpus-per-task`` share, or per ``--cpus-per-task`` CPUs on a CPU cluster).
 
 Each worker is a Ray actor (:class:`FloxelsWorker`) that keeps its process, its CUDA context,
-the loaded extension and one pipeline (``dataset_worker.run_tasks``: readers, writers and the
+the loaded extension and one pipeline (``worker.run_tasks``: readers, writers and the
 method's stream) for the whole job, so Ray's and CUDA's start are paid once per worker, not
-per task. Workers pull tasks (``dataset.Task``: a sequence, or a frame range of a long one)
+per task. Workers pull tasks (``tasks.Task``: a sequence, or a frame range of a long one)
 from a :class:`Dispatcher` actor that the driver starts; a worker asks for the next task as
 its read-ahead reaches the end of the current one, so the pipeline never drains between
 tasks. Input and output must be on storage every node sees at the same path.
@@ -90,6 +90,20 @@ def _resources(ray, args) -> tuple[float, float, str]:
                        f"(nodes: {have}); change --gpus-per-task / --cpus-per-task")
     device = "cuda" if gpus > 0 else "cpu"  # a worker sees only the GPUs Ray gave it, as cuda:0...
     return gpus, cpus, device
+
+
+def _rewrites(tasks) -> bool:
+    """Whether any frame to do already has an output (recomputed: its inputs changed)."""
+    present: dict = {}
+    for t in tasks:
+        if t.out_dir not in present:
+            try:
+                present[t.out_dir] = {e.name[:-4] for e in os.scandir(t.out_dir) if e.name.endswith(".npz")}
+            except OSError:
+                present[t.out_dir] = set()
+        if any(n in present[t.out_dir] for n in t.todo):
+            return True
+    return False
 
 
 def _count_written(task, since: float | None) -> int:
@@ -198,7 +212,7 @@ class FloxelsWorker:
 
         import ray
 
-        from floxels_ext.lidar.dataset_worker import run_tasks
+        from floxels_ext.lidar.dataset.worker import run_tasks
 
         args = task_args(common, device, self.threads)
         log: list[str] = []
@@ -236,8 +250,8 @@ class FloxelsWorker:
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.outputs import remove_temps
-    from floxels_ext.lidar.progress import DatasetProgress
+    from floxels_ext.lidar.io.outputs import remove_temps
+    from floxels_ext.lidar.pipeline.progress import DatasetProgress
 
     verbosity = int(getattr(args, "verbosity", 0) or 0)
     out_dirs = sorted({t.out_dir for t in tasks})
@@ -255,7 +269,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     ray = connect(args.ray)
     gpus, cpus, device = _resources(ray, args)
     todo = sum(len(t.todo) for t in todo_tasks)
-    since = time.time() - 1.0 if args.force else None
+    # frames whose old output is recomputed (--force, inputs changed) count once written again
+    since = time.time() - 1.0 if args.force or _rewrites(todo_tasks) else None
     nodes = _alive_nodes(ray)
     cap = task_slots(nodes, gpus, cpus)
     n_workers = max(1, min(cap if args.max_tasks is None else min(args.max_tasks, cap), len(todo_tasks)))

@@ -1,4 +1,4 @@
-"""The index space of a dataset stream (``dataset_stream``): the chunks of successive sequences
+"""The index space of a dataset stream (``stream``): the chunks of successive sequences
 laid end to end as segments (:class:`Layout`), the method's scans over it (:class:`StreamScans`:
 read and transformed ahead, across sequence ends) and its targets (:class:`Targets`).
 
@@ -16,8 +16,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from floxels_ext.lidar.pipeline import READ_AHEAD, plan_chunks, snap_anchor
-from floxels_ext.lidar.preprocess import transform_points
+from floxels_ext.lidar.pipeline.estimate_loop import READ_AHEAD, plan_chunks, snap_anchor
+from floxels_ext.lidar.preprocess.transform import transform_points
 
 __all__ = ["Layout", "StreamScans", "Targets", "TRANSFORM_AHEAD"]
 
@@ -25,7 +25,7 @@ TRANSFORM_AHEAD = 32  # as ChunkScans: two batches of windows, so the method pre
 
 
 class Segment:
-    """One chunk of one job (``dataset_stream.SeqJob``): frames ``[lo, hi)`` at stream indices
+    """One chunk of one job (``stream.SeqJob``): frames ``[lo, hi)`` at stream indices
     ``[g, g + hi - lo)``; ``segment`` is the method's view of it."""
 
     def __init__(self, job, lo: int, hi: int, g: int, targets: list[int], num_scans: int) -> None:

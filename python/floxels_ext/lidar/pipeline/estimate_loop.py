@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from floxels_ext.lidar.frame_loader import ChunkScans, FrameLoader
-from floxels_ext.lidar.frame_writer import WriterPool
+from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader
+from floxels_ext.lidar.pipeline.frame_writer import WriterPool
 
 # Python hands the GIL to a waiting thread only every "switch interval" (5 ms by default): with
 # reader and writer threads holding it for numpy work, the thread driving the GPU waited that

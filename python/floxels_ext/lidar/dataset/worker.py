@@ -3,8 +3,8 @@ and each Ray worker (``ray_runner``) run :func:`run_tasks`.
 
 The run's options are checked once (``run_args.check_args``: a mistake there is the user's and
 stops the job, CLIError); the readers, transform threads and writers are made once; the tasks
-(``dataset.Task``) are opened one ahead of the stream (``dataset_sequence.open_sequence``) and
-their frames go through ``dataset_stream.run_stream``. A task that cannot be opened (its
+(``tasks.Task``) are opened one ahead of the stream (``sequence.open_sequence``) and
+their frames go through ``stream.run_stream``. A task that cannot be opened (its
 poses, its output written with other settings) fails alone; the others go on.
 """
 
@@ -33,23 +33,20 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
 
     from floxels_ext.cli import CLIError
     from floxels_ext.evaluation.seqio import SequenceFormatError
-    from floxels_ext.lidar.dataset_sequence import DatasetContext, failure_lines, open_sequence, write_sequence_summary
-    from floxels_ext.lidar.dataset_stream import run_stream
-    from floxels_ext.lidar.frame_loader import LoaderPools, Stages, single_threaded_blas
-    from floxels_ext.lidar.frame_writer import DRAIN_WRITERS, WriterPool
+    from floxels_ext.lidar.dataset.sequence import DatasetContext, failure_lines, open_sequence, write_sequence_summary
+    from floxels_ext.lidar.dataset.stream import run_stream
+    from floxels_ext.lidar.pipeline.frame_loader import LoaderPools, Stages, single_threaded_blas
+    from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS, WriterPool
     from floxels_ext.lidar.io import MissingDependencyError
-    from floxels_ext.lidar.pipeline import EstimationError
-    from floxels_ext.lidar.preprocess import Preprocess
-    from floxels_ext.lidar.run_args import check_args, host_cores, reader_plan
+    from floxels_ext.lidar.pipeline.estimate_loop import EstimationError
+    from floxels_ext.lidar.pipeline.run_args import (apply_cpu_default, check_args, host_cores, preprocess_settings,
+                                                      reader_plan)
     from floxels_ext.methods import get_method
 
     device, options = check_args(args, torch)
-    try:
-        settings = Preprocess(min_range=args.min_range, max_range=args.max_range, max_height=args.max_height,
-                              remove_ground=not args.no_ground_removal, ground_cell=args.ground_cell,
-                              ground_window=args.ground_window, ground_threshold=args.ground_threshold)
-    except ValueError as e:
-        raise CLIError(str(e)) from None
+    # on the CPU, the threads the plain run uses (a Ray worker has set its own: args.cpu_limit)
+    apply_cpu_default(args, device, report if int(getattr(args, "verbosity", 0) or 0) > 0 else None)
+    settings = preprocess_settings(args)  # the plain run's, --outlier-below/--outlier-above included
     pre_dev, workers, writers, kind = reader_plan(args, device)
     if kind == "process" and pre_dev is not None:
         raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
