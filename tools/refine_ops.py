@@ -3,7 +3,7 @@
 Counts the ATen ops (top-level calls, as torch.profiler records them on the CPU; "not views":
 without the view and no-op ops that launch no kernel on CUDA), the
 ``floxels::`` ops, the index_put_ segment sums and the host read-backs (``aten::item`` /
-``aten::_local_scalar_dense``, ``aten::nonzero``) of one call of
+``aten::_local_scalar_dense``, ``aten::nonzero``; on CUDA also the kernels launched) of one call of
 ``floxels_ext.estimator.refine.rigid_refine`` on the synthetic passing cars of
 tests/estimator/test_refine.py, with 2, 4 and 8 support scans; and its wall time (median of 5).
 
@@ -48,11 +48,14 @@ VIEWS = {"aten::" + n for n in ("unsqueeze", "squeeze", "select", "slice", "view
                                   "movedim", "split", "chunk", "narrow", "to", "resolve_conj", "resolve_neg")}
 
 
-def count_ops(fn) -> Counter:
+def count_ops(fn, cuda: bool = False) -> Counter:
     from torch.profiler import ProfilerActivity, profile
 
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=acts) as prof:
         fn()
+        if cuda:
+            torch.cuda.synchronize()
     # top-level events only (an op's own sub-ops are not extra launches from Python)
     evs = prof.events()
     top = [e for e in evs if e.cpu_parent is None or not (e.cpu_parent.name.startswith("aten::")
@@ -65,9 +68,11 @@ def count_ops(fn) -> Counter:
             if e.name not in VIEWS or (e.name == "aten::to" and any(
                     ch.name == "aten::_to_copy" for ch in e.cpu_children)):
                 c["compute"] += 1
-    for e in evs:  # host read-backs, wherever they sit
+    for e in evs:  # host read-backs, wherever they sit; CUDA kernels (memcpy/memset left out)
         if e.name in ("aten::_local_scalar_dense", "aten::nonzero"):
             c["sync:" + e.name] += 1
+        if cuda and e.device_type == torch.autograd.DeviceType.CUDA and not e.name.startswith(("Memcpy", "Memset")):
+            c["cuda_kernels"] += 1
     return c
 
 
@@ -83,7 +88,7 @@ def main(argv=None) -> int:
     for k in args.supports:
         P, flow, lab, sup, (a, b, v) = case(k, args.device)
         res = rigid_refine(P, flow, lab, sup)  # warm-up
-        c = count_ops(lambda: rigid_refine(P, flow, lab, sup))
+        c = count_ops(lambda: rigid_refine(P, flow, lab, sup), args.device.startswith("cuda"))
         ts = []
         for _ in range(5):
             if args.device.startswith("cuda"):
@@ -98,13 +103,13 @@ def main(argv=None) -> int:
         fl = sum(n for name, n in c.items() if name.startswith("floxels::"))
         row = {"supports": len(sup), "ops": c["ops"], "compute_ops": c["compute"], "floxels_ops": fl, "index_put_": c["aten::index_put_"],
                "item": c["sync:aten::_local_scalar_dense"], "nonzero": c["sync:aten::nonzero"],
-               "ms": 1e3 * statistics.median(ts), "max_error": float(err),
+               "ms": 1e3 * statistics.median(ts), "max_error": float(err), "cuda_kernels": c["cuda_kernels"],
                "top": dict(c.most_common(12))}
         out.append(row)
         print(f"| {row['supports']} | {row['ops']} | {row['compute_ops']} | {fl} | {row['index_put_']} | {row['item']} | {row['nonzero']} | "
               f"{row['ms']:.1f} | {err:.4f} |")
     for row in out:
-        print(row["supports"], row["top"])
+        print(row["supports"], row["top"], f"CUDA kernels: {row['cuda_kernels']}" if args.device != "cpu" else "")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
     return 0
