@@ -75,6 +75,12 @@ METHODS = [
 # The peer port's readings (issue 20), one at a time and together.
 PORT = {"lr_milestones": (10, 20), "lr_gamma": 0.5, "patience": 20, "min_delta": 1e-4,
         "truncation_mode": "clamp", "cluster_loss_mean": "clustered"}
+# The accurate preset's ingredients (a field and the fields that qualify it): the rigid
+# refinement with its window limit is one ingredient
+INGREDIENTS = {k: {kk: vv for kk, vv in PRESETS["accurate"].items() if kk == k or (k, kk) == ("rigid_refine", "refine_max_supports")}
+               for k in PRESETS["accurate"] if k != "refine_max_supports"}
+INGREDIENTS = {(f"{k}={v[k]}" if len(v) == 1 else f"{k} (windows <= {v['refine_max_supports']} supports)"): v
+               for k, v in INGREDIENTS.items()}
 # (group, label, Floxels options): the paper's ablations (Tables 2-4) and the readings
 ABLATIONS = [
     ("loss", "Floxels", {}),
@@ -94,11 +100,13 @@ ABLATIONS = [
     # beyond the paper (issue 33): the "accurate" preset and each of its ingredients alone
     ("beyond", "paper", {}),
     ("beyond", "accurate (preset)", dict(PRESETS["accurate"])),
-    *[("beyond-only", f"only {k}={v}", {k: v}) for k, v in PRESETS["accurate"].items()],
+    *[("beyond-only", f"only {k}", v) for k, v in INGREDIENTS.items()],
+    ("beyond-only", "only rigid_refine, every window", {"rigid_refine": True}),
     ("beyond-only", "only velocity_search=True (not in the preset)", {"velocity_search": True}),
     ("beyond-only", "accurate + velocity_search", {**PRESETS["accurate"], "velocity_search": True}),
-    *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk != k})
-      for k in PRESETS["accurate"]],
+    *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk not in v})
+      for k, v in INGREDIENTS.items()],
+    ("beyond-loo", "accurate, rigid_refine in every window", {**PRESETS["accurate"], "refine_max_supports": 0}),
 ]
 GROUPS = sorted({g for g, _, _ in ABLATIONS})
 MAX_WINDOW = 11
