@@ -11,38 +11,19 @@ import torch
 import floxels_ext  # noqa: F401  (registers torch.ops.floxels.*)
 from floxels_ext.ops import dt_evidence, dt_residual, dt_sample
 from floxels_ext.reference import ops as ref
+from test_dt_loss import make_case as dt_loss_case
 
 ops = torch.ops.floxels
 cuda = pytest.mark.cuda
 
 
 def make_case(K, n, dtype=torch.float64, seed=0, device="cpu"):
-    """K DTs of different shapes/origins (exact EDTs and random fields, one with a size-1 axis)
-    and n points partly outside every grid, a motion, offsets, weights and a cap inside the
-    value range."""
-    g = torch.Generator().manual_seed(seed)
-    spacing = 0.25 + 0.75 * torch.rand((), generator=g).item()
-    dts, origins = [], []
-    for k in range(K):
-        Z = int(torch.randint(1, 7, (), generator=g))
-        Y = int(torch.randint(2, 9, (), generator=g))
-        X = int(torch.randint(2, 11, (), generator=g))
-        if k % 2 == 0:
-            occ = torch.rand(Z, Y, X, generator=g) < 0.08
-            occ.view(-1)[int(torch.randint(0, Z * Y * X, (), generator=g))] = True
-            d = ref.edt(occ, spacing)
-        else:
-            d = 3.0 * torch.rand(Z, Y, X, generator=g) ** 2
-        dts.append(d.to(device))
-        origins += (torch.rand(3, generator=g) * 2 - 1).tolist()
-    lo, hi = -1.5, 1.5 + 10 * spacing
-    points = lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=torch.float64)
-    motion = 0.7 * torch.randn(n, 3, generator=g, dtype=torch.float64)
-    t = (torch.rand(K, generator=g) * 2 - 1).tolist()
-    t[0] = 1.0
-    w = (0.2 + torch.rand(K, generator=g)).tolist()
-    return dict(points=points.to(dtype).to(device), motion=motion.to(dtype).to(device), dts=dts, origins=origins,
-                spacing=spacing, time_offsets=t, weights=w, cap=1.2)
+    """test_dt_loss's random case (K DTs of different shapes/origins, exact EDTs and random
+    fields; n points partly outside every grid), its flow as the motion and its truncation,
+    inside the value range, as the cap."""
+    c = dt_loss_case(K, n, dtype, seed, device)
+    c["motion"], c["cap"] = c.pop("flow"), c.pop("truncation")
+    return c
 
 
 def qargs(c):
