@@ -165,6 +165,14 @@ __device__ bool starts_group(const EvidenceParams<T>& p, int i) {
   return la != lb || (la < 0 && read_key(p.cells, i) != read_key(p.cells, i - 1));
 }
 
+// Run ends seen by point i (i < n): ``first`` = i where a group starts here, ``last`` = i where
+// one ends here; the kernels' max / min scans carry them to every point of the group.
+template <typename T>
+__device__ void mark_run_ends(const EvidenceParams<T>& p, int i, int n, int& first, int& last) {
+  if (starts_group(p, i)) first = i;
+  if (i == n - 1 || starts_group(p, i + 1)) last = i;
+}
+
 template <typename T>
 __global__ void __launch_bounds__(kThreads) evidence_values_kernel(const __grid_constant__ EvidenceParams<T> p) {
   __shared__ double sd[kThreads / 32];
@@ -187,8 +195,7 @@ __global__ void __launch_bounds__(kThreads) evidence_values_kernel(const __grid_
     o[0] = v[0];
     o[1] = v[1];
     o[2] = v[2];
-    if (starts_group(p, i)) smax = i;
-    if (i == n - 1 || starts_group(p, i + 1)) emin = i;
+    mark_run_ends(p, i, n, smax, emin);
   }
   double tot[3];
   for (int c = 0; c < 3; ++c) tot[c] = block_scan<kThreads, false>(v[c], Sum{}, 0.0, sd);
@@ -255,8 +262,7 @@ __global__ void __launch_bounds__(kThreads) evidence_prefix_kernel(const __grid_
     v[0] = o[0];
     v[1] = o[1];
     v[2] = o[2];
-    if (starts_group(p, i)) smax = i;
-    if (i == n - 1 || starts_group(p, i + 1)) emin = i;
+    mark_run_ends(p, i, n, smax, emin);
   }
   for (int c = 0; c < 3; ++c) v[c] = p.blk_pre[3 * blockIdx.x + c] + block_scan<kThreads, false>(v[c], Sum{}, 0.0, sd);
   smax = max(p.blk_premax[blockIdx.x], block_scan<kThreads, false>(smax, Max{}, -1, si));
