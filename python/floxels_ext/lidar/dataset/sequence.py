@@ -83,10 +83,8 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool) -
     from floxels_ext.lidar.io.outputs import cleanup_temps
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
-    from floxels_ext.lidar.pipeline.resume import input_records
-    from floxels_ext.lidar.pipeline.run_args import check_out_dir, check_resume
-    from floxels_ext.lidar.pipeline.run_inputs import frame_times, resolve_poses
-    from floxels_ext.lidar.pipeline.run_inputs import run_settings as run_settings_of
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, resume_plan
+    from floxels_ext.lidar.pipeline.run_inputs import resolve_poses
 
     spec = task.seq
     out = Path(task.out_dir)
@@ -103,16 +101,8 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool) -
         pose_mode, poses = resolve_poses(seq, args_seq, out, report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    run_settings = run_settings_of(args, options, settings, pose_mode, seq)
-    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
-    stamps = [f.timestamp_ns for f in seq.frames]
-    times_s, _ = frame_times(seq, stamps, report)
-    # what each frame's output depends on, recorded and compared as by floxels run (lidar/pipeline/resume.py)
-    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
-    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=report)
-    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses,
-            "settings": run_settings, "out_path": out_path, "stamps": stamps, "times_s": times_s,
-            "inputs": inputs, "todo": todo}
+    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report)
+    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses, **plan}
 
 
 def _with(args, **changes):

@@ -37,11 +37,9 @@ def run_sequence(args) -> int:
     """``floxels run SEQ``: one sequence (``lidar.run`` sends a dataset to ``dataset.run`` first)."""
     import torch
 
-    from floxels_ext.lidar.pipeline.resume import input_records
-    from floxels_ext.lidar.pipeline.run_args import (apply_cpu_default, check_args, check_out_dir, check_resume,
-                                                      host_cores, parse_frames, preprocess_settings, reader_plan)
-    from floxels_ext.lidar.pipeline.run_inputs import frame_times, next_pose_reader, output_meta, resolve_poses
-    from floxels_ext.lidar.pipeline.run_inputs import run_settings as run_settings_of
+    from floxels_ext.lidar.pipeline.run_args import (apply_cpu_default, check_args, check_out_dir, host_cores,
+                                                      parse_frames, preprocess_settings, reader_plan, resume_plan)
+    from floxels_ext.lidar.pipeline.run_inputs import next_pose_reader, output_meta, resolve_poses
 
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
@@ -93,16 +91,9 @@ def run_sequence(args) -> int:
         pose_mode, poses = resolve_poses(seq, args, out, report)
     except (PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    run_settings = run_settings_of(args, options, settings, pose_mode, seq)
-    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
-    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
-    # pipeline passes them to methods whose estimate_sequence takes ``times``
-    stamps = [f.timestamp_ns for f in seq.frames]
-    times_s, times_source = frame_times(seq, stamps, report)
-    # what each frame's output depends on (its window's files, poses, times): recorded in the
-    # output, compared on a resume (lidar/pipeline/resume.py)
-    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
-    todo = check_resume(out_path, selected, run_settings, args.force, inputs=inputs, report=info)
+    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, resume_report=info)
+    run_settings, out_path, stamps, times_s, times_source, inputs, todo = (
+        plan[k] for k in ("settings", "out_path", "stamps", "times_s", "times_source", "inputs", "todo"))
     skipped = len(selected) - len(todo)
     info(f"{seq.root}: {len(seq)} frames ({seq.kind}), {len(selected)} selected, {skipped} already done, "
          f"{len(todo)} to estimate with {args.method} on {device} "
