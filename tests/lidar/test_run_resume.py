@@ -22,6 +22,18 @@ N_FRAMES = 7
 V_WORLD = np.array([0.3, -0.2, 0.05], np.float32)
 
 
+def _drop_last_point(f) -> None:
+    """Rewrite the simulated frame file ``f`` with its last point (and the rows of its per-point
+    arrays) removed."""
+    with np.load(f) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["points"] = arrays["points"][:-1]
+    for k in ("flow", "dynamic", "labels", "ground"):
+        if k in arrays and len(arrays[k]) == len(arrays["points"]) + 1:
+            arrays[k] = arrays[k][:-1]
+    np.savez(f, **arrays)
+
+
 @pytest.fixture(scope="module")
 def seq():
     from floxels_ext.evaluation.sim import simulate_sequence
@@ -289,13 +301,7 @@ def test_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
     snap = {k: _snapshot(out / f"s{k}") for k in range(2)}
     assert (len(snap[0]), len(snap[1])) == (7, 5)
     f = root / "s0" / "000003.npz"
-    with np.load(f) as z:
-        arrays = {k: z[k] for k in z.files}
-    arrays["points"] = arrays["points"][:-1]  # a frame replaced by the user (one point fewer)
-    for k in ("flow", "dynamic", "labels", "ground"):
-        if k in arrays and len(arrays[k]) == len(arrays["points"]) + 1:
-            arrays[k] = arrays[k][:-1]
-    np.savez(f, **arrays)
+    _drop_last_point(f)  # a frame replaced by the user (one point fewer)
     (out / "s0" / "000006.npz").unlink()  # and one output missing, so the sequence has work
     rc = cli.main(argv)
     err = capsys.readouterr().err
@@ -324,13 +330,7 @@ def test_written_dataset_sequence_recomputes_changed_inputs(tmp_path, capsys):
     assert "11 frames, 11 already done" in err and "(0 done, 2 skipped, 0 failed)" in err, err
     assert [_rewritten(snap[k], out / f"s{k}") for k in range(2)] == [[], []]
     f = root / "s0" / "000003.npz"
-    with np.load(f) as z:
-        arrays = {k: z[k] for k in z.files}
-    arrays["points"] = arrays["points"][:-1]  # a frame replaced by the user (one point fewer)
-    for k in ("flow", "dynamic", "labels", "ground"):
-        if k in arrays and len(arrays[k]) == len(arrays["points"]) + 1:
-            arrays[k] = arrays[k][:-1]
-    np.savez(f, **arrays)
+    _drop_last_point(f)  # a frame replaced by the user (one point fewer)
     assert cli.main(argv) == 0
     err = capsys.readouterr().err
     assert "11 frames, 7 already done" in err and "(1 done, 1 skipped, 0 failed)" in err, err
