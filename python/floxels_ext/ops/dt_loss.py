@@ -46,34 +46,47 @@ def _backward(ctx, grad):
 torch.library.register_autograd("floxels::dt_loss", _backward, setup_context=_setup)
 
 
-def _check(points, flow, dts, origins, time_offsets, weights, truncation):
+def check_dt_args(op, points, motion, dts, origins, time_offsets, weights=None, motion_name="motion"):
+    """The arguments every op of the dt_loss family shares, checked for the Python wrappers
+    (dt_loss, dt_residual, dt_sample, dt_evidence): points and a per-point motion of one shape
+    and dtype, 1..MAX_SCANS non-empty float32 (Z, Y, X) DTs on their device, 3 origins and one
+    time offset (and weight, when given) per DT. Returns them normalised (contiguous DTs, float
+    lists; ``weights`` stays None when not given)."""
     points = as_points(points)
-    require_tensors(flow=flow)
-    if flow.shape != points.shape:
-        raise ValueError(f"flow must have the shape of points {tuple(points.shape)}, got {tuple(flow.shape)}")
-    if flow.dtype != points.dtype:
-        raise TypeError(f"flow is {flow.dtype} but points are {points.dtype}")
-    flow = as_points(flow, "flow")
+    require_tensors(**{motion_name: motion})
+    if motion.shape != points.shape:
+        raise ValueError(f"{op}: {motion_name} must have the shape of points {tuple(points.shape)}, "
+                         f"got {tuple(motion.shape)}")
+    if motion.dtype != points.dtype:
+        raise TypeError(f"{op}: {motion_name} is {motion.dtype} but points are {points.dtype}")
+    motion = as_points(motion, motion_name)
     dts = list(dts)
     if not dts:
-        raise ValueError("dt_loss needs at least one distance transform")
+        raise ValueError(f"{op} needs at least one distance transform")
     if len(dts) > MAX_SCANS:
-        raise ValueError(f"dt_loss supports at most {MAX_SCANS} distance transforms, got {len(dts)}")
+        raise ValueError(f"{op} supports at most {MAX_SCANS} distance transforms, got {len(dts)}")
     for k, d in enumerate(dts):
         if not isinstance(d, torch.Tensor) or d.dim() != 3 or d.dtype != torch.float32 or d.numel() == 0:
-            raise ValueError(f"dts[{k}] must be a non-empty float32 (Z, Y, X) grid, got "
+            raise ValueError(f"{op}: dts[{k}] must be a non-empty float32 (Z, Y, X) grid, got "
                              f"{getattr(d, 'dtype', type(d).__name__)} {tuple(getattr(d, 'shape', ()))}")
-    named = [("points", points), ("flow", flow)] + [(f"dts[{k}]", d) for k, d in enumerate(dts)]
-    same_device(*named)
+    same_device(("points", points), (motion_name, motion), *[(f"dts[{k}]", d) for k, d in enumerate(dts)])
     K = len(dts)
     origins = [float(v) for v in origins]
-    if len(origins) != 3 * K or len(time_offsets) != K or len(weights) != K:
-        raise ValueError(f"with {K} distance transforms, origins needs {3 * K} values and "
-                         f"time_offsets/weights {K} each; got {len(origins)}, {len(time_offsets)}, {len(weights)}")
+    time_offsets = [float(t) for t in time_offsets]
+    if len(origins) != 3 * K or len(time_offsets) != K or (weights is not None and len(weights) != K):
+        raise ValueError(f"{op}: with {K} distance transforms, origins needs {3 * K} values and "
+                         f"time_offsets{'/weights' if weights is not None else ''} {K} each; got {len(origins)}, "
+                         f"{len(time_offsets)}{'' if weights is None else f', {len(weights)}'}")
+    if weights is not None:
+        weights = [float(w) for w in weights]
+    return points, motion, [d.contiguous() for d in dts], origins, time_offsets, weights
+
+
+def _check(points, flow, dts, origins, time_offsets, weights, truncation):
+    checked = check_dt_args("dt_loss", points, flow, dts, origins, time_offsets, weights, motion_name="flow")
     if not float(truncation) > 0:
         raise ValueError(f"truncation must be positive, got {truncation}")
-    return points, flow, [d.contiguous() for d in dts], origins, \
-        [float(t) for t in time_offsets], [float(w) for w in weights], float(truncation)
+    return (*checked, float(truncation))
 
 
 def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],

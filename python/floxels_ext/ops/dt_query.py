@@ -15,9 +15,9 @@ from collections.abc import Sequence
 
 import torch
 
-from floxels_ext.ops._checks import as_points, as_spacing, require_tensors, same_device
+from floxels_ext.ops._checks import as_spacing, require_tensors
 from floxels_ext.ops._lib import ops_ns
-from floxels_ext.ops.dt_loss import MAX_SCANS
+from floxels_ext.ops.dt_loss import check_dt_args
 
 
 @torch.library.register_fake("floxels::dt_residual")
@@ -53,38 +53,12 @@ for _name in ("dt_residual", "dt_sample", "dt_evidence"):
 
 
 def _check(op, points, motion, dts, origins, time_offsets, weights=None, cap=None, motion_name="motion"):
-    points = as_points(points)
-    require_tensors(**{motion_name: motion})
-    if motion.shape != points.shape:
-        raise ValueError(f"{op}: {motion_name} must have the shape of points {tuple(points.shape)}, "
-                         f"got {tuple(motion.shape)}")
-    if motion.dtype != points.dtype:
-        raise TypeError(f"{op}: {motion_name} is {motion.dtype} but points are {points.dtype}")
-    motion = as_points(motion, motion_name)
-    dts = list(dts)
-    if not dts:
-        raise ValueError(f"{op} needs at least one distance transform")
-    if len(dts) > MAX_SCANS:
-        raise ValueError(f"{op} supports at most {MAX_SCANS} distance transforms, got {len(dts)}")
-    for k, d in enumerate(dts):
-        if not isinstance(d, torch.Tensor) or d.dim() != 3 or d.dtype != torch.float32 or d.numel() == 0:
-            raise ValueError(f"{op}: dts[{k}] must be a non-empty float32 (Z, Y, X) grid, got "
-                             f"{getattr(d, 'dtype', type(d).__name__)} {tuple(getattr(d, 'shape', ()))}")
-    same_device(("points", points), (motion_name, motion), *[(f"dts[{k}]", d) for k, d in enumerate(dts)])
-    K = len(dts)
-    origins = [float(v) for v in origins]
-    time_offsets = [float(t) for t in time_offsets]
-    if len(origins) != 3 * K or len(time_offsets) != K or (weights is not None and len(weights) != K):
-        raise ValueError(f"{op}: with {K} distance transforms, origins needs {3 * K} values and "
-                         f"time_offsets{'/weights' if weights is not None else ''} {K} each; got {len(origins)}, "
-                         f"{len(time_offsets)}{'' if weights is None else f', {len(weights)}'}")
-    if weights is not None:
-        weights = [float(w) for w in weights]
+    checked = check_dt_args(op, points, motion, dts, origins, time_offsets, weights, motion_name)
     if cap is not None:
         cap = float(cap)
         if not 0 < cap < float("inf"):
             raise ValueError(f"{op}: cap must be positive and finite, got {cap}")
-    return points, motion, [d.contiguous() for d in dts], origins, time_offsets, weights, cap
+    return (*checked, cap)
 
 
 def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
