@@ -10,57 +10,28 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
-#include <array>
 #include <cstdint>
-#include <limits>
 #include <tuple>
 #include <vector>
 
 #include "cpu/dt_loss_args.h"
+#include "cuda/dt_inputs.h"
 #include "cuda/dt_loss_launch.h"
 #include "kernels/dt_loss.h"
 
 namespace floxels {
 namespace {
 
-constexpr int64_t kMaxInt32 = std::numeric_limits<int32_t>::max();
-
-// Inputs as the launcher wants them; keeps contiguous copies alive (no copy when the
-// inputs already are contiguous, the normal case).
-struct CudaInputs {
-  at::Tensor points, flow;
-  std::vector<at::Tensor> dts;
-  std::array<cuda::DtLossScanDesc, dt_loss::kMaxScans> descs;
-  int num_scans = 0;
-};
-
-CudaInputs prepare(const at::Tensor& points, const at::Tensor& flow, at::TensorList dts,
-                   c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
-                   c10::ArrayRef<double> weights, double truncation) {
+// The checks the CPU implementation makes, then the inputs as the launcher wants them.
+cuda::DtInputs prepare(const at::Tensor& points, const at::Tensor& flow, at::TensorList dts,
+                       c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
+                       c10::ArrayRef<double> weights, double truncation) {
   check_dt_loss_args(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
-  FLX_CHECK(points.is_cuda(), "floxels: dt_loss CUDA kernel called with points on ", points.device());
-  FLX_CHECK(points.size(0) <= kMaxInt32, "floxels: dt_loss supports at most 2^31-1 points on CUDA, got ",
-              points.size(0));
-  CudaInputs in;
-  in.points = points.contiguous();
-  in.flow = flow.contiguous();
-  in.num_scans = static_cast<int>(dts.size());
-  in.dts.reserve(dts.size());
-  for (int k = 0; k < in.num_scans; ++k) {
-    // 32-bit indexing inside the kernel
-    FLX_CHECK(dts[k].numel() <= kMaxInt32, "floxels: dts[", k, "] has ", dts[k].numel(),
-                " samples; the CUDA kernel supports at most 2^31-1 per grid");
-    in.dts.push_back(dts[k].contiguous());
-    const at::Tensor& d = in.dts.back();
-    in.descs[k] = cuda::DtLossScanDesc{d.data_ptr<float>(), d.size(2), d.size(1), d.size(0),
-                                       origins[3 * k], origins[3 * k + 1], origins[3 * k + 2],
-                                       time_offsets[k], weights[k]};
-  }
-  return in;
+  return cuda::prepare_dt_inputs("dt_loss", points, flow, dts, origins, time_offsets, weights);
 }
 
 // Runs one fused pass; loss / grad_flow / grad_scale are undefined tensors when unused.
-void run(const CudaInputs& in, double spacing, double truncation, const at::Tensor& grad_scale,
+void run(const cuda::DtInputs& in, double spacing, double truncation, const at::Tensor& grad_scale,
          const at::Tensor& loss, const at::Tensor& grad_flow) {
   const int64_t n = in.points.size(0);
   const bool need_loss = loss.defined();
@@ -71,7 +42,7 @@ void run(const CudaInputs& in, double spacing, double truncation, const at::Tens
   const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(in.points.scalar_type(), "dt_loss_cuda", [&] {
     const cudaError_t err = cuda::launch_dt_loss(
-        in.points.const_data_ptr<scalar_t>(), in.flow.const_data_ptr<scalar_t>(), n, in.descs.data(),
+        in.points.const_data_ptr<scalar_t>(), in.motion.const_data_ptr<scalar_t>(), n, in.descs.data(),
         in.num_scans, spacing, truncation,
         grad_scale.defined() ? grad_scale.const_data_ptr<scalar_t>() : nullptr,
         need_loss ? loss.mutable_data_ptr<scalar_t>() : nullptr,
@@ -85,7 +56,7 @@ at::Tensor dt_loss_cuda(const at::Tensor& points, const at::Tensor& flow, at::Te
                         c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
                         c10::ArrayRef<double> weights, double truncation) {
   // checks first: a CPU tensor among the inputs must get the device message, not the guard's
-  const CudaInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
+  const cuda::DtInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
   const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor loss = at::empty({}, points.options());
   run(in, spacing, truncation, at::Tensor(), loss, at::Tensor());
@@ -97,7 +68,7 @@ at::Tensor dt_loss_backward_cuda(const at::Tensor& grad, const at::Tensor& point
                                  c10::ArrayRef<double> time_offsets, c10::ArrayRef<double> weights,
                                  double truncation) {
   // checks first: a CPU tensor among the inputs must get the device message, not the guard's
-  const CudaInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
+  const cuda::DtInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
   const c10::cuda::CUDAGuard guard(points.device());
   check_dt_loss_grad(grad, points);
   // The kernel reads the upstream gradient on the device: no host sync.
@@ -112,7 +83,7 @@ std::tuple<at::Tensor, at::Tensor> dt_loss_fwd_bwd_cuda(const at::Tensor& points
                                                         double spacing, c10::ArrayRef<double> time_offsets,
                                                         c10::ArrayRef<double> weights, double truncation) {
   // checks first: a CPU tensor among the inputs must get the device message, not the guard's
-  const CudaInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
+  const cuda::DtInputs in = prepare(points, flow, dts, origins, spacing, time_offsets, weights, truncation);
   const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor loss = at::empty({}, points.options());
   at::Tensor grad_flow = at::empty({points.size(0), 3}, points.options());

@@ -18,53 +18,20 @@
 #include <vector>
 
 #include "cpu/dt_loss_args.h"
+#include "cuda/dt_inputs.h"
 #include "cuda/dt_query_launch.h"
 #include "kernels/dt_loss.h"
 
 namespace floxels {
 namespace {
 
-constexpr int64_t kMaxInt32 = std::numeric_limits<int32_t>::max();
-
-// Inputs as the launchers want them; keeps contiguous copies alive (no copy when the inputs
-// already are contiguous, the normal case).
-struct CudaInputs {
-  at::Tensor points, motion;
-  std::vector<at::Tensor> dts;
-  std::array<cuda::DtLossScanDesc, dt_loss::kMaxScans> descs;
-  int num_scans = 0;
-};
-
-CudaInputs prepare(std::string_view op, const at::Tensor& points, const at::Tensor& motion, at::TensorList dts,
-                   c10::ArrayRef<double> origins, c10::ArrayRef<double> time_offsets,
-                   c10::ArrayRef<double> weights) {
-  FLX_CHECK(points.is_cuda(), "floxels: ", op, " CUDA kernel called with points on ", points.device());
-  FLX_CHECK(points.size(0) <= kMaxInt32, "floxels: ", op, " supports at most 2^31-1 points on CUDA, got ",
-            points.size(0));
-  CudaInputs in;
-  in.points = points.contiguous();
-  in.motion = motion.contiguous();
-  in.num_scans = static_cast<int>(dts.size());
-  in.dts.reserve(dts.size());
-  for (int k = 0; k < in.num_scans; ++k) {
-    // 32-bit indexing inside the kernel
-    FLX_CHECK(dts[k].numel() <= kMaxInt32, "floxels: ", op, ": dts[", k, "] has ", dts[k].numel(),
-              " samples; the CUDA kernel supports at most 2^31-1 per grid");
-    in.dts.push_back(dts[k].contiguous());
-    const at::Tensor& d = in.dts.back();
-    in.descs[k] = cuda::DtLossScanDesc{d.data_ptr<float>(), d.size(2), d.size(1), d.size(0),
-                                       origins[3 * k], origins[3 * k + 1], origins[3 * k + 2],
-                                       time_offsets[k], weights.empty() ? 0.0 : weights[k]};
-  }
-  return in;
-}
-
 at::Tensor dt_residual_cuda(const at::Tensor& points, const at::Tensor& motion, at::TensorList dts,
                             c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
                             c10::ArrayRef<double> weights, double cap, bool squared) {
   // checks first: a CPU tensor among the inputs must get the device message, not the guard's
   check_dt_query_args("dt_residual", points, motion, dts, origins, spacing, time_offsets, &weights, &cap);
-  const CudaInputs in = prepare("dt_residual", points, motion, dts, origins, time_offsets, weights);
+  const cuda::DtInputs in =
+      cuda::prepare_dt_inputs("dt_residual", points, motion, dts, origins, time_offsets, weights);
   const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor out = at::empty({points.size(0)}, points.options());
   const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
@@ -79,7 +46,7 @@ at::Tensor dt_residual_cuda(const at::Tensor& points, const at::Tensor& motion, 
 at::Tensor dt_sample_cuda(const at::Tensor& points, const at::Tensor& motion, at::TensorList dts,
                           c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets) {
   check_dt_query_args("dt_sample", points, motion, dts, origins, spacing, time_offsets, nullptr, nullptr);
-  const CudaInputs in = prepare("dt_sample", points, motion, dts, origins, time_offsets, {});
+  const cuda::DtInputs in = cuda::prepare_dt_inputs("dt_sample", points, motion, dts, origins, time_offsets, {});
   const c10::cuda::CUDAGuard guard(points.device());
   at::Tensor out = at::empty({static_cast<int64_t>(dts.size()), points.size(0), 4}, points.options());
   const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
@@ -104,7 +71,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cuda(
   FLX_CHECK(std::isfinite(ratio), "floxels: dt_evidence: ratio must be finite, got ", ratio);
   check_group_keys(cells, points, "cells");
   if (labels.has_value()) check_group_keys(*labels, points, "labels");
-  const CudaInputs in = prepare("dt_evidence", points, flow, dts, origins, time_offsets, weights);
+  const cuda::DtInputs in =
+      cuda::prepare_dt_inputs("dt_evidence", points, flow, dts, origins, time_offsets, weights);
   const c10::cuda::CUDAGuard guard(points.device());
   const int64_t n = points.size(0);
   at::Tensor score = at::empty({n}, points.options());
