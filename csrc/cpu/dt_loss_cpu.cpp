@@ -21,15 +21,13 @@
 #include <vector>
 
 #include "cpu/dt_loss_args.h"
+#include "cpu/dt_scans.h"
 #include "kernels/dt_loss.h"
 #include "kernels/finite.h"
 
 namespace floxels {
 namespace {
 
-using dt_loss::kMaxScans;
-template <typename T>
-using CpuScan = dt_loss::Scan<T, int64_t>;
 
 // Fixed chunking: at most kMaxChunks chunks of >= kMinChunk points, derived from N only.
 constexpr int64_t kMaxChunks = 256;
@@ -47,13 +45,7 @@ void run(const at::Tensor& points, const at::Tensor& flow, const std::vector<at:
     if (kLoss) *loss_out = T(0);
     return;
   }
-  std::array<CpuScan<T>, kMaxScans> scans;
-  for (int k = 0; k < K; ++k) {
-    const at::Tensor& d = dts[k];
-    scans[k] = CpuScan<T>{d.data_ptr<float>(), d.size(2), d.size(1), d.size(0),
-                          T(origins[3 * k]), T(origins[3 * k + 1]), T(origins[3 * k + 2]),
-                          T(time_offsets[k]), T(scale * weights[k] / static_cast<double>(n))};
-  }
+  const auto scans = make_scans<T>(dts, origins, time_offsets, weights, scale, static_cast<double>(n));
   const T* p = points.const_data_ptr<T>();
   const T* f = flow.const_data_ptr<T>();
   const T inv_spacing = T(1.0 / spacing);
@@ -87,13 +79,6 @@ void run(const at::Tensor& points, const at::Tensor& flow, const std::vector<at:
     for (int64_t c = 0; c < n_chunks; ++c) total += partial[c];
     *loss_out = T(total);
   }
-}
-
-std::vector<at::Tensor> contiguous_dts(at::TensorList dts) {
-  std::vector<at::Tensor> out;
-  out.reserve(dts.size());
-  for (const auto& d : dts) out.push_back(d.contiguous());  // no copy when already contiguous
-  return out;
 }
 
 at::Tensor dt_loss_cpu(const at::Tensor& points, const at::Tensor& flow, at::TensorList dts,

@@ -19,36 +19,14 @@
 #include <vector>
 
 #include "cpu/dt_loss_args.h"
+#include "cpu/dt_scans.h"
 #include "kernels/dt_loss.h"
 #include "kernels/finite.h"
 
 namespace floxels {
 namespace {
 
-using dt_loss::kMaxScans;
-template <typename T>
-using CpuScan = dt_loss::Scan<T, int64_t>;
 constexpr int64_t kGrain = 1024;
-
-template <typename T>
-std::array<CpuScan<T>, kMaxScans> make_scans(const std::vector<at::Tensor>& dts, c10::ArrayRef<double> origins,
-                                             c10::ArrayRef<double> time_offsets, c10::ArrayRef<double> weights) {
-  std::array<CpuScan<T>, kMaxScans> scans{};
-  for (size_t k = 0; k < dts.size(); ++k) {
-    const at::Tensor& d = dts[k];
-    scans[k] = CpuScan<T>{d.data_ptr<float>(), d.size(2), d.size(1), d.size(0),
-                          T(origins[3 * k]), T(origins[3 * k + 1]), T(origins[3 * k + 2]),
-                          T(time_offsets[k]), weights.empty() ? T(0) : T(weights[k])};
-  }
-  return scans;
-}
-
-std::vector<at::Tensor> contiguous_dts(at::TensorList dts) {
-  std::vector<at::Tensor> out;
-  out.reserve(dts.size());
-  for (const auto& d : dts) out.push_back(d.contiguous());
-  return out;
-}
 
 at::Tensor dt_residual_cpu(const at::Tensor& points, const at::Tensor& motion, at::TensorList dts,
                            c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,

@@ -16,6 +16,7 @@
 
 #include "cuda/block_reduce.cuh"
 #include "cuda/dt_loss_launch.h"
+#include "cuda/dt_scan.cuh"
 #include "kernels/dt_loss.h"
 #include "kernels/finite.h"
 
@@ -98,16 +99,7 @@ cudaError_t launch_impl(const T* points, const T* flow, int64_t n, const DtLossS
   if (!loss_out && !grad_out) return cudaSuccess;
   Params<T> params{};
   for (int k = 0; k < num_scans; ++k) {
-    const DtLossScanDesc& d = scans[k];
-    params.scans[k] = dt_loss::Scan<T, int>{d.data,
-                                            static_cast<int>(d.nx),
-                                            static_cast<int>(d.ny),
-                                            static_cast<int>(d.nz),
-                                            T(d.ox),
-                                            T(d.oy),
-                                            T(d.oz),
-                                            T(d.time_offset),
-                                            T(d.weight / static_cast<double>(n))};
+    params.scans[k] = device_scan<T>(scans[k], scans[k].weight / static_cast<double>(n));
   }
   params.points = points;
   params.flow = flow;

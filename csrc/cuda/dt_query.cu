@@ -15,6 +15,7 @@
 #include <cstdint>
 
 #include "cuda/dt_query_launch.h"
+#include "cuda/dt_scan.cuh"
 #include "kernels/dt_loss.h"
 #include "kernels/finite.h"
 
@@ -40,12 +41,7 @@ template <typename T>
 Params<T> make_params(const T* points, const T* motion, int64_t n, const DtLossScanDesc* scans, int num_scans,
                       double spacing, double cap, T* out) {
   Params<T> p{};
-  for (int k = 0; k < num_scans; ++k) {
-    const DtLossScanDesc& d = scans[k];
-    p.scans[k] = dt_loss::Scan<T, int>{d.data,       static_cast<int>(d.nx), static_cast<int>(d.ny),
-                                       static_cast<int>(d.nz), T(d.ox),   T(d.oy),
-                                       T(d.oz),      T(d.time_offset),       T(d.weight)};
-  }
+  for (int k = 0; k < num_scans; ++k) p.scans[k] = device_scan<T>(scans[k], scans[k].weight);
   p.points = points;
   p.motion = motion;
   p.out = out;
