@@ -256,10 +256,10 @@ class Solving:
                 if evidence is not None:
                     evidence.append(prep.points[prep.target].new_zeros(0, 2))
                 continue
-            corners = pr.problems[k].corners
-            flow_s = F.corner_gather(solved[k], corners.corner_idx, corners.corner_w)
+            p = pr.problems[k]
+            flow_s = F.corner_gather(solved[k], p.corners.corner_idx, p.corners.corner_w)
             if evidence is not None:
-                ev = problem_evidence(cfg, pr.problems[k], flow_s)
+                ev = problem_evidence(cfg, p, flow_s)
                 if cfg.evidence == "zero":
                     flow_s = ev.apply(flow_s)
                 ev_k = torch.empty(len(flow_s), 2, dtype=torch.float32, device=flow_s.device)
@@ -270,7 +270,6 @@ class Solving:
             # evidence of motion (static structure seen in a band that moves with the sensor is
             # fitted *better* by a rigid motion: simulated highway, static EPE 0.52 -> 0.99 when
             # the test judged the refined flow); the verdict stays the optimiser flow's
-            p = pr.problems[k]
             if cfg.rigid_refine and (cfg.refine_max_supports <= 0 or len(p.dts) <= cfg.refine_max_supports):
                 flow_s = rigid_refine(p.points, flow_s, p.labels,
                                       supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell),
