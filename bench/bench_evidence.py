@@ -96,7 +96,7 @@ def accuracy(args) -> dict:
     for scene in args.scenes:
         for seed in args.seeds:
             n_frames = 2 * (cfg.num_scans // 2) + args.frames
-            scans, truth = load_sim_scene(scene, SCENE_SEED.get(scene, 0) + 100 * seed, n_frames, args.lidar, 35.0, 0, {})
+            scans, truth, _sensors = load_sim_scene(scene, SCENE_SEED.get(scene, 0) + 100 * seed, n_frames, args.lidar, 35.0, 0, {})
             frames = list(range(cfg.num_scans // 2, cfg.num_scans // 2 + args.frames))
             got = {}
             t0 = time.perf_counter()
@@ -156,7 +156,7 @@ def accuracy(args) -> dict:
 def timing(args) -> dict:
     dev = args.device
     n_frames = args.frames + 4
-    scans, _ = load_sim_scene("urban", 0, n_frames, args.lidar, 35.0, 0, {})
+    scans, _, _sensors = load_sim_scene("urban", 0, n_frames, args.lidar, 35.0, 0, {})
     if dev.startswith("cuda"):
         scans = [torch.as_tensor(s, device=dev) for s in scans]  # uploads out of the timing
     frames = list(range(2, 2 + args.frames))

@@ -73,6 +73,8 @@ def kitti_report(args) -> dict:
             *(["--scans", str(args.scans)] if args.scans else []), "--device", args.device, "--force", "-q"]
     if args.frames:
         argv += ["--frames", args.frames]
+    for o in args.option:
+        argv += ["--option", o]
     if raw:
         argv.append("--raw-flow")
     print("floxels " + " ".join(argv), flush=True)
@@ -132,7 +134,7 @@ def av2_report(args) -> dict:
     from floxels_ext.evaluation.metrics import evaluate_sequence
 
     path = SHARED / "av2_pair" / "av2_7fab2350_pair.npz"
-    scans, truth = compare.load_av2_pair(str(path), args.av2_max_points)
+    scans, truth, _sensors = compare.load_av2_pair(str(path), args.av2_max_points)
     d = np.load(path)
     agree = compare.ground_agreement(compare.project_ground(d["pc0"]), d["is_ground0"].astype(bool), d["pc0"])
     rows = []
@@ -171,6 +173,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scans", type=int, default=None, help="scans per window (default: the preset's: paper 5, "
                     "accurate 9)")
     ap.add_argument("--preset", default="paper", help="floxels run --preset (paper, accurate)")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="floxels run --option (repeatable), e.g. range_mask=no to measure an ingredient")
     ap.add_argument("--work", default=None, help="directory for the .bin files and outputs (default: a temp dir)")
     ap.add_argument("--png-dir", default=None)
     ap.add_argument("--no-kitti", action="store_true")

@@ -40,6 +40,7 @@ metrics of rows split over parts (e.g. scenes) from the NPZ files and prints the
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import platform
@@ -116,7 +117,7 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
     """Protocol-cropped scans and ground truth of one simulated sequence."""
     seq = simulate_sequence(scene, num_frames=num_frames, seed=seed, small=(lidar == "small"), **sim_options)
     rng = np.random.default_rng([seed, 7])
-    scans, truth = [], []
+    scans, truth, sensors = [], [], []
     for fr in seq.frames:
         idx = np.flatnonzero(protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=max_range))
         if max_points and idx.size > max_points:
@@ -124,7 +125,8 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
         scans.append(np.ascontiguousarray(fr.points[idx], dtype=np.float32))
         truth.append({"flow": fr.flow[idx].astype(np.float32), "classes": fr.classes[idx].astype(np.int64),
                       "dynamic": fr.dynamic[idx].astype(bool)})
-    return scans, truth
+        sensors.append(fr.pose[:3, 3].astype(np.float64))
+    return scans, truth, sensors
 
 
 def project_ground(points):
@@ -146,7 +148,8 @@ def ground_agreement(pred, label, points, box=35.0):
 
 
 def load_av2_pair(path, max_points=0):
-    """(scans [pc0, pc1 in pc0's frame], truth of pc0 (object motion), evaluation mask)."""
+    """(scans [pc0, pc1 in pc0's frame], truth of pc0 (object motion) and of pc1 (None), the
+    sensor positions [ego 0's origin, ego 1's origin in pc0's frame])."""
     d = np.load(path)
     p0, p1 = d["pc0"].astype(np.float64), d["pc1"].astype(np.float64)
     g0 = d["is_ground0"].astype(bool)
@@ -170,7 +173,7 @@ def load_av2_pair(path, max_points=0):
         i0 = np.sort(rng.choice(len(s0), min(max_points, len(s0)), replace=False))
         s0, truth = s0[i0], {k: v[i0] for k, v in truth.items()}
         s1 = s1[np.sort(rng.choice(len(s1), min(max_points, len(s1)), replace=False))]
-    return [np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None]
+    return [np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None], [np.zeros(3), T[:3, 3].copy()]
 
 
 def _sync(dev: str) -> None:
@@ -180,6 +183,15 @@ def _sync(dev: str) -> None:
 
 def _same_flows(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(np.array_equal(np.asarray(a[f]), np.asarray(b[f])) for f in a)
+
+
+def _sensor_kw(method, sensors) -> dict:
+    """``sensors=`` for methods that take it (Floxels' range_mask), as ``floxels run`` does."""
+    try:
+        takes = "sensors" in inspect.signature(method.estimate_sequence).parameters
+    except (TypeError, ValueError):
+        takes = False
+    return {"sensors": sensors} if takes else {}
 
 
 def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):
@@ -194,19 +206,21 @@ def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):
     for key, label, name, opts, _group in rows:
         method = methods.get_method(name)
         if warmup != "none":
-            scans, _, frames, _ = data[0]
+            scans, _, frames, _, sensors = data[0]
             w = opts if warmup == "full" else {**opts, "max_iters": 3}
-            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow, *extra: None)
+            method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow, *extra: None,
+                                     **_sensor_kw(method, sensors))
             _sync(dev)
         out[key] = {}
         t_row = time.perf_counter()
-        for scans, _truth, frames, scene in data:
+        for scans, _truth, frames, scene, sensors in data:
             runs, preds = [], None
             for i in range(repeat):
                 got = {}
                 _sync(dev)
                 t0 = time.perf_counter()
-                method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: got.__setitem__(f, flow))
+                method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: got.__setitem__(f, flow),
+                                         **_sensor_kw(method, sensors))
                 _sync(dev)
                 runs.append(time.perf_counter() - t0)
                 if preds is None:
@@ -307,10 +321,10 @@ def main(argv=None) -> int:
         return merge(args.merge, args.json, args.md)
     dev = args.device
     t_all = time.perf_counter()
-    data = []  # (scans, truth, evaluated frames, scene name)
+    data = []  # (scans, truth, evaluated frames, scene name, sensor positions)
     if args.dataset == "av2":
-        scans, truth = load_av2_pair(args.av2, args.max_points)
-        data.append((scans, truth, [0], "av2_pair"))
+        scans, truth, sensors = load_av2_pair(args.av2, args.max_points)
+        data.append((scans, truth, [0], "av2_pair", sensors))
         log(f"av2 pair: {len(scans[0])} / {len(scans[1])} points, {int(truth[0]['dynamic'].sum())} dynamic")
     else:
         need = max([MAX_WINDOW if "scans" in args.ablations else 5] +
@@ -323,8 +337,9 @@ def main(argv=None) -> int:
             raise SystemExit(f"--seeds needs one seed per scene ({len(args.scenes)}), got {len(args.seeds)}")
         for i, scene in enumerate(args.scenes):
             seed = SCENE_SEED.get(scene, 0) if args.seeds is None else args.seeds[i]
-            scans, truth = load_sim_scene(scene, seed, num_frames, args.lidar, args.max_range, args.max_points, args.sim)
-            data.append((scans, truth, frames, scene))
+            scans, truth, sensors = load_sim_scene(scene, seed, num_frames, args.lidar, args.max_range,
+                                                   args.max_points, args.sim)
+            data.append((scans, truth, frames, scene, sensors))
             log(f"scene {scene}: {num_frames} scans; frames {frames}: {[len(scans[f]) for f in frames]} points "
                 f"({[int(truth[f]['dynamic'].sum()) for f in frames]} dynamic) [{time.perf_counter() - t_all:.1f} s]")
 
@@ -344,14 +359,14 @@ def main(argv=None) -> int:
             rows.append((f"abl:{group}:{label}", label, "floxels", scaled(o, "floxels", args.iters_scale, args.iter_caps), group))
 
     results = run_rows(rows, data, dev, args.repeat, args.warmup)
-    truth_of = {(scene, f): truth[f] for _s, truth, frames, scene in data for f in frames}
+    truth_of = {(scene, f): truth[f] for _s, truth, frames, scene, _p in data for f in frames}
     records = [{"key": k, "label": lab, "method": n, "options": o, "group": g,
                 "frames": {sc: sorted(results[k][sc][1]) for sc in results[k]},
                 "seconds": {sc: results[k][sc][0] for sc in results[k]},
                 "seconds_runs": {sc: results[k][sc][2] for sc in results[k]}} for k, lab, n, o, g in rows]
     evaluate_rows(records, lambda k, sc, f: results[k][sc][1][f], lambda sc, f: truth_of[(sc, f)])
 
-    pts = [len(s[f]) for s, _, fr, _ in data for f in fr]
+    pts = [len(s[f]) for s, _, fr, *_ in data for f in fr]
     title = (f"{args.dataset}: {len(data)} scene(s) x {len(pts) // max(len(data), 1)} frame(s), "
              f"{'' if two_scan else args.lidar + ' lidar, '}{np.mean(pts):.0f} points/frame, device {dev}")
     main_rows = [r for r in records if r["group"] == "main"]

@@ -79,7 +79,7 @@ def main() -> None:
     if av2 is None:
         print("AV2 pair not found (--av2 PATH or FLOXELS_AV2_PAIR): simulator only", flush=True)
     else:
-        s, truth = load_av2_pair(av2)
+        s, truth, _sensors = load_av2_pair(av2)
         rows.append(compare("av2_pair", s, 0, truth[0]["flow"], truth[0]["dynamic"], cfg))
     print(f"\n|flow_cpu - flow_cuda| per point ({torch.cuda.get_device_name()}, max_iters {cfg.max_iters})")
     print(f"{'scene':<20} {'points':>7} {'p50 m':>10} {'p99.9 m':>10} {'max m':>9} {'>1cm':>7} "

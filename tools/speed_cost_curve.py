@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     ap.add_argument("--png", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    scans, truth = compare.load_av2_pair(args.av2)
+    scans, truth, _sensors = compare.load_av2_pair(args.av2)
     s0, s1, t = scans[0], scans[1], truth[0]
     car = t["dynamic"] & (np.asarray(t["classes"]) == META_CLASSES.index("car"))
     lab = dbscan(torch.from_numpy(s0), 0.5, 4).numpy()

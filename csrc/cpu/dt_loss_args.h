@@ -5,6 +5,7 @@
 #include <c10/util/Exception.h>
 
 #include <cmath>
+#include <optional>
 #include <string_view>
 
 #include "common/check.h"
@@ -97,6 +98,19 @@ inline void check_dt_query_args(std::string_view op, const at::Tensor& points, c
   if (cap != nullptr) {
     FLX_CHECK(std::isfinite(*cap) && *cap > 0.0, "floxels: ", op, ": cap must be positive and finite, got ", *cap);
   }
+}
+
+// dt_residual / dt_evidence's optional range bands: (K, 4) of the points' dtype and device
+// (sensor x, y, r_min, r_max per scan; the kernels read them contiguous). Non-finite values
+// would silently drop or keep terms: refused.
+inline void check_bands(std::string_view op, const std::optional<at::Tensor>& bands, const at::Tensor& points,
+                        int64_t K) {
+  if (!bands.has_value()) return;
+  const at::Tensor& b = *bands;
+  FLX_CHECK(b.dim() == 2 && b.size(0) == K && b.size(1) == 4, "floxels: ", op, ": bands must have shape (", K,
+            ", 4) (one row per distance transform: sensor x, y, r_min, r_max), got ", b.sizes());
+  check_same_dtype(points, b, "points", "bands");
+  check_same_device(points, b, "points", "bands");
 }
 
 // dt_evidence's group keys: (N,) int32/int64 on the points' device (any stride).

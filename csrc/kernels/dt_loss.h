@@ -162,34 +162,50 @@ FLX_HD T cap_value(T v, T cap) {
   return v > cap ? cap : v;
 }
 
-// sum_k coef_k * c(min(DT_k(p + t_k m), cap)), c = identity or square (kSquared).
+// Whether scan k saw position (px, py), by its range band: bands (K x 4: the sensor's x, y and
+// the band's smallest and largest horizontal range r_min, r_max) or nullptr (every position).
+// A point's own (unmoved) position decides, never the query: a motion cannot move a point out
+// of a scan's sight to escape its residual. NaN is outside.
+template <typename T>
+FLX_HD bool in_band(const T* bands, int k, T px, T py) {
+  if (bands == nullptr) return true;
+  const T* b = bands + 4 * k;
+  const T dx = px - b[0], dy = py - b[1];
+  const T d2 = dx * dx + dy * dy;
+  return d2 >= b[2] * b[2] && d2 <= b[3] * b[3];
+}
+
+// sum_k coef_k * c(min(DT_k(p + t_k m), cap)), c = identity or square (kSquared), over the
+// scans whose band holds p (all without bands).
 template <bool kSquared, typename T, typename Index>
 FLX_HD T point_residual(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T mx, T my, T mz,
-                        T inv_spacing, T cap) {
+                        T inv_spacing, T cap, const T* bands = nullptr) {
   T r = T(0);
 #if defined(__CUDA_ARCH__)
 #pragma unroll 4
 #endif
   for (int k = 0; k < k_scans; ++k) {
     const T v = cap_value(scan_sample<false, T, Index>(scans[k], px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
-    r += scans[k].coef * (kSquared ? v * v : v);
+    r += in_band(bands, k, px, py) ? scans[k].coef * (kSquared ? v * v : v) : T(0);
   }
   return r;
 }
 
 // The two residuals of the motion evidence in one walk over the scans: with the motion m
-// (rf) and with zero motion (rz), sum_k coef_k * min(DT_k(.), cap) each.
+// (rf) and with zero motion (rz), sum_k coef_k * min(DT_k(.), cap) each, over the scans
+// whose band holds p (a scan that could not see p says nothing of whether it moved).
 template <typename T, typename Index>
 FLX_HD void point_residual_pair(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T mx, T my, T mz,
-                                T inv_spacing, T cap, T& rf, T& rz) {
+                                T inv_spacing, T cap, T& rf, T& rz, const T* bands = nullptr) {
   T a = T(0), b = T(0);
 #if defined(__CUDA_ARCH__)
 #pragma unroll 4
 #endif
   for (int k = 0; k < k_scans; ++k) {
     const Scan<T, Index>& s = scans[k];
-    a += s.coef * cap_value(scan_sample<false, T, Index>(s, px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
-    b += s.coef * cap_value(scan_sample<false, T, Index>(s, px, py, pz, T(0), T(0), T(0), inv_spacing, nullptr), cap);
+    const T c = in_band(bands, k, px, py) ? s.coef : T(0);
+    a += c * cap_value(scan_sample<false, T, Index>(s, px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
+    b += c * cap_value(scan_sample<false, T, Index>(s, px, py, pz, T(0), T(0), T(0), inv_spacing, nullptr), cap);
   }
   rf = a;
   rz = b;

@@ -13,7 +13,10 @@ A method is a :class:`Method`: a name, a one-line description, and
   options ask for them, so two-argument callbacks keep working. ``options`` is a dict of
   method-specific settings (e.g. ``{"num_scans": 5}``); unknown keys raise ``ValueError``.
   The flow is always per frame period (the median step of ``times`` when given), so
-  unequally spaced scans (a dropped frame) give flows comparable with the others.
+  unequally spaced scans (a dropped frame) give flows comparable with the others. A method
+  may also take ``sensors=`` (each scan's sensor position in the scans' frame, or None per
+  scan where unknown; Floxels' ``range_mask`` uses them); callers pass it (like ``times``)
+  only to methods whose function names it.
 
 ``estimate_stream(scans, targets, device, options, callback)`` (optional): the same for many
 sequences laid end to end in one index space (``floxels run DATASET``): ``targets`` yields
@@ -78,7 +81,7 @@ def get_method(name: str) -> Method:
 
 
 # ----------------------------------------------------------------------------- floxels
-def _floxels_sequence(scans, frames, device, options, callback, times=None) -> None:
+def _floxels_sequence(scans, frames, device, options, callback, times=None, sensors=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.api import estimate_sequence
 
@@ -88,15 +91,15 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None) -> N
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
     if cfg.evidence == "off":
-        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times,
+        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times, sensor_origins=sensors,
                           callback=lambda f, res: callback(f, res.flow))
     else:
-        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times,
+        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times, sensor_origins=sensors,
                           callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
                                                                           "explained": res.explained}))
 
 
-def _floxels_stream(scans, targets, device, options, callback) -> None:
+def _floxels_stream(scans, targets, device, options, callback, sensors=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.stream import estimate_stream
 
@@ -105,9 +108,10 @@ def _floxels_stream(scans, targets, device, options, callback) -> None:
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
     if cfg.evidence == "off":
-        estimate_stream(scans, targets, cfg, device=device, callback=lambda f, res: callback(f, res.flow))
+        estimate_stream(scans, targets, cfg, device=device, sensors=sensors,
+                        callback=lambda f, res: callback(f, res.flow))
     else:  # the same per-point fields as _floxels_sequence
-        estimate_stream(scans, targets, cfg, device=device,
+        estimate_stream(scans, targets, cfg, device=device, sensors=sensors,
                         callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
                                                                         "explained": res.explained}))
 

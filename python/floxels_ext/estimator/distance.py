@@ -13,7 +13,7 @@ from floxels_ext.ops import distance_transform
 from floxels_ext.ops.grid import grid_from_bounds
 from floxels_ext.switches import flag
 
-__all__ = ["DistanceTransform", "build_dt", "DtStreams", "WindowCache"]
+__all__ = ["DistanceTransform", "build_dt", "observed_band", "DtStreams", "WindowCache"]
 
 F = torch.ops.floxels
 
@@ -24,18 +24,43 @@ class DistanceTransform:
 
     values: torch.Tensor
     origin: list[float]
+    band: torch.Tensor | None = None  # observed_band of its scan (range_mask with a known sensor)
 
 
-def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None) -> DistanceTransform | None:
-    """DT of a validated scan; ``bounds`` (its min/max xyz, see point_bounds) saves a host sync."""
+def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None) -> DistanceTransform | None:
+    """DT of a validated scan; ``bounds`` (its min/max xyz, see point_bounds) saves a host sync.
+    ``sensor`` (the scan's sensor position, xyz in the scans' frame) with ``cfg.range_mask``:
+    its :func:`observed_band` comes with it."""
     if points.shape[0] == 0:
         return None
     if bounds is None:
         values, origin = distance_transform(points, cfg.dt_cell, cfg.dt_padding, max_cells=cfg.max_dt_cells)
-        return DistanceTransform(values, origin)
-    origin, shape = grid_from_bounds(*bounds, cfg.dt_cell, cfg.dt_padding, cfg.max_dt_cells)
-    occ = F.points_to_occupancy(points, origin, cfg.dt_cell, shape)
-    return DistanceTransform(F.edt(occ, cfg.dt_cell), origin)
+        d = DistanceTransform(values, origin)
+    else:
+        origin, shape = grid_from_bounds(*bounds, cfg.dt_cell, cfg.dt_padding, cfg.max_dt_cells)
+        occ = F.points_to_occupancy(points, origin, cfg.dt_cell, shape)
+        d = DistanceTransform(F.edt(occ, cfg.dt_cell), origin)
+    if cfg.range_mask and sensor is not None:
+        d.band = observed_band(points, sensor)
+    return d
+
+
+def observed_band(points: torch.Tensor, sensor) -> torch.Tensor:
+    """(4,) float32 on the points' device: the sensor's x, y and the horizontal range band
+    [r_min, r_max] of a scan's points around it (its nearest and farthest point).
+
+    Why: a scan cropped to a range around its own sensor (a lidar's reach, a blind zone, the
+    protocol's 3-50 m) has no points outside it, so a static point that the sensor of a support
+    scan does not reach there looks unmatched under zero flow, while a motion that follows the
+    sensor keeps it in view and matched: long walls and barriers beside a moving sensor get the
+    sensor's motion, and pass as explained. The evidence test and the velocity search count a
+    support scan only for points whose own position lies in its band (``range_mask``). The
+    band is the scan's own (no range setting to keep in step) and costs one reduction, no
+    host synchronisation."""
+    sx, sy = float(sensor[0]), float(sensor[1])
+    lo, hi = torch.aminmax(torch.hypot(points[:, 0] - sx, points[:, 1] - sy))
+    # fills, not host-to-device copies: nothing here waits for the device
+    return torch.stack([torch.full_like(lo, sx), torch.full_like(lo, sy), lo, hi]).to(torch.float32)
 
 
 class DtStreams:
@@ -50,7 +75,7 @@ class DtStreams:
         self.start: torch.cuda.Event | None = None  # on the main stream, before the first EDT
         self.streams: list = []  # the streams used, for the main stream to wait for
 
-    def launch(self, points: torch.Tensor, bounds) -> DistanceTransform | None:
+    def launch(self, points: torch.Tensor, bounds, sensor=None) -> DistanceTransform | None:
         """Queue the EDT of ``points`` (on a CUDA device) after the current stream's work."""
         main = torch.cuda.current_stream(points.device)
         if self.start is None:
@@ -59,17 +84,17 @@ class DtStreams:
         st = side_stream(points.device, f"dt{len(self.streams) % 4}")
         st.wait_stream(main)  # the upload
         with torch.cuda.stream(st):
-            d = build_dt(points, self.cfg, bounds)
+            d = build_dt(points, self.cfg, bounds, sensor)
         self.streams.append(st)
         return d
 
-    def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool) -> None:
+    def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool, sensor=None) -> None:
         dev = points.device
         if dev.type != "cuda" or serial_stages(dev) or is_target or i in self.cache or points.shape[0] == 0:
             return
         if not flag("FLOXELS_EARLY_DT"):
             return
-        self.cache[i] = self.launch(points, bounds)
+        self.cache[i] = self.launch(points, bounds, sensor)
 
 
 class WindowCache:

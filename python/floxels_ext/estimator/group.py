@@ -53,13 +53,13 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
     t0 = time.perf_counter()
     # DTs still to build, by scan tensor (windows of one sequence share scan tensors,
     # so each scan is built once)
-    todo: dict[int, list] = {}  # id -> [points, [(cache, index in window)], bounds or None]
+    todo: dict[int, list] = {}  # id -> [points, [(cache, index in window)], bounds or None, sensor]
     for prep, cache in items:
         if prep.points[prep.target].shape[0] > 0:
             for i in prep.supports:
                 if i not in cache and prep.points[i].shape[0] > 0:
-                    todo.setdefault(id(prep.points[i]), [prep.points[i], [], known_bounds(prep, i)])[1].append(
-                        (cache, i))
+                    todo.setdefault(id(prep.points[i]), [prep.points[i], [], known_bounds(prep, i),
+                                                         prep.sensor(i)])[1].append((cache, i))
     targets = [(prep.points[prep.target], known_bounds(prep, prep.target)) for prep, _ in items
                if prep.points[prep.target].shape[0] > 0]
     # bounds not known from the upload (device scans): all in one host synchronisation
@@ -86,12 +86,12 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
     if streams is None and edt_stream is not None and todo:
         dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
         dt_events[0].record(edt_stream)
-    for (pts, users, _), b in zip(todo.values(), dt_bounds):
+    for (pts, users, _, sensor), b in zip(todo.values(), dt_bounds):
         if streams is not None:
-            d = streams.launch(pts, b)
+            d = streams.launch(pts, b, sensor)
         else:
             with torch.cuda.stream(edt_stream) if edt_stream is not None else contextlib.nullcontext():
-                d = build_dt(pts, cfg, b)
+                d = build_dt(pts, cfg, b, sensor)
         for cache, i in users:
             cache[i] = d
     if streams is not None and streams.start is not None:
@@ -100,9 +100,9 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
         dt_events = (streams.start, torch.cuda.Event(enable_timing=True))
     if dt_events is not None:
         dt_events[1].record(edt_stream)
-    supports = []  # per item: (dts, origins, offsets, weights)
+    supports = []  # per item: (dts, origins, offsets, weights, range bands or None)
     for prep, cache in items:
-        dts, origins, offsets, weights = [], [], [], []
+        dts, origins, offsets, weights, bands = [], [], [], [], []
         if prep.points[prep.target].shape[0] > 0:
             for i, t in zip(prep.supports, prep.offsets):
                 if i not in cache:  # empty support scan
@@ -114,7 +114,10 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
                 origins.append(d.origin)
                 offsets.append(float(t))
                 weights.append(cfg.lambda_d * cfg.time_weight(t))
-        supports.append((dts, origins, offsets, weights))
+                bands.append(d.band)
+        # range bands only where every support scan has one (a sensor position for each)
+        supports.append((dts, origins, offsets, weights,
+                         bands if bands and all(b is not None for b in bands) else None))
     if serial:
         sync_device(device)
     timings["dt"] = time.perf_counter() - t0  # serial: wall time; else replaced by GPU time (dt_events)
@@ -126,7 +129,8 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
         # the DTs were made on the EDT stream and are used on the preparing stream's
         # successors: that stream waits for them, and the allocator learns of the use
         work.wait_stream(edt_stream)
-        for d in {id(t): t for pr in problems if pr is not None for t in pr.dts}.values():
+        for d in {id(t): t for pr in problems if pr is not None
+                  for t in [*pr.dts, *(pr.bands or [])]}.values():
             d.record_stream(work)
     if side is not None:
         used_on(main, items, problems, orders, labels)
@@ -169,7 +173,7 @@ def pack(cfg: FloxelsConfig, prepared: Prepared) -> list:
 def _searched_start(cfg: FloxelsConfig, p: SolverProblem) -> torch.Tensor:
     """Grid parameters started from each cluster's searched velocity (refine.py)."""
     sup = supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell)
-    vel = cluster_velocity_search(p.points, p.labels, sup)
+    vel = cluster_velocity_search(p.points, p.labels, sup, bands=stacked_bands(p))
     return vertex_init(vel, p.corners.corner_idx, p.corners.corner_w, p.corners.num_params)
 
 
@@ -187,7 +191,7 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
 
     t0 = time.perf_counter()
     problems, orders, grids = [], [], []
-    for (prep, _), lab, (dts, origins, offsets, weights) in zip(items, labels, supports):
+    for (prep, _), lab, (dts, origins, offsets, weights, bands) in zip(items, labels, supports):
         if poll is not None:
             poll()
         P = prep.points[prep.target]
@@ -205,7 +209,8 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
         # than when packing), and the number of clusters.
         st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
         problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
-                                      cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments))
+                                      cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments,
+                                      bands))
         orders.append(st.order)
         grids.append(g_origin)
     timings["setup"] = time.perf_counter() - t0
@@ -318,7 +323,13 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
     # cells: the compact index of each point's lower flow-grid corner (one per cell)
     return run_evidence(problem.points, flow, problem.labels, problem.corners.corner_idx[:, 0], problem.dts,
                         problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
-                        truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio)
+                        truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
+                        bands=stacked_bands(problem))
+
+
+def stacked_bands(problem: SolverProblem) -> torch.Tensor | None:
+    """(K, 4) range bands of a problem's support scans (``range_mask``), or None."""
+    return None if problem.bands is None else torch.stack(problem.bands)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:

@@ -42,6 +42,12 @@ class PreparedScans:
     bounds: list[tuple[list[float], list[float]] | None] | None = None
     # the shift subtracted (in float64) from every scan before it became float32 (recentre.py)
     recentring: Recentring | None = None
+    # each scan's sensor position (float64 xyz, re-centred like the scans), when given
+    sensors: list[np.ndarray] | None = None
+
+    def sensor(self, i: int) -> np.ndarray | None:
+        """Sensor position of scan ``i`` of the window, or None when not given."""
+        return None if self.sensors is None else self.sensors[i]
 
 
 def check_times(times, n: int) -> list[float]:
@@ -130,7 +136,8 @@ def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
 
 def prepare_scans(scans: Sequence, target: int | None, device, converted: dict | None = None,
                   first_index: int = 0, on_ready=None, times: Sequence[float] | None = None,
-                  period: float | None = None, recentring: Recentring | None = None) -> PreparedScans:
+                  period: float | None = None, recentring: Recentring | None = None,
+                  sensors: Sequence | None = None) -> PreparedScans:
     """Validate a window of scans and move them to the compute device.
 
     ``converted`` (sequence index -> (points, finite mask, bounds)) lets sliding windows over one
@@ -141,7 +148,8 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     still being copied. ``times`` (seconds, one per scan of the window, checked) with
     ``period`` (default: their median step) give the time offsets; else ``index - target``.
     ``recentring``: the shift shared by the windows of one call (default: one for this
-    window); scans far from the origin are moved near it in float64 first."""
+    window); scans far from the origin are moved near it in float64 first. ``sensors``: each
+    scan's sensor position (xyz, in the scans' frame; checked, see :func:`check_sensors`)."""
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -177,13 +185,18 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
         times = check_times(times, n)
         period = frame_period_of(times, period)
     dev = resolve_device(device, scans[0])
+    if sensors is not None:
+        sensors = check_sensors(sensors, n, first_index)
 
     todo = [i for i in range(n) if converted is None or first_index + i not in converted]
     todo.sort(key=lambda i: i == target)  # support scans first (their EDTs are the longest work)
-    ready = None if on_ready is None else (lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target))
     if recentring is None:
         recentring = Recentring()
     recentring.decide(tensors)
+    if sensors is not None:
+        sensors = [None if s is None else s - recentring.shift for s in sensors]
+    ready = None if on_ready is None else (
+        lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target, None if sensors is None else sensors[todo[k]]))
     fresh = dict(zip(todo, _finite_rows([recentring.apply(tensors[i]) for i in todo], dev,
                                         [first_index + i for i in todo],
                                         [i == target for i in todo], ready)))
@@ -205,7 +218,43 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
                          offsets=offsets, supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
                          in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds,
-                         recentring=recentring)
+                         recentring=recentring, sensors=sensors)
+
+
+def check_sensors(sensors, n: int, first_index: int = 0) -> list[np.ndarray | None]:
+    """``sensors`` (one xyz sensor position per scan: an (n, 3) array or a sequence of (3,)
+    arrays, None for a scan whose sensor is unknown) as float64 (3,) arrays (or None);
+    ValueError/TypeError naming the problem."""
+    if isinstance(sensors, (str, bytes)) or not hasattr(sensors, "__len__"):
+        raise TypeError(f"sensor_origins must be one (x, y, z) position per scan, got {type(sensors).__name__}")
+    if len(sensors) != n:
+        raise ValueError(f"sensor_origins must hold one (x, y, z) position per scan: got {len(sensors)} "
+                         f"for {n} scans")
+    out = []
+    for i, s in enumerate(sensors):
+        if s is None:
+            out.append(None)
+            continue
+        if isinstance(s, torch.Tensor):
+            s = s.detach().cpu().numpy()
+        try:
+            a = np.asarray(s, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(f"sensor_origins[{first_index + i}] must be 3 numbers (x, y, z), got {s!r}") from None
+        if a.shape != (3,):
+            raise ValueError(f"sensor_origins[{first_index + i}] must be 3 numbers (x, y, z), got shape {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"sensor_origins[{first_index + i}] is not finite: {a.tolist()}")
+        out.append(a)
+    return out
+
+
+def warn_if_no_sensors(cfg, sensors) -> None:
+    """The warning that ``range_mask`` is skipped: no ``sensor_origins`` to measure ranges from."""
+    if cfg.range_mask and sensors is None:
+        warn_user("range_mask (on in the 'accurate' preset) needs sensor_origins= (each scan's sensor "
+                  "position, e.g. its pose's translation); without them every support scan counts whole, "
+                  "as in the paper")
 
 
 def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool],

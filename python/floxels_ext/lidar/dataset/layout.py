@@ -156,6 +156,13 @@ class StreamScans(Sequence):
             self.stages.waited(time.perf_counter() - t0)
         return fut.result()
 
+    def sensor(self, g: int) -> np.ndarray | None:
+        """Sensor position of item ``g`` in its chunk's world frame (None where unknown)."""
+        seg, i = self.layout.locate(g)
+        p = seg.job.loader.get(i)
+        anchor = seg.anchor()
+        return None if p is None or anchor is None or p.sensor is None else p.sensor - anchor
+
     def __getitem__(self, k):
         if isinstance(k, slice):
             idx = range(k.start or 0, k.stop, k.step or 1)

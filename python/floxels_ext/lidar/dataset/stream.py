@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
-from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
-from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError
+from floxels_ext.lidar.pipeline.frame_loader import FrameLoader, SensorView
+from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError, accepts
 
 __all__ = ["SeqJob", "Ahead", "run_stream"]
 
@@ -107,15 +107,6 @@ class Ahead:
         if self._next is not None:
             self._next.cancel()
         self._ex.shutdown(wait=True, cancel_futures=True)
-
-
-def _accepts_times(fn) -> bool:
-    import inspect
-
-    try:
-        return "times" in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chunk: int | None, device,
@@ -190,7 +181,8 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
             stages.in_estimate = True
             try:
                 if stream is not None:
-                    stream(scans, targets, device, dict(options), deliver)
+                    extra = {"sensors": SensorView(scans)} if accepts(stream, "sensors") else {}
+                    stream(scans, targets, device, dict(options), deliver, **extra)
                 else:
                     _per_segment(method, scans, targets, device, options, deliver)
                 break
@@ -224,7 +216,8 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
 def _per_segment(method, scans: StreamScans, targets: Targets, device, options: dict, deliver) -> None:
     """A method without ``estimate_stream``: one ``estimate_sequence`` call per segment (it
     starts and drains its pipeline per chunk, as the plain run does)."""
-    pass_times = _accepts_times(method.estimate_sequence)
+    pass_times = accepts(method.estimate_sequence, "times")
+    pass_sensors = accepts(method.estimate_sequence, "sensors")
     batch: list = []
     seg_now = None
 
@@ -234,6 +227,8 @@ def _per_segment(method, scans: StreamScans, targets: Targets, device, options: 
         seg = seg_now
         view = _SegmentView(scans, seg.lo, seg.hi)
         extra = {"times": list(seg.times)} if pass_times and seg.times is not None else {}
+        if pass_sensors:
+            extra["sensors"] = SensorView(view)
         method.estimate_sequence(view, [g - seg.lo for g in batch], device, dict(options),
                                  lambda f, flow, fields=None, lo=seg.lo: deliver(lo + int(f), flow, fields), **extra)
         batch.clear()
@@ -269,3 +264,6 @@ class _SegmentView(Sequence):
         if not 0 <= k < len(self):
             raise IndexError(k)
         return self.scans[self.lo + k]
+
+    def sensor(self, k: int):
+        return self.scans.sensor(self.lo + k)

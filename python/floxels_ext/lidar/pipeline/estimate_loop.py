@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader
+from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader, SensorView
 from floxels_ext.lidar.pipeline.frame_writer import WriterPool
 
 # Python hands the GIL to a waiting thread only every "switch interval" (5 ms by default): with
@@ -64,9 +64,11 @@ def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
     return [todo[k:k + size] for k in range(0, len(todo), size)]
 
 
-def _accepts_times(fn) -> bool:
+def accepts(fn, name: str) -> bool:
+    """Whether method function ``fn`` takes the keyword ``name`` (``times``, ``sensors``: passed
+    only to methods that name them, so older methods keep working)."""
     try:
-        return "times" in inspect.signature(fn).parameters
+        return name in inspect.signature(fn).parameters
     except (TypeError, ValueError):
         return False
 
@@ -87,7 +89,8 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
     stages.optimiser_thread = threading.get_ident()
     pad = num_scans - 1
     chunks = plan_chunks(todo, chunk)
-    pass_times = times_s is not None and _accepts_times(method.estimate_sequence)
+    pass_times = times_s is not None and accepts(method.estimate_sequence, "times")
+    pass_sensors = accepts(method.estimate_sequence, "sensors")
     failed: dict[int, str] = {}
     elapsed: list[float] = []
     delivered = 0
@@ -150,6 +153,8 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                 stages.add("deliver", time.perf_counter() - now)
 
             extra = {"times": list(times_s[lo:hi])} if pass_times else {}
+            if pass_sensors:
+                extra["sensors"] = SensorView(scans)
             t0 = time.perf_counter()
             stages.in_estimate = True
             try:

@@ -35,6 +35,9 @@ class PreparedFrame:
     # points per preprocess class (kept, ground, outlier, cropped: non-finite rows included);
     # None without preprocessing
     counts: dict | None = None
+    # the sensor's position in the world frame (the native frame's origin, or the file's pose
+    # for points already in the world frame); None where unknown. Floxels' range_mask.
+    sensor: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -107,10 +110,12 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     try:
         scan = seq.load(i)
         sensor_from_native = None
+        sensor = None
         if pose_mode == "seqio":
             to_world = np.eye(4)
             if scan.pose is not None:
                 sensor_from_native = np.linalg.inv(scan.pose)
+                sensor = np.asarray(scan.pose, np.float64)[:3, 3].copy()
             else:
                 out["warning"] = "no_pose"
         elif pose_mode == "frame":
@@ -170,9 +175,12 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     if classes is not None:
         n = np.bincount(classes, minlength=4)
         counts = {"kept": int(n[1]), "ground": int(n[2]), "outlier": int(n[3]), "cropped": int(n[0])}
-    out["frame"] = PreparedFrame(kept_np, mask, nonfinite, np.asarray(to_world, np.float64),
+    to_world = np.asarray(to_world, np.float64)
+    if pose_mode != "seqio":
+        sensor = to_world[:3, 3].copy()  # the native frame's origin: the sensor
+    out["frame"] = PreparedFrame(kept_np, mask, nonfinite, to_world,
                                  np.ascontiguousarray(pts) if keep_points else None,
-                                 None if keep_points else points_crc32(pts), counts)
+                                 None if keep_points else points_crc32(pts), counts, sensor)
     return out
 
 
@@ -474,7 +482,28 @@ class ChunkScans(Sequence):
             raise IndexError(k)
         return self._scan(k)
 
+    def sensor(self, k: int) -> np.ndarray | None:
+        """Sensor position of item ``k`` in the chunk's world frame (None where unknown)."""
+        p = self.loader.get(self.lo + k)
+        return None if p is None or p.sensor is None else p.sensor - self.anchor
+
     def close(self) -> None:
         for f in self._futs.values():
             f.cancel()
         self._futs.clear()
+
+
+class SensorView(Sequence):
+    """The sensor positions of a scan sequence that has ``sensor(k)`` (ChunkScans,
+    StreamScans), as a sequence: the ``sensors=`` of the methods that take it."""
+
+    def __init__(self, scans) -> None:
+        self.scans = scans
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self.scans.sensor(j) for j in range(len(self))[k]]
+        return self.scans.sensor(int(k))

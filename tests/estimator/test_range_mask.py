@@ -1,0 +1,141 @@
+"""``FloxelsConfig.range_mask`` with ``sensor_origins`` (the accurate preset): long walls beside
+a moving sensor, cropped to a range around each scan's own sensor, get the sensor's motion from
+the paper's loss and pass the plain evidence test; with the range bands the evidence test
+rejects them, while a car passing the other way keeps its motion. Also the argument checks."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from floxels_ext.estimator import FloxelsConfig, estimate_flow, estimate_sequence
+from floxels_ext.estimator.distance import observed_band
+
+EGO = 1.5     # m/frame along x
+CAR = -1.0    # m/frame: oncoming, in the lane at y = -2
+RANGE = (3.0, 15.0)
+
+
+def street(n_scans=5, seed=0):
+    """Scans of two walls (y = 4, y = -6, x -60..60, 0-2 m high) and a 4 x 1.8 x 1.5 m car, in
+    the world frame, each cropped to RANGE around its own sensor (the ego at EGO m/frame);
+    the sensors, and the target's car mask."""
+    g = np.random.default_rng(seed)
+    scans, sensors, car_masks = [], [], []
+    for i in range(n_scans):
+        s = np.array([EGO * (i - n_scans // 2), 0.0, 1.8])
+        x = g.uniform(-60, 60, 12000)
+        z = g.uniform(0, 2, 12000)
+        walls = np.concatenate([np.stack([x, np.full_like(x, y) + g.normal(0, 0.01, x.shape), z], 1)
+                                for y in (4.0, -6.0)])
+        cx = 6.0 + CAR * (i - n_scans // 2)  # the car's centre
+        u = g.uniform(-1, 1, (1500, 3)) * [2.0, 0.9, 0.75]
+        face = g.integers(0, 3, 1500)
+        u[np.arange(1500), face] = np.sign(u[np.arange(1500), face]) * np.array([2.0, 0.9, 0.75])[face]
+        car = u + [cx, -2.0, 0.75]
+        pts = np.concatenate([walls, car])
+        r = np.hypot(pts[:, 0] - s[0], pts[:, 1] - s[1])
+        keep = (r >= RANGE[0]) & (r <= RANGE[1])
+        scans.append(pts[keep].astype(np.float32))
+        sensors.append(s)
+        car_masks.append(np.r_[np.zeros(len(walls), bool), np.ones(len(car), bool)][keep])
+    return scans, sensors, car_masks[n_scans // 2]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return street()
+
+
+def _speed(flow):
+    return np.linalg.norm(flow, axis=1)
+
+
+def test_walls_keep_the_sensors_motion_without_bands_and_none_with_them(scene):
+    scans, sensors, car = scene
+    paper = estimate_flow(scans, 2, FloxelsConfig(), sensor_origins=sensors)
+    plain_ev = estimate_flow(scans, 2, FloxelsConfig(evidence="zero"), sensor_origins=sensors)
+    masked = estimate_flow(scans, 2, FloxelsConfig(evidence="zero", range_mask=True), sensor_origins=sensors)
+    wall = ~car
+    assert np.median(_speed(paper[wall])) > 0.3        # the failure: walls follow the sensor
+    assert np.median(_speed(plain_ev[wall])) > 0.3     # and pass the plain evidence test
+    assert np.mean(_speed(masked[wall]) < 0.05) > 0.95   # rejected with the range bands
+    # the car keeps its motion (it explains the scans whatever the bands)
+    v = np.median(masked[car], axis=0)
+    assert abs(v[0] - CAR) < 0.15 and abs(v[1]) < 0.1
+
+
+def test_velocity_search_does_not_start_the_walls_with_bands(scene):
+    scans, sensors, car = scene
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, velocity_search=True)
+    f = estimate_flow(scans, 2, cfg, sensor_origins=sensors)
+    assert np.mean(_speed(f[~car]) < 0.05) > 0.95
+    assert abs(np.median(f[car][:, 0]) - CAR) < 0.15
+
+
+def test_without_range_mask_sensor_origins_change_nothing(scene):
+    scans, sensors, _ = scene
+    cfg = FloxelsConfig(evidence="zero", max_iters=60)
+    a = estimate_flow(scans, 2, cfg)
+    b = estimate_flow(scans, 2, cfg, sensor_origins=sensors)
+    assert np.array_equal(a, b)
+
+
+def test_sequence_uses_each_scans_own_sensor(scene):
+    scans, sensors, _ = scene
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, num_scans=5, max_iters=80)
+    seq = estimate_sequence(scans, cfg, frames=[2], sensor_origins=np.stack(sensors))[0]
+    one = estimate_flow(scans, 2, cfg, sensor_origins=sensors)
+    assert np.array_equal(seq, one)
+
+
+def test_range_mask_without_sensors_warns_and_runs_as_without_it(scene):
+    scans, _, _ = scene
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, max_iters=40)
+    with pytest.warns(UserWarning, match="range_mask .* needs sensor_origins"):
+        a = estimate_flow(scans, 2, cfg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        b = estimate_flow(scans, 2, FloxelsConfig(evidence="zero", max_iters=40))
+    assert np.array_equal(a, b)
+
+
+def test_unknown_sensor_of_one_scan_drops_the_bands(scene):
+    scans, sensors, _ = scene
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, max_iters=40)
+    part = [None] + list(sensors[1:])
+    a = estimate_flow(scans, 2, cfg, sensor_origins=part)
+    b = estimate_flow(scans, 2, FloxelsConfig(evidence="zero", max_iters=40))
+    assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("bad, err, match", [
+    ([np.zeros(3)] * 4, ValueError, "one .* position per scan: got 4 for 5 scans"),
+    ([np.zeros(3)] * 4 + [np.array([0.0, np.nan, 0.0])], ValueError, r"sensor_origins\[4\] is not finite"),
+    ([np.zeros(2)] * 5, ValueError, r"sensor_origins\[0\] must be 3 numbers"),
+    ([np.zeros(3)] * 4 + ["abc"], (TypeError, ValueError), r"sensor_origins\[4\]"),
+    (3.0, TypeError, "one \\(x, y, z\\) position per scan"),
+])
+def test_bad_sensor_origins_are_refused(scene, bad, err, match):
+    scans, _, _ = scene
+    with pytest.raises(err, match=match):
+        estimate_flow(scans, 2, FloxelsConfig(range_mask=True, max_iters=2), sensor_origins=bad)
+
+
+def test_bad_sensor_origins_in_a_sequence_are_refused_before_any_work(scene):
+    scans, sensors, _ = scene
+    with pytest.raises(ValueError, match="got 3 for 5 scans"):
+        estimate_sequence(scans, FloxelsConfig(range_mask=True), sensor_origins=sensors[:3])
+
+
+def test_observed_band_is_the_scans_range_around_its_sensor():
+    g = np.random.default_rng(1)
+    ang, r = g.uniform(0, 2 * np.pi, 5000), g.uniform(3, 20, 5000)
+    p = torch.tensor(np.stack([10 + r * np.cos(ang), -5 + r * np.sin(ang), g.uniform(0, 2, 5000)], 1),
+                     dtype=torch.float32)
+    b = observed_band(p, np.array([10.0, -5.0, 1.8]))
+    assert b.dtype == torch.float32 and b.shape == (4,)
+    torch.testing.assert_close(b, torch.tensor([10.0, -5.0, float(r.min()), float(r.max())]), rtol=1e-5, atol=1e-4)
