@@ -105,6 +105,9 @@ ABLATIONS = [
     ("beyond-only", "only rigid_refine, every window", {"rigid_refine": True}),
     ("beyond-only", "only velocity_search=True (not in the preset)", {"velocity_search": True}),
     ("beyond-only", "accurate + velocity_search", {**PRESETS["accurate"], "velocity_search": True}),
+    ("beyond-only", "accurate + visibility (not in the preset)", {**PRESETS["accurate"], "visibility": True}),
+    ("beyond-only", "accurate + visibility + velocity_search",
+     {**PRESETS["accurate"], "visibility": True, "velocity_search": True}),
     *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk not in v})
       for k, v in INGREDIENTS.items()],
     ("beyond-loo", "accurate, rigid_refine in every window", {**PRESETS["accurate"], "refine_max_supports": 0}),

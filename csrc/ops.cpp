@@ -66,11 +66,10 @@ TORCH_LIBRARY(floxels, m) {
   // Data-only look-ups of the same DTs (no autograd; csrc/cpu/dt_query_cpu.cpp, cuda/dt_query.cu),
   // query q_k = points + time_offsets[k] * motion, border clamping; a non-finite point or motion
   // row gives NaN. Per point (N,): sum_k weights[k] * c(min(DT_k(q_k), cap)), c = x or x^2.
-  // bands (K, 4) of the points' dtype and device, optional: per scan the sensor's x, y and the
-  // horizontal range band [r_min, r_max] it observed; scan k's term counts only for points
-  // whose own position lies in its band (FloxelsConfig.range_mask).
+  // observed (N,) int32 on the points' device, optional: bit k of row i set where scan k counts
+  // for point i (it could see the point's unmoved position; FloxelsConfig.range_mask/visibility).
   m.def("dt_residual(Tensor points, Tensor motion, Tensor[] dts, float[] origins, float spacing, "
-        "float[] time_offsets, float[] weights, float cap, bool squared, Tensor? bands=None) -> Tensor");
+        "float[] time_offsets, float[] weights, float cap, bool squared, Tensor? observed=None) -> Tensor");
   // (K, N, 4): [DT_k(q_k), d DT_k / d q (x, y, z)] per scan and point (gradient 0 along a
   // clamped axis and for a non-finite row).
   m.def("dt_sample(Tensor points, Tensor motion, Tensor[] dts, float[] origins, float spacing, "
@@ -79,10 +78,10 @@ TORCH_LIBRARY(floxels, m) {
   // points with equal labels, and for label < 0 (or no labels) equal cells. Per group, rf / rz =
   // mean over its points of dt_residual with flow / with zero flow (sums in double); per point
   // (score = rz - rf, explained = score > max(ratio * rz, margin), rf, rz); a group with a
-  // non-finite residual gives NaN and False. Deterministic on every device. bands: as dt_residual.
+  // non-finite residual gives NaN and False. Deterministic on every device. observed: as dt_residual.
   m.def("dt_evidence(Tensor points, Tensor flow, Tensor? labels, Tensor cells, Tensor[] dts, float[] origins, "
         "float spacing, float[] time_offsets, float[] weights, float cap, float margin, float ratio, "
-        "Tensor? bands=None) -> (Tensor, Tensor, Tensor, Tensor)");
+        "Tensor? observed=None) -> (Tensor, Tensor, Tensor, Tensor)");
 
   // --- cluster reductions (csrc/kernels/cluster.h) ---
   // Per-cluster mean (num_clusters, C) of values (N, C); labels (N,) int64 in [-1, num_clusters),

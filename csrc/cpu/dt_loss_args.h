@@ -100,17 +100,15 @@ inline void check_dt_query_args(std::string_view op, const at::Tensor& points, c
   }
 }
 
-// dt_residual / dt_evidence's optional range bands: (K, 4) of the points' dtype and device
-// (sensor x, y, r_min, r_max per scan; the kernels read them contiguous). Non-finite values
-// would silently drop or keep terms: refused.
-inline void check_bands(std::string_view op, const std::optional<at::Tensor>& bands, const at::Tensor& points,
-                        int64_t K) {
-  if (!bands.has_value()) return;
-  const at::Tensor& b = *bands;
-  FLX_CHECK(b.dim() == 2 && b.size(0) == K && b.size(1) == 4, "floxels: ", op, ": bands must have shape (", K,
-            ", 4) (one row per distance transform: sensor x, y, r_min, r_max), got ", b.sizes());
-  check_same_dtype(points, b, "points", "bands");
-  check_same_device(points, b, "points", "bands");
+// dt_residual / dt_evidence's optional observed bits: (N,) int32 on the points' device, bit k
+// of row i set where scan k counts for point i (the kernels read it contiguous).
+inline void check_observed(std::string_view op, const std::optional<at::Tensor>& observed, const at::Tensor& points) {
+  if (!observed.has_value()) return;
+  const at::Tensor& b = *observed;
+  FLX_CHECK(b.dim() == 1 && b.size(0) == points.size(0), "floxels: ", op, ": observed must have shape (",
+            points.size(0), ",) (one bit mask per point), got ", b.sizes());
+  FLX_CHECK(b.scalar_type() == at::kInt, "floxels: ", op, ": observed must be int32, got ", b.scalar_type());
+  check_same_device(points, b, "points", "observed");
 }
 
 // dt_evidence's group keys: (N,) int32/int64 on the points' device (any stride).

@@ -31,10 +31,10 @@ constexpr int64_t kGrain = 1024;
 at::Tensor dt_residual_cpu(const at::Tensor& points, const at::Tensor& motion, at::TensorList dts,
                            c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
                            c10::ArrayRef<double> weights, double cap, bool squared,
-                           const std::optional<at::Tensor>& bands) {
+                           const std::optional<at::Tensor>& observed) {
   check_dt_query_args("dt_residual", points, motion, dts, origins, spacing, time_offsets, &weights, &cap);
-  check_bands("dt_residual", bands, points, static_cast<int64_t>(dts.size()));
-  const at::Tensor bd = bands.has_value() ? bands->contiguous() : at::Tensor();
+  check_observed("dt_residual", observed, points);
+  const at::Tensor ob = observed.has_value() ? observed->contiguous() : at::Tensor();
   const auto p = points.expect_contiguous();
   const auto m = motion.expect_contiguous();
   const auto d = contiguous_dts(dts);
@@ -47,16 +47,17 @@ at::Tensor dt_residual_cpu(const at::Tensor& points, const at::Tensor& motion, a
     const T* pp = p->const_data_ptr<T>();
     const T* mp = m->const_data_ptr<T>();
     T* o = out.mutable_data_ptr<T>();
-    const T* bp = bd.defined() ? bd.const_data_ptr<T>() : nullptr;
+    const int32_t* obs = ob.defined() ? ob.const_data_ptr<int32_t>() : nullptr;
     const T inv = T(1.0 / spacing), c = T(cap);
     at::parallel_for(0, n, kGrain, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {
         const T* pi = pp + 3 * i;
         const T* mi = mp + 3 * i;
+        const uint32_t bits = obs ? static_cast<uint32_t>(obs[i]) : dt_loss::kAllScans;
         T r = squared ? dt_loss::point_residual<true, T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], mi[0],
-                                                                  mi[1], mi[2], inv, c, bp)
+                                                                  mi[1], mi[2], inv, c, bits)
                       : dt_loss::point_residual<false, T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], mi[0],
-                                                                   mi[1], mi[2], inv, c, bp);
+                                                                   mi[1], mi[2], inv, c, bits);
         if (!finite3(pi[0], pi[1], pi[2]) || !finite3(mi[0], mi[1], mi[2])) [[unlikely]] r = quiet_nan<T>();
         o[i] = r;
       }
@@ -125,11 +126,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cpu(
     const at::Tensor& points, const at::Tensor& flow, const std::optional<at::Tensor>& labels,
     const at::Tensor& cells, at::TensorList dts, c10::ArrayRef<double> origins, double spacing,
     c10::ArrayRef<double> time_offsets, c10::ArrayRef<double> weights, double cap, double margin, double ratio,
-    const std::optional<at::Tensor>& bands) {
+    const std::optional<at::Tensor>& observed) {
   check_dt_query_args("dt_evidence", points, flow, dts, origins, spacing, time_offsets, &weights, &cap, "flow");
   check_evidence_scalars(margin, ratio);
-  check_bands("dt_evidence", bands, points, static_cast<int64_t>(dts.size()));
-  const at::Tensor bd = bands.has_value() ? bands->contiguous() : at::Tensor();
+  check_observed("dt_evidence", observed, points);
+  const at::Tensor ob = observed.has_value() ? observed->contiguous() : at::Tensor();
   check_group_keys(cells, points, "cells");
   if (labels.has_value()) check_group_keys(*labels, points, "labels");
   const auto p = points.expect_contiguous();
@@ -152,7 +153,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cpu(
     const T* fp = f->const_data_ptr<T>();
     T* rf = res_f.mutable_data_ptr<T>();
     T* rz = res_z.mutable_data_ptr<T>();
-    const T* bp = bd.defined() ? bd.const_data_ptr<T>() : nullptr;
+    const int32_t* obs = ob.defined() ? ob.const_data_ptr<int32_t>() : nullptr;
     const T inv = T(1.0 / spacing), c = T(cap);
     // per point residuals (staged in the residual outputs, overwritten by the group means)
     at::parallel_for(0, n, kGrain, [&](int64_t b, int64_t e) {
@@ -160,7 +161,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cpu(
         const T* pi = pp + 3 * i;
         const T* fi = fp + 3 * i;
         dt_loss::point_residual_pair<T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], fi[0], fi[1], fi[2], inv, c,
-                                                 rf[i], rz[i], bp);
+                                                 rf[i], rz[i], obs ? static_cast<uint32_t>(obs[i]) : dt_loss::kAllScans);
         if (!finite3(pi[0], pi[1], pi[2]) || !finite3(fi[0], fi[1], fi[2])) [[unlikely]] rf[i] = rz[i] = quiet_nan<T>();
       }
     });

@@ -30,7 +30,7 @@ struct Params {
   dt_loss::Scan<T, int> scans[dt_loss::kMaxScans];
   const T* points;
   const T* motion;
-  const T* bands;  // (num_scans, 4) range bands or nullptr (kernels/dt_loss.h in_band)
+  const int32_t* observed;  // (n,) observed bits or nullptr (kernels/dt_loss.h counts)
   T* out;
   int n;
   int num_scans;
@@ -40,9 +40,9 @@ struct Params {
 
 template <typename T>
 Params<T> make_params(const T* points, const T* motion, int64_t n, const DtLossScanDesc* scans, int num_scans,
-                      double spacing, double cap, T* out, const T* bands = nullptr) {
+                      double spacing, double cap, T* out, const int32_t* observed = nullptr) {
   Params<T> p{};
-  p.bands = bands;
+  p.observed = observed;
   for (int k = 0; k < num_scans; ++k) p.scans[k] = device_scan<T>(scans[k], scans[k].weight);
   p.points = points;
   p.motion = motion;
@@ -65,7 +65,8 @@ __global__ void __launch_bounds__(kThreads) residual_kernel(const __grid_constan
   const T* pi = p.points + 3 * static_cast<int64_t>(i);
   const T* mi = p.motion + 3 * static_cast<int64_t>(i);
   T r = dt_loss::point_residual<kSquared, T, int>(p.scans, p.num_scans, pi[0], pi[1], pi[2], mi[0], mi[1], mi[2],
-                                                  p.inv_spacing, p.cap, p.bands);
+                                                  p.inv_spacing, p.cap,
+                                                  p.observed ? static_cast<uint32_t>(p.observed[i]) : dt_loss::kAllScans);
   if (!finite3(pi[0], pi[1], pi[2]) || !finite3(mi[0], mi[1], mi[2])) r = quiet_nan<T>();
   p.out[i] = r;
 }
@@ -184,7 +185,8 @@ __global__ void __launch_bounds__(kThreads) evidence_values_kernel(const __grid_
     const T* fi = p.q.motion + 3 * static_cast<int64_t>(i);
     T rf, rz;
     dt_loss::point_residual_pair<T, int>(p.q.scans, p.q.num_scans, pi[0], pi[1], pi[2], fi[0], fi[1], fi[2],
-                                         p.q.inv_spacing, p.q.cap, rf, rz, p.q.bands);
+                                         p.q.inv_spacing, p.q.cap, rf, rz,
+                                         p.q.observed ? static_cast<uint32_t>(p.q.observed[i]) : dt_loss::kAllScans);
     const bool ok = finite3(pi[0], pi[1], pi[2]) && finite3(fi[0], fi[1], fi[2]) && is_finite(rf) && is_finite(rz);
     v[0] = ok ? static_cast<double>(rf) : 0.0;
     v[1] = ok ? static_cast<double>(rz) : 0.0;
@@ -333,10 +335,10 @@ bool bad_args(int64_t n, int num_scans) {
 
 template <typename T>
 cudaError_t residual_impl(const T* points, const T* motion, int64_t n, const DtLossScanDesc* scans, int num_scans,
-                          double spacing, double cap, bool squared, const T* bands, T* out, cudaStream_t stream) {
+                          double spacing, double cap, bool squared, const int32_t* observed, T* out, cudaStream_t stream) {
   if (bad_args(n, num_scans)) return cudaErrorInvalidValue;
   if (n == 0) return cudaSuccess;
-  const Params<T> p = make_params<T>(points, motion, n, scans, num_scans, spacing, cap, out, bands);
+  const Params<T> p = make_params<T>(points, motion, n, scans, num_scans, spacing, cap, out, observed);
   if (squared) {
     residual_kernel<T, true><<<num_blocks(n), kThreads, 0, stream>>>(p);
   } else {
@@ -358,14 +360,14 @@ cudaError_t sample_impl(const T* points, const T* motion, int64_t n, const DtLos
 template <typename T>
 cudaError_t evidence_impl(const T* points, const T* flow, int64_t n, GroupKeys labels, GroupKeys cells,
                           const DtLossScanDesc* scans, int num_scans, double spacing, double cap, double margin,
-                          double ratio, const T* bands, T* score, bool* explained, T* res_flow, T* res_zero,
+                          double ratio, const int32_t* observed, T* score, bool* explained, T* res_flow, T* res_zero,
                           void* workspace, cudaStream_t stream) {
   if (bad_args(n, num_scans) || cells.data == nullptr) return cudaErrorInvalidValue;
   if (n == 0) return cudaSuccess;
   const Layout l = layout(n);
   char* ws = static_cast<char*>(workspace);
   EvidenceParams<T> p{};
-  p.q = make_params<T>(points, flow, n, scans, num_scans, spacing, cap, nullptr, bands);
+  p.q = make_params<T>(points, flow, n, scans, num_scans, spacing, cap, nullptr, observed);
   p.labels = labels;
   p.cells = cells;
   p.vals = reinterpret_cast<double*>(ws + l.vals);
@@ -400,15 +402,15 @@ cudaError_t evidence_impl(const T* points, const T* flow, int64_t n, GroupKeys l
 }  // namespace
 
 cudaError_t launch_dt_residual(const float* points, const float* motion, int64_t n, const DtLossScanDesc* scans,
-                               int num_scans, double spacing, double cap, bool squared, const float* bands, float* out,
+                               int num_scans, double spacing, double cap, bool squared, const int32_t* observed, float* out,
                                cudaStream_t stream) {
-  return residual_impl<float>(points, motion, n, scans, num_scans, spacing, cap, squared, bands, out, stream);
+  return residual_impl<float>(points, motion, n, scans, num_scans, spacing, cap, squared, observed, out, stream);
 }
 
 cudaError_t launch_dt_residual(const double* points, const double* motion, int64_t n, const DtLossScanDesc* scans,
-                               int num_scans, double spacing, double cap, bool squared, const double* bands, double* out,
+                               int num_scans, double spacing, double cap, bool squared, const int32_t* observed, double* out,
                                cudaStream_t stream) {
-  return residual_impl<double>(points, motion, n, scans, num_scans, spacing, cap, squared, bands, out, stream);
+  return residual_impl<double>(points, motion, n, scans, num_scans, spacing, cap, squared, observed, out, stream);
 }
 
 cudaError_t launch_dt_sample(const float* points, const float* motion, int64_t n, const DtLossScanDesc* scans,
@@ -425,17 +427,17 @@ int64_t dt_evidence_workspace_bytes(int64_t n) { return n > 0 ? layout(n).total 
 
 cudaError_t launch_dt_evidence(const float* points, const float* flow, int64_t n, GroupKeys labels,
                                GroupKeys cells, const DtLossScanDesc* scans, int num_scans, double spacing,
-                               double cap, double margin, double ratio, const float* bands, float* score, bool* explained,
+                               double cap, double margin, double ratio, const int32_t* observed, float* score, bool* explained,
                                float* res_flow, float* res_zero, void* workspace, cudaStream_t stream) {
-  return evidence_impl<float>(points, flow, n, labels, cells, scans, num_scans, spacing, cap, margin, ratio, bands, score,
+  return evidence_impl<float>(points, flow, n, labels, cells, scans, num_scans, spacing, cap, margin, ratio, observed, score,
                               explained, res_flow, res_zero, workspace, stream);
 }
 
 cudaError_t launch_dt_evidence(const double* points, const double* flow, int64_t n, GroupKeys labels,
                                GroupKeys cells, const DtLossScanDesc* scans, int num_scans, double spacing,
-                               double cap, double margin, double ratio, const double* bands, double* score, bool* explained,
+                               double cap, double margin, double ratio, const int32_t* observed, double* score, bool* explained,
                                double* res_flow, double* res_zero, void* workspace, cudaStream_t stream) {
-  return evidence_impl<double>(points, flow, n, labels, cells, scans, num_scans, spacing, cap, margin, ratio, bands, score,
+  return evidence_impl<double>(points, flow, n, labels, cells, scans, num_scans, spacing, cap, margin, ratio, observed, score,
                                explained, res_flow, res_zero, workspace, stream);
 }
 

@@ -28,11 +28,11 @@ namespace {
 at::Tensor dt_residual_cuda(const at::Tensor& points, const at::Tensor& motion, at::TensorList dts,
                             c10::ArrayRef<double> origins, double spacing, c10::ArrayRef<double> time_offsets,
                             c10::ArrayRef<double> weights, double cap, bool squared,
-                            const std::optional<at::Tensor>& bands) {
+                            const std::optional<at::Tensor>& observed) {
   // checks first: a CPU tensor among the inputs must get the device message, not the guard's
   check_dt_query_args("dt_residual", points, motion, dts, origins, spacing, time_offsets, &weights, &cap);
-  check_bands("dt_residual", bands, points, static_cast<int64_t>(dts.size()));
-  const at::Tensor bd = bands.has_value() ? bands->contiguous() : at::Tensor();
+  check_observed("dt_residual", observed, points);
+  const at::Tensor ob = observed.has_value() ? observed->contiguous() : at::Tensor();
   const cuda::DtInputs in =
       cuda::prepare_dt_inputs("dt_residual", points, motion, dts, origins, time_offsets, weights);
   const c10::cuda::CUDAGuard guard(points.device());
@@ -41,7 +41,7 @@ at::Tensor dt_residual_cuda(const at::Tensor& points, const at::Tensor& motion, 
   AT_DISPATCH_FLOATING_TYPES(in.points.scalar_type(), "dt_residual_cuda", [&] {
     C10_CUDA_CHECK(cuda::launch_dt_residual(in.points.const_data_ptr<scalar_t>(), in.motion.const_data_ptr<scalar_t>(),
                                             points.size(0), in.descs.data(), in.num_scans, spacing, cap, squared,
-                                            bd.defined() ? bd.const_data_ptr<scalar_t>() : nullptr,
+                                            ob.defined() ? ob.const_data_ptr<int32_t>() : nullptr,
                                             out.mutable_data_ptr<scalar_t>(), stream));
   });
   return out;
@@ -70,10 +70,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cuda(
     const at::Tensor& points, const at::Tensor& flow, const std::optional<at::Tensor>& labels,
     const at::Tensor& cells, at::TensorList dts, c10::ArrayRef<double> origins, double spacing,
     c10::ArrayRef<double> time_offsets, c10::ArrayRef<double> weights, double cap, double margin, double ratio,
-    const std::optional<at::Tensor>& bands) {
+    const std::optional<at::Tensor>& observed) {
   check_dt_query_args("dt_evidence", points, flow, dts, origins, spacing, time_offsets, &weights, &cap, "flow");
-  check_bands("dt_evidence", bands, points, static_cast<int64_t>(dts.size()));
-  const at::Tensor bd = bands.has_value() ? bands->contiguous() : at::Tensor();
+  check_observed("dt_evidence", observed, points);
+  const at::Tensor ob = observed.has_value() ? observed->contiguous() : at::Tensor();
   FLX_CHECK(std::isfinite(margin), "floxels: dt_evidence: margin must be finite, got ", margin);
   FLX_CHECK(std::isfinite(ratio), "floxels: dt_evidence: ratio must be finite, got ", ratio);
   check_group_keys(cells, points, "cells");
@@ -94,7 +94,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cuda(
     C10_CUDA_CHECK(cuda::launch_dt_evidence(
         in.points.const_data_ptr<scalar_t>(), in.motion.const_data_ptr<scalar_t>(), n, lab, keys_of(cells),
         in.descs.data(), in.num_scans, spacing, cap, margin, ratio,
-        bd.defined() ? bd.const_data_ptr<scalar_t>() : nullptr, score.mutable_data_ptr<scalar_t>(),
+        ob.defined() ? ob.const_data_ptr<int32_t>() : nullptr, score.mutable_data_ptr<scalar_t>(),
         explained.mutable_data_ptr<bool>(), res_f.mutable_data_ptr<scalar_t>(), res_z.mutable_data_ptr<scalar_t>(),
         workspace.mutable_data_ptr(), stream));
   });

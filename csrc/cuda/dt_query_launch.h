@@ -13,10 +13,10 @@ namespace floxels::cuda {
 
 // out (n) = sum_k weight_k * c(min(DT_k(p + t_k m), cap)), c = x or x^2; NaN for a non-finite row.
 cudaError_t launch_dt_residual(const float* points, const float* motion, int64_t n, const DtLossScanDesc* scans,
-                               int num_scans, double spacing, double cap, bool squared, const float* bands, float* out,
+                               int num_scans, double spacing, double cap, bool squared, const int32_t* observed, float* out,
                                cudaStream_t stream);
 cudaError_t launch_dt_residual(const double* points, const double* motion, int64_t n, const DtLossScanDesc* scans,
-                               int num_scans, double spacing, double cap, bool squared, const double* bands, double* out,
+                               int num_scans, double spacing, double cap, bool squared, const int32_t* observed, double* out,
                                cudaStream_t stream);
 
 // out (num_scans, n, 4) = [DT_k(p + t_k m), d DT_k / d q]; NaN value and zero gradient for a
@@ -43,11 +43,11 @@ int64_t dt_evidence_workspace_bytes(int64_t n);
 // synchronisation: the same bits on every run.
 cudaError_t launch_dt_evidence(const float* points, const float* flow, int64_t n, GroupKeys labels,
                                GroupKeys cells, const DtLossScanDesc* scans, int num_scans, double spacing,
-                               double cap, double margin, double ratio, const float* bands, float* score, bool* explained,
+                               double cap, double margin, double ratio, const int32_t* observed, float* score, bool* explained,
                                float* res_flow, float* res_zero, void* workspace, cudaStream_t stream);
 cudaError_t launch_dt_evidence(const double* points, const double* flow, int64_t n, GroupKeys labels,
                                GroupKeys cells, const DtLossScanDesc* scans, int num_scans, double spacing,
-                               double cap, double margin, double ratio, const double* bands, double* score, bool* explained,
+                               double cap, double margin, double ratio, const int32_t* observed, double* score, bool* explained,
                                double* res_flow, double* res_zero, void* workspace, cudaStream_t stream);
 
 }  // namespace floxels::cuda

@@ -162,48 +162,43 @@ FLX_HD T cap_value(T v, T cap) {
   return v > cap ? cap : v;
 }
 
-// Whether scan k saw position (px, py), by its range band: bands (K x 4: the sensor's x, y and
-// the band's smallest and largest horizontal range r_min, r_max) or nullptr (every position).
-// A point's own (unmoved) position decides, never the query: a motion cannot move a point out
-// of a scan's sight to escape its residual. NaN is outside.
-template <typename T>
-FLX_HD bool in_band(const T* bands, int k, T px, T py) {
-  if (bands == nullptr) return true;
-  const T* b = bands + 4 * k;
-  const T dx = px - b[0], dy = py - b[1];
-  const T d2 = dx * dx + dy * dy;
-  return d2 >= b[2] * b[2] && d2 <= b[3] * b[3];
-}
+// A point's observed bits: bit k set = support scan k could see the point's own (unmoved)
+// position (estimator/sight.py: inside the scan's range band, and its range image has a return
+// at or beyond the point in that direction). The point decides, never the query: no motion can
+// move a point out of a scan's sight to escape its residual. kAllScans: every scan counts.
+constexpr uint32_t kAllScans = 0xffffffffu;
+
+FLX_HD bool counts(uint32_t bits, int k) { return ((bits >> k) & 1u) != 0u; }
 
 // sum_k coef_k * c(min(DT_k(p + t_k m), cap)), c = identity or square (kSquared), over the
-// scans whose band holds p (all without bands).
+// scans whose bit is set in `bits`.
 template <bool kSquared, typename T, typename Index>
 FLX_HD T point_residual(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T mx, T my, T mz,
-                        T inv_spacing, T cap, const T* bands = nullptr) {
+                        T inv_spacing, T cap, uint32_t bits = kAllScans) {
   T r = T(0);
 #if defined(__CUDA_ARCH__)
 #pragma unroll 4
 #endif
   for (int k = 0; k < k_scans; ++k) {
     const T v = cap_value(scan_sample<false, T, Index>(scans[k], px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
-    r += in_band(bands, k, px, py) ? scans[k].coef * (kSquared ? v * v : v) : T(0);
+    r += counts(bits, k) ? scans[k].coef * (kSquared ? v * v : v) : T(0);
   }
   return r;
 }
 
 // The two residuals of the motion evidence in one walk over the scans: with the motion m
 // (rf) and with zero motion (rz), sum_k coef_k * min(DT_k(.), cap) each, over the scans
-// whose band holds p (a scan that could not see p says nothing of whether it moved).
+// whose bit is set (a scan that could not see p says nothing of whether it moved).
 template <typename T, typename Index>
 FLX_HD void point_residual_pair(const Scan<T, Index>* scans, int k_scans, T px, T py, T pz, T mx, T my, T mz,
-                                T inv_spacing, T cap, T& rf, T& rz, const T* bands = nullptr) {
+                                T inv_spacing, T cap, T& rf, T& rz, uint32_t bits = kAllScans) {
   T a = T(0), b = T(0);
 #if defined(__CUDA_ARCH__)
 #pragma unroll 4
 #endif
   for (int k = 0; k < k_scans; ++k) {
     const Scan<T, Index>& s = scans[k];
-    const T c = in_band(bands, k, px, py) ? s.coef : T(0);
+    const T c = counts(bits, k) ? s.coef : T(0);
     a += c * cap_value(scan_sample<false, T, Index>(s, px, py, pz, mx, my, mz, inv_spacing, nullptr), cap);
     b += c * cap_value(scan_sample<false, T, Index>(s, px, py, pz, T(0), T(0), T(0), inv_spacing, nullptr), cap);
   }

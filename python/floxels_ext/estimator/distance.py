@@ -8,12 +8,13 @@ from dataclasses import dataclass
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
+from floxels_ext.estimator.sight import Sight, scan_sight
 from floxels_ext.estimator.streams import serial_stages, side_stream
 from floxels_ext.ops import distance_transform
 from floxels_ext.ops.grid import grid_from_bounds
 from floxels_ext.switches import flag
 
-__all__ = ["DistanceTransform", "build_dt", "observed_band", "DtStreams", "WindowCache"]
+__all__ = ["DistanceTransform", "build_dt", "DtStreams", "WindowCache"]
 
 F = torch.ops.floxels
 
@@ -24,13 +25,13 @@ class DistanceTransform:
 
     values: torch.Tensor
     origin: list[float]
-    band: torch.Tensor | None = None  # observed_band of its scan (range_mask with a known sensor)
+    sight: Sight | None = None  # what its scan could see (range_mask / visibility with a known sensor)
 
 
 def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None) -> DistanceTransform | None:
     """DT of a validated scan; ``bounds`` (its min/max xyz, see point_bounds) saves a host sync.
-    ``sensor`` (the scan's sensor position, xyz in the scans' frame) with ``cfg.range_mask``:
-    its :func:`observed_band` comes with it."""
+    ``sensor`` (the scan's sensor position, xyz in the scans' frame) with ``cfg.range_mask`` or
+    ``cfg.visibility``: its :class:`~floxels_ext.estimator.sight.Sight` comes with it."""
     if points.shape[0] == 0:
         return None
     if bounds is None:
@@ -40,27 +41,9 @@ def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None)
         origin, shape = grid_from_bounds(*bounds, cfg.dt_cell, cfg.dt_padding, cfg.max_dt_cells)
         occ = F.points_to_occupancy(points, origin, cfg.dt_cell, shape)
         d = DistanceTransform(F.edt(occ, cfg.dt_cell), origin)
-    if cfg.range_mask and sensor is not None:
-        d.band = observed_band(points, sensor)
+    if (cfg.range_mask or cfg.visibility) and sensor is not None:
+        d.sight = scan_sight(points, sensor, band=cfg.range_mask, image=cfg.visibility)
     return d
-
-
-def observed_band(points: torch.Tensor, sensor) -> torch.Tensor:
-    """(4,) float32 on the points' device: the sensor's x, y and the horizontal range band
-    [r_min, r_max] of a scan's points around it (its nearest and farthest point).
-
-    Why: a scan cropped to a range around its own sensor (a lidar's reach, a blind zone, the
-    protocol's 3-50 m) has no points outside it, so a static point that the sensor of a support
-    scan does not reach there looks unmatched under zero flow, while a motion that follows the
-    sensor keeps it in view and matched: long walls and barriers beside a moving sensor get the
-    sensor's motion, and pass as explained. The evidence test and the velocity search count a
-    support scan only for points whose own position lies in its band (``range_mask``). The
-    band is the scan's own (no range setting to keep in step) and costs one reduction, no
-    host synchronisation."""
-    sx, sy = float(sensor[0]), float(sensor[1])
-    lo, hi = torch.aminmax(torch.hypot(points[:, 0] - sx, points[:, 1] - sy))
-    # fills, not host-to-device copies: nothing here waits for the device
-    return torch.stack([torch.full_like(lo, sx), torch.full_like(lo, sy), lo, hi]).to(torch.float32)
 
 
 class DtStreams:

@@ -114,7 +114,7 @@ def group_ids(points: torch.Tensor, labels: torch.Tensor | None, cell: float,
 def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tensor,
                     dts: Sequence[torch.Tensor], origins: Sequence[Sequence[float]], offsets: Sequence[float],
                     weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.02,
-                    ratio: float = 0.05, runs: bool = False, bands: torch.Tensor | None = None) -> MotionEvidence:
+                    ratio: float = 0.05, runs: bool = False, observed: torch.Tensor | None = None) -> MotionEvidence:
     """The motion evidence of ``flow`` (N, 3; metres per frame period) at ``points`` (N, 3,
     float32, finite) for the groups ``groups`` ((N,) int64 in [0, N), e.g. :func:`group_ids`).
 
@@ -125,15 +125,16 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
     Without support scans every group is unexplained with score 0. ``runs``: the groups are
     contiguous runs (``group_ids(..., presorted=True)``), used as they are; otherwise the
     points are sorted by group first (a stable sort and its inverse). Either way the group sums
-    are float64 and the same bits on every run of a device (no atomics). ``bands`` (K, 4):
-    each support scan's sensor x, y and observed range band (``range_mask``): a scan counts
-    only for the points whose own position it observed."""
+    are float64 and the same bits on every run of a device (no atomics). ``observed`` ((N,)
+    int32, estimator/sight.py): bit k set where support scan k counts for the point (it could
+    see the point's own position)."""
     if runs or points.shape[0] == 0 or not dts:
         return run_evidence(points, flow, None, groups, dts, origins, offsets, weights, dt_cell=dt_cell,
-                            truncation=truncation, margin=margin, ratio=ratio, bands=bands)
+                            truncation=truncation, margin=margin, ratio=ratio, observed=observed)
     key, order = torch.sort(groups, stable=True)
     ev = run_evidence(points[order], flow[order], None, key, dts, origins, offsets, weights, dt_cell=dt_cell,
-                      truncation=truncation, margin=margin, ratio=ratio, bands=bands)
+                      truncation=truncation, margin=margin, ratio=ratio,
+                      observed=None if observed is None else observed[order])
 
     def back(x):
         out = torch.empty_like(x)
@@ -146,7 +147,7 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
 def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
                  dts: Sequence[torch.Tensor], origins: Sequence[Sequence[float]], offsets: Sequence[float],
                  weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.02,
-                 ratio: float = 0.05, bands: torch.Tensor | None = None) -> MotionEvidence:
+                 ratio: float = 0.05, observed: torch.Tensor | None = None) -> MotionEvidence:
     """:func:`motion_evidence` for groups that are runs of consecutive points: equal ``labels``
     (DBSCAN, (N,) int32/int64) and, for label -1 (or ``labels`` None), equal ``cells`` ((N,)
     int32/int64, any stride: e.g. the compact index of each point's lower flow-grid corner) --
@@ -162,5 +163,5 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     score, explained, rf, rz = F.dt_evidence(
         points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells, list(dts),
         [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
-        [float(w) / wsum for w in weights], float(truncation), float(margin), float(ratio), bands)
+        [float(w) / wsum for w in weights], float(truncation), float(margin), float(ratio), observed)
     return MotionEvidence(score, explained, rf, rz)

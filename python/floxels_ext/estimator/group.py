@@ -20,6 +20,7 @@ from floxels_ext.estimator.evidence import MotionEvidence, run_evidence
 from floxels_ext.estimator.refine import cluster_velocity_search, rigid_refine, supports_of, vertex_init
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
+from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.solver_run import SolverRun
 from floxels_ext.estimator.streams import dt_stream, serial_stages, side_stream, sync_device, used_on
 from floxels_ext.ops.grid import grid_from_bounds, point_bounds
@@ -100,9 +101,9 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
         dt_events = (streams.start, torch.cuda.Event(enable_timing=True))
     if dt_events is not None:
         dt_events[1].record(edt_stream)
-    supports = []  # per item: (dts, origins, offsets, weights, range bands or None)
+    supports = []  # per item: (dts, origins, offsets, weights, sights or None)
     for prep, cache in items:
-        dts, origins, offsets, weights, bands = [], [], [], [], []
+        dts, origins, offsets, weights, sights = [], [], [], [], []
         if prep.points[prep.target].shape[0] > 0:
             for i, t in zip(prep.supports, prep.offsets):
                 if i not in cache:  # empty support scan
@@ -114,10 +115,9 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
                 origins.append(d.origin)
                 offsets.append(float(t))
                 weights.append(cfg.lambda_d * cfg.time_weight(t))
-                bands.append(d.band)
-        # range bands only where every support scan has one (a sensor position for each)
-        supports.append((dts, origins, offsets, weights,
-                         bands if bands and all(b is not None for b in bands) else None))
+                sights.append(d.sight)
+        # sights where some support scan has one (a scan without counts everywhere)
+        supports.append((dts, origins, offsets, weights, sights if any(s is not None for s in sights) else None))
     if serial:
         sync_device(device)
     timings["dt"] = time.perf_counter() - t0  # serial: wall time; else replaced by GPU time (dt_events)
@@ -130,7 +130,7 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
         # successors: that stream waits for them, and the allocator learns of the use
         work.wait_stream(edt_stream)
         for d in {id(t): t for pr in problems if pr is not None
-                  for t in [*pr.dts, *(pr.bands or [])]}.values():
+                  for t in [*pr.dts, *(x for s in (pr.sights or []) if s is not None for x in s.tensors())]}.values():
             d.record_stream(work)
     if side is not None:
         used_on(main, items, problems, orders, labels)
@@ -173,7 +173,7 @@ def pack(cfg: FloxelsConfig, prepared: Prepared) -> list:
 def _searched_start(cfg: FloxelsConfig, p: SolverProblem) -> torch.Tensor:
     """Grid parameters started from each cluster's searched velocity (refine.py)."""
     sup = supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell)
-    vel = cluster_velocity_search(p.points, p.labels, sup, bands=stacked_bands(p))
+    vel = cluster_velocity_search(p.points, p.labels, sup, observed=problem_observed(p))
     return vertex_init(vel, p.corners.corner_idx, p.corners.corner_w, p.corners.num_params)
 
 
@@ -191,7 +191,7 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
 
     t0 = time.perf_counter()
     problems, orders, grids = [], [], []
-    for (prep, _), lab, (dts, origins, offsets, weights, bands) in zip(items, labels, supports):
+    for (prep, _), lab, (dts, origins, offsets, weights, sights) in zip(items, labels, supports):
         if poll is not None:
             poll()
         P = prep.points[prep.target]
@@ -210,7 +210,7 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
         st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
         problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
                                       cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments,
-                                      bands))
+                                      sights))
         orders.append(st.order)
         grids.append(g_origin)
     timings["setup"] = time.perf_counter() - t0
@@ -324,12 +324,12 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
     return run_evidence(problem.points, flow, problem.labels, problem.corners.corner_idx[:, 0], problem.dts,
                         problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
                         truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
-                        bands=stacked_bands(problem))
+                        observed=problem_observed(problem))
 
 
-def stacked_bands(problem: SolverProblem) -> torch.Tensor | None:
-    """(K, 4) range bands of a problem's support scans (``range_mask``), or None."""
-    return None if problem.bands is None else torch.stack(problem.bands)
+def problem_observed(problem: SolverProblem) -> torch.Tensor | None:
+    """(n,) int32 observed bits of a problem's points (estimator/sight.py), or None."""
+    return None if problem.sights is None else observed_bits(problem.points, problem.sights)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:

@@ -76,13 +76,13 @@ def supports_of(dts, origins, offsets, weights, spacing: float) -> list[Support]
 
 
 def robust_residual(points: torch.Tensor, motion: torch.Tensor, supports: list[Support], tau: float = TAU,
-                    bands: torch.Tensor | None = None):
+                    observed: torch.Tensor | None = None):
     """Per point, the loss-weighted mean over support scans of ``min(DT_t(p + t u), tau)``
-    for per-frame motions ``motion`` (n, 3) (or broadcastable to ``points``); with ``bands``
-    (K, 4) only the scans whose observed range band holds the point count (``range_mask``)."""
+    for per-frame motions ``motion`` (n, 3) (or broadcastable to ``points``); with ``observed``
+    ((n,) int32 bits, estimator/sight.py) only the scans that could see the point count."""
     wsum = sum(s.w for s in supports)
     return _weighted_residual(supports, points, motion.expand_as(points), tau, squared=False,
-                              bands=bands) / max(wsum, 1e-12)
+                              observed=observed) / max(wsum, 1e-12)
 
 
 def _cluster_index(labels: torch.Tensor, min_points: int):
@@ -128,7 +128,7 @@ def _cluster_mean(values: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tens
 
 
 def _score(q: torch.Tensor, cid: torch.Tensor, cand: torch.Tensor, supports: list[Support], C: int,
-           tau: float, chunk: int = 1 << 22, bands: torch.Tensor | None = None) -> torch.Tensor:
+           tau: float, chunk: int = 1 << 22, observed: torch.Tensor | None = None) -> torch.Tensor:
     """Mean robust residual of every cluster under each of its candidates: ``q`` (m, 3)
     sample points of cluster ``cid`` (m,), ``cand`` (C, K, 3) -> (K, C)."""
     K = cand.shape[1]
@@ -137,7 +137,8 @@ def _score(q: torch.Tensor, cid: torch.Tensor, cand: torch.Tensor, supports: lis
     for k0 in range(0, K, per):
         v = cand[:, k0:k0 + per].transpose(0, 1)[:, cid]  # (k, m, 3)
         x = q.unsqueeze(0).expand_as(v).reshape(-1, 3)
-        r = robust_residual(x, v.reshape(-1, 3), supports, tau, bands).view(v.shape[0], -1)
+        ob = None if observed is None else observed.repeat(v.shape[0])
+        r = robust_residual(x, v.reshape(-1, 3), supports, tau, ob).view(v.shape[0], -1)
         out[k0:k0 + per] = _cluster_mean(r, cid, C)
     return out
 
@@ -156,11 +157,11 @@ def _principal_axes(q: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
 
 
 def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
-                            tau: float = TAU, bands: torch.Tensor | None = None) -> torch.Tensor:
+                            tau: float = TAU, observed: torch.Tensor | None = None) -> torch.Tensor:
     """Per-point initial velocity (n, 3) in m/frame: each cluster's best constant horizontal
     velocity where it explains the support scans clearly better than zero flow (see the
-    module's constants), zero elsewhere (noise points, small clusters, no evidence). ``bands``:
-    the support scans' observed range bands (``range_mask``; see :func:`robust_residual`)."""
+    module's constants), zero elsewhere (noise points, small clusters, no evidence). ``observed``:
+    (n,) int32 bits, which support scans could see each point (see :func:`robust_residual`)."""
     out = torch.zeros_like(points)
     if labels is None or points.shape[0] == 0 or not supports:
         return out
@@ -171,6 +172,7 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
     if rows.numel() == 0:
         return out
     q, cid = points[rows], lab[rows]
+    ob = None if observed is None else observed[rows]
     axis = _principal_axes(q, cid, C)  # (C, 2)
     ang = torch.arange(NUM_DIRECTIONS, device=q.device, dtype=q.dtype) * (2 * math.pi / NUM_DIRECTIONS)
     ca, sa = torch.cos(ang), torch.sin(ang)
@@ -180,7 +182,7 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
     v2 = (dirs[:, :, None, :] * speeds[None, None, :, None]).reshape(C, -1, 2)
     cand = torch.cat([v2, torch.zeros_like(v2[..., :1])], -1)
     cand = torch.cat([torch.zeros_like(cand[:, :1]), cand], 1)  # candidate 0: zero flow
-    scores = _score(q, cid, cand, supports, C, tau, bands=bands)  # (K, C)
+    scores = _score(q, cid, cand, supports, C, tau, observed=ob)  # (K, C)
     zero = scores[0]
     best = cand[torch.arange(C, device=q.device), scores.argmin(0)]  # (C, 3)
     best_score = scores.min(0).values
@@ -193,7 +195,7 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
     for _ in range(LOCAL_STEPS):
         for _ in range(LOCAL_ROUNDS):
             cand = best[:, None, :] + step * unit[None]
-            s = _score(q, cid, cand, supports, C, tau, bands=bands)
+            s = _score(q, cid, cand, supports, C, tau, observed=ob)
             smin, k = s.min(0)
             better = smin < best_score
             best = torch.where(better[:, None], cand[torch.arange(C, device=q.device), k], best)
@@ -233,13 +235,13 @@ def _packed(supports: list[Support]):
 
 
 def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor, tau: float,
-                       squared: bool, bands: torch.Tensor | None = None) -> torch.Tensor:
+                       squared: bool, observed: torch.Tensor | None = None) -> torch.Tensor:
     """Per point, ``sum_k w_k c(min(DT_k(q + t_k u), tau))`` over the support scans, with
     ``c(d) = d^2`` (``squared``) or ``d``; the weights are the supports' loss weights. One
     ``floxels::dt_residual`` launch for all of them."""
     dts, origins, spacing, ts, ws = _packed(supports)
     return F.dt_residual(q.contiguous(), u.contiguous(), dts, origins, spacing, ts, ws, float(tau), bool(squared),
-                         None if bands is None else bands.to(q.dtype))
+                         None if observed is None else observed.contiguous())
 
 
 def _solve3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

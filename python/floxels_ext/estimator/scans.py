@@ -250,11 +250,11 @@ def check_sensors(sensors, n: int, first_index: int = 0) -> list[np.ndarray | No
 
 
 def warn_if_no_sensors(cfg, sensors) -> None:
-    """The warning that ``range_mask`` is skipped: no ``sensor_origins`` to measure ranges from."""
-    if cfg.range_mask and sensors is None:
-        warn_user("range_mask (on in the 'accurate' preset) needs sensor_origins= (each scan's sensor "
-                  "position, e.g. its pose's translation); without them every support scan counts whole, "
-                  "as in the paper")
+    """The warning that ``range_mask``/``visibility`` are skipped: no ``sensor_origins``."""
+    if (cfg.range_mask or cfg.visibility) and sensors is None:
+        warn_user("range_mask and visibility (on in the 'accurate' preset) need sensor_origins= (each scan's "
+                  "sensor position, e.g. its pose's translation); without them every support scan counts "
+                  "everywhere in the evidence test, as without these options")
 
 
 def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool],

@@ -21,7 +21,7 @@ from floxels_ext.ops.dt_loss import check_dt_args
 
 
 @torch.library.register_fake("floxels::dt_residual")
-def _residual_fake(points, motion, dts, origins, spacing, time_offsets, weights, cap, squared, bands=None):
+def _residual_fake(points, motion, dts, origins, spacing, time_offsets, weights, cap, squared, observed=None):
     return points.new_empty((points.shape[0],))
 
 
@@ -32,7 +32,7 @@ def _sample_fake(points, motion, dts, origins, spacing, time_offsets):
 
 @torch.library.register_fake("floxels::dt_evidence")
 def _evidence_fake(points, flow, labels, cells, dts, origins, spacing, time_offsets, weights, cap, margin, ratio,
-                   bands=None):
+                   observed=None):
     n = points.shape[0]
     return (points.new_empty((n,)), points.new_empty((n,), dtype=torch.bool), points.new_empty((n,)),
             points.new_empty((n,)))
@@ -62,29 +62,27 @@ def _check(op, points, motion, dts, origins, time_offsets, weights=None, cap=Non
     return (*checked, cap)
 
 
-def _bands(op, bands, points, K):
-    """``bands`` checked: None, or a finite (K, 4) tensor (sensor x, y, r_min, r_max per scan),
-    moved to the points' dtype."""
-    if bands is None:
+def _observed(op, observed, points):
+    """``observed`` checked: None, or an (N,) int32 tensor on the points' device (bit k of row i:
+    scan k counts for point i)."""
+    if observed is None:
         return None
-    require_tensors(bands=bands)
-    if bands.dim() != 2 or tuple(bands.shape) != (K, 4):
-        raise ValueError(f"{op}: bands must have shape ({K}, 4) (one row per distance transform: sensor x, y, "
-                         f"r_min, r_max), got {tuple(bands.shape)}")
-    if bands.device != points.device:
-        raise ValueError(f"{op}: bands is on {bands.device} but points are on {points.device}")
-    if not bool(torch.isfinite(bands).all()):
-        raise ValueError(f"{op}: bands must be finite")
-    return bands.to(points.dtype).contiguous()
+    require_tensors(observed=observed)
+    if observed.dim() != 1 or observed.shape[0] != points.shape[0] or observed.dtype != torch.int32:
+        raise ValueError(f"{op}: observed must be an ({points.shape[0]},) int32 tensor (a bit mask per point), "
+                         f"got {observed.dtype} {tuple(observed.shape)}")
+    if observed.device != points.device:
+        raise ValueError(f"{op}: observed is on {observed.device} but points are on {points.device}")
+    return observed.contiguous()
 
 
 def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
                 spacing: float, time_offsets: Sequence[float], weights: Sequence[float], cap: float,
-                squared: bool = False, bands: torch.Tensor | None = None) -> torch.Tensor:
+                squared: bool = False, observed: torch.Tensor | None = None) -> torch.Tensor:
     """Per point (N,): ``sum_k weights[k] * c(min(DT_k(points + time_offsets[k] * motion), cap))``
     with ``c`` the identity or (``squared``) the square, in one launch for all K scans.
-    ``bands`` (K, 4), optional: per scan its sensor's x, y and the horizontal range band
-    [r_min, r_max] it observed; scan k counts only for points whose own position lies in it.
+    ``observed`` ((N,) int32), optional: scan k counts for point i only where bit k of
+    ``observed[i]`` is set (estimator/sight.py: the scan could see the point's position).
 
     ``dts[k]``: float32 (Z, Y, X) distance transforms, sample (0,0,0) at ``origins[3k:3k+3]``,
     sample spacing ``spacing``; look-ups clamp at the DT border (like ``trilinear_gather`` and
@@ -92,7 +90,7 @@ def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.
     ``motion`` (N, 3) like ``points``. Data only: no gradient flows."""
     p, m, d, o, t, w, c = _check("dt_residual", points, motion, dts, origins, time_offsets, weights, cap)
     return ops_ns.dt_residual(p, m, d, o, as_spacing(spacing), t, w, c, bool(squared),
-                              _bands("dt_residual", bands, p, len(d)))
+                              _observed("dt_residual", observed, p))
 
 
 def dt_sample(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
@@ -117,15 +115,16 @@ def _keys(t, name, n, device):
 
 def dt_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
                 dts: Sequence[torch.Tensor], origins: Sequence[float], spacing: float, time_offsets: Sequence[float],
-                weights: Sequence[float], cap: float, margin: float, ratio: float, bands: torch.Tensor | None = None):
+                weights: Sequence[float], cap: float, margin: float, ratio: float,
+                observed: torch.Tensor | None = None):
     """The motion-evidence test (estimator/evidence.py) per group of points: groups are runs of
     consecutive rows with equal ``labels`` and, where the label is < 0 (or ``labels`` is None),
     equal ``cells`` (both (N,) int32/int64). Per group, ``rf`` / ``rz``: mean over its points of
     :func:`dt_residual` (not squared) with ``flow`` / with zero flow (sums in float64). Returns
     per point (score = rz - rf, explained = score > max(ratio * rz, margin), rf, rz); a group
     with a non-finite residual gets NaN and False. Deterministic on every device (no atomics),
-    a fixed number of kernels whatever K. ``bands``: as :func:`dt_residual` (a scan that did
-    not observe a point's position adds to neither residual)."""
+    a fixed number of kernels whatever K. ``observed``: as :func:`dt_residual` (a scan that
+    could not see a point's position adds to neither of its residuals)."""
     p, f, d, o, t, w, c = _check("dt_evidence", points, flow, dts, origins, time_offsets, weights, cap, "flow")
     n = p.shape[0]
     if labels is not None:
@@ -134,4 +133,4 @@ def dt_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor |
     if not (abs(float(margin)) < float("inf") and abs(float(ratio)) < float("inf")):
         raise ValueError(f"dt_evidence: margin and ratio must be finite, got {margin}, {ratio}")
     return ops_ns.dt_evidence(p, f, labels, cells, d, o, as_spacing(spacing), t, w, c, float(margin), float(ratio),
-                              _bands("dt_evidence", bands, p, len(d)))
+                              _observed("dt_evidence", observed, p))

@@ -51,9 +51,9 @@ class SolverProblem:
     # the estimator builds them while the distance transforms are still running, so packing
     # needs no host synchronisation
     segments: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-    # per support scan its (4,) range band (estimator/distance.py observed_band; range_mask), or
-    # None: not used by the solver, only by the evidence test and the velocity search
-    bands: list[torch.Tensor] | None = None
+    # per support scan what it could see (estimator/sight.py Sight, or None), or None: not used by
+    # the solver, only by the evidence test and the velocity search (range_mask, visibility)
+    sights: list | None = None
 
 
 def solver_hyper(cfg) -> list[float]:

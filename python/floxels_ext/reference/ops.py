@@ -202,27 +202,24 @@ def _dt_queries(points, motion, time_offset):
     return (p + time_offset * m).clamp(-big, big), ok[:, 0]
 
 
-def _in_band(points: torch.Tensor, bands: torch.Tensor | None, k: int) -> torch.Tensor:
-    """(N,) bool: the points' own positions inside scan k's horizontal range band (``bands``
-    (K, 4): sensor x, y, r_min, r_max; None: every point)."""
-    if bands is None:
+def _counts(points: torch.Tensor, observed: torch.Tensor | None, k: int) -> torch.Tensor:
+    """(N,) bool: scan k counts for each point (bit k of ``observed``; None: every point)."""
+    if observed is None:
         return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
-    b = bands[k].to(points.dtype)
-    d2 = (points[:, 0] - b[0]) ** 2 + (points[:, 1] - b[1]) ** 2
-    return (d2 >= b[2] * b[2]) & (d2 <= b[3] * b[3])
+    return ((observed.long() >> k) & 1) == 1
 
 
 def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
                 spacing: float, time_offsets: Sequence[float], weights: Sequence[float], cap: float,
-                squared: bool, bands: torch.Tensor | None = None) -> torch.Tensor:
-    """(N,): sum_k w_k * c(min(DT_k(p + t_k m), cap)), c = x or x^2, over the scans whose band
-    holds p (all without ``bands``); NaN for a non-finite point or motion row."""
+                squared: bool, observed: torch.Tensor | None = None) -> torch.Tensor:
+    """(N,): sum_k w_k * c(min(DT_k(p + t_k m), cap)), c = x or x^2, over the scans whose bit is
+    set in ``observed`` (all without it); NaN for a non-finite point or motion row."""
     total = points.new_zeros(points.shape[0])
     for k, d in enumerate(dts):
         q, ok = _dt_queries(points, motion, time_offsets[k])
         v = trilinear_gather(d[None].to(points.dtype), q, origins[3 * k : 3 * k + 3], spacing)[:, 0].clamp_max(cap)
         v = torch.where(ok, v, torch.full_like(v, math.nan))
-        total = total + torch.where(_in_band(points, bands, k), weights[k] * (v * v if squared else v), 0.0)
+        total = total + torch.where(_counts(points, observed, k), weights[k] * (v * v if squared else v), 0.0)
     return torch.where(ok, total, math.nan) if dts else total
 
 
@@ -246,14 +243,15 @@ def dt_sample(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Te
 
 def dt_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
                 dts: Sequence[torch.Tensor], origins: Sequence[float], spacing: float, time_offsets: Sequence[float],
-                weights: Sequence[float], cap: float, margin: float, ratio: float, bands: torch.Tensor | None = None):
+                weights: Sequence[float], cap: float, margin: float, ratio: float,
+                observed: torch.Tensor | None = None):
     """Motion evidence per group = run of consecutive rows with equal labels (for label < 0 or
     no labels: equal cells). rf / rz: the group's mean :func:`dt_residual` with ``flow`` / zero
     flow (float64 sums); per row (rz - rf, rz - rf > max(ratio * rz, margin), rf, rz). A group
     with a non-finite residual: NaN, False."""
     n = points.shape[0]
-    rf = dt_residual(points, flow, dts, origins, spacing, time_offsets, weights, cap, False, bands)
-    rz = dt_residual(points, torch.zeros_like(flow), dts, origins, spacing, time_offsets, weights, cap, False, bands)
+    rf = dt_residual(points, flow, dts, origins, spacing, time_offsets, weights, cap, False, observed)
+    rz = dt_residual(points, torch.zeros_like(flow), dts, origins, spacing, time_offsets, weights, cap, False, observed)
     lab = labels.long() if labels is not None else torch.full((n,), -1, dtype=torch.long, device=points.device)
     same = (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | (cells[1:].long() == cells[:-1].long()))
     gid = torch.cumsum(torch.cat([torch.ones(min(n, 1), dtype=torch.long, device=points.device),

@@ -1,7 +1,8 @@
-"""``FloxelsConfig.range_mask`` with ``sensor_origins`` (the accurate preset): long walls beside
-a moving sensor, cropped to a range around each scan's own sensor, get the sensor's motion from
-the paper's loss and pass the plain evidence test; with the range bands the evidence test
-rejects them, while a car passing the other way keeps its motion. Also the argument checks."""
+"""``FloxelsConfig.range_mask`` / ``visibility`` with ``sensor_origins`` (the accurate preset,
+estimator/sight.py): long walls beside a moving sensor, cropped to a range around each scan's
+own sensor, get the sensor's motion from the paper's loss and pass the plain evidence test;
+counting only what each support scan could see, the evidence test rejects them, while a car
+passing the other way keeps its motion. Also the sights themselves and the argument checks."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import pytest
 import torch
 
 from floxels_ext.estimator import FloxelsConfig, estimate_flow, estimate_sequence
-from floxels_ext.estimator.distance import observed_band
+from floxels_ext.estimator.sight import SEEN_MARGIN, observed_bits, scan_sight
 
 EGO = 1.5     # m/frame along x
 CAR = -1.0    # m/frame: oncoming, in the lane at y = -2
@@ -54,23 +55,25 @@ def _speed(flow):
     return np.linalg.norm(flow, axis=1)
 
 
-def test_walls_keep_the_sensors_motion_without_bands_and_none_with_them(scene):
+@pytest.mark.parametrize("sight", [dict(range_mask=True), dict(visibility=True),
+                                   dict(range_mask=True, visibility=True)])
+def test_walls_keep_the_sensors_motion_unless_the_test_counts_what_was_seen(scene, sight):
     scans, sensors, car = scene
     paper = estimate_flow(scans, 2, FloxelsConfig(), sensor_origins=sensors)
     plain_ev = estimate_flow(scans, 2, FloxelsConfig(evidence="zero"), sensor_origins=sensors)
-    masked = estimate_flow(scans, 2, FloxelsConfig(evidence="zero", range_mask=True), sensor_origins=sensors)
+    masked = estimate_flow(scans, 2, FloxelsConfig(evidence="zero", **sight), sensor_origins=sensors)
     wall = ~car
     assert np.median(_speed(paper[wall])) > 0.3        # the failure: walls follow the sensor
     assert np.median(_speed(plain_ev[wall])) > 0.3     # and pass the plain evidence test
-    assert np.mean(_speed(masked[wall]) < 0.05) > 0.95   # rejected with the range bands
-    # the car keeps its motion (it explains the scans whatever the bands)
+    assert np.mean(_speed(masked[wall]) < 0.05) > 0.95   # rejected when only what was seen counts
+    # the car keeps its motion (the scans saw where it was and where it went)
     v = np.median(masked[car], axis=0)
     assert abs(v[0] - CAR) < 0.15 and abs(v[1]) < 0.1
 
 
-def test_velocity_search_does_not_start_the_walls_with_bands(scene):
+def test_velocity_search_keeps_the_car_and_not_the_walls(scene):
     scans, sensors, car = scene
-    cfg = FloxelsConfig(evidence="zero", range_mask=True, velocity_search=True)
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, visibility=True, velocity_search=True)
     f = estimate_flow(scans, 2, cfg, sensor_origins=sensors)
     assert np.mean(_speed(f[~car]) < 0.05) > 0.95
     assert abs(np.median(f[car][:, 0]) - CAR) < 0.15
@@ -95,7 +98,7 @@ def test_sequence_uses_each_scans_own_sensor(scene):
 def test_range_mask_without_sensors_warns_and_runs_as_without_it(scene):
     scans, _, _ = scene
     cfg = FloxelsConfig(evidence="zero", range_mask=True, max_iters=40)
-    with pytest.warns(UserWarning, match="range_mask .* needs sensor_origins"):
+    with pytest.warns(UserWarning, match="range_mask and visibility .* need sensor_origins"):
         a = estimate_flow(scans, 2, cfg)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -103,11 +106,10 @@ def test_range_mask_without_sensors_warns_and_runs_as_without_it(scene):
     assert np.array_equal(a, b)
 
 
-def test_unknown_sensor_of_one_scan_drops_the_bands(scene):
+def test_no_known_sensor_is_as_without_sights(scene):
     scans, sensors, _ = scene
-    cfg = FloxelsConfig(evidence="zero", range_mask=True, max_iters=40)
-    part = [None] + list(sensors[1:])
-    a = estimate_flow(scans, 2, cfg, sensor_origins=part)
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, visibility=True, max_iters=40)
+    a = estimate_flow(scans, 2, cfg, sensor_origins=[None] * 5)
     b = estimate_flow(scans, 2, FloxelsConfig(evidence="zero", max_iters=40))
     assert np.array_equal(a, b)
 
@@ -131,11 +133,30 @@ def test_bad_sensor_origins_in_a_sequence_are_refused_before_any_work(scene):
         estimate_sequence(scans, FloxelsConfig(range_mask=True), sensor_origins=sensors[:3])
 
 
-def test_observed_band_is_the_scans_range_around_its_sensor():
+def test_scan_sight_band_is_the_scans_range_around_its_sensor():
     g = np.random.default_rng(1)
     ang, r = g.uniform(0, 2 * np.pi, 5000), g.uniform(3, 20, 5000)
     p = torch.tensor(np.stack([10 + r * np.cos(ang), -5 + r * np.sin(ang), g.uniform(0, 2, 5000)], 1),
                      dtype=torch.float32)
-    b = observed_band(p, np.array([10.0, -5.0, 1.8]))
-    assert b.dtype == torch.float32 and b.shape == (4,)
-    torch.testing.assert_close(b, torch.tensor([10.0, -5.0, float(r.min()), float(r.max())]), rtol=1e-5, atol=1e-4)
+    s = scan_sight(p, np.array([10.0, -5.0, 1.8]), band=True, image=False)
+    assert s.image is None and s.band.dtype == torch.float32
+    torch.testing.assert_close(s.band, torch.tensor([float(r.min()), float(r.max())]), rtol=1e-5, atol=1e-4)
+    q = torch.tensor([[10.0, -5.0, 1.0], [14.0, -5.0, 1.0], [10.0, 18.0, 1.0]])  # in the blind zone, in, beyond
+    assert observed_bits(q, [s]).tolist() == [0, 1, 0]
+
+
+def test_scan_sight_image_sees_through_free_space_not_behind_occluders():
+    """Scan: a wall 10 m ahead (x = 10) and, in one narrow direction, a post 4 m ahead. A point
+    6 m ahead in front of the wall was seen through (bit set); one behind the post (occluded)
+    and one in a direction with no return (beyond the wall's ends) say nothing."""
+    y, z = np.meshgrid(np.linspace(-3, 3, 121), np.linspace(-1, 1, 41))
+    wall = np.stack([np.full(y.size, 10.0), y.ravel(), z.ravel()], 1)
+    post = np.stack([np.full(50, 4.0), np.linspace(1.95, 2.05, 50), np.linspace(-0.2, 0.2, 50)], 1)
+    pts = torch.tensor(np.concatenate([wall, post]), dtype=torch.float32)
+    s = scan_sight(pts, np.zeros(3), band=False, image=True)
+    q = torch.tensor([[6.0, 0.0, 0.0],     # free space before the wall: seen
+                      [7.0, 3.5, 0.0],     # behind the post (same direction, farther): occluded
+                      [6.0, 9.0, 0.0],     # no return in that direction
+                      [10.0 + SEEN_MARGIN / 2, 0.0, 0.0]])  # just behind the wall's return: still seen
+    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 1]
+    assert observed_bits(q, [None, s]).tolist() == [1 | 2, 1, 1, 1 | 2]  # a scan without sight counts

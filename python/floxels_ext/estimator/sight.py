@@ -1,0 +1,98 @@
+"""What each support scan could see of the target's points (``FloxelsConfig.range_mask`` and
+``visibility``, the ``accurate`` preset): the evidence test and the velocity search count a
+support scan only for the points whose own (unmoved) position it could have seen.
+
+Why: the paper's loss compares a point's motion with the scans' points, and a static point that
+a support scan did not see looks unmatched under zero flow. Structure whose visible part follows
+the sensor -- a long wall or barrier cut by each scan's own range crop, by occluding traffic or by
+the beams' reach -- is then better explained by the sensor's motion than by standing still, and
+the plain evidence test keeps that motion (bench/RESULTS.md, "the range bands" and "visibility").
+
+* ``range_mask``: the scan's horizontal range band around its sensor (its nearest to its farthest
+  point): a cropped scan has no points outside it.
+* ``visibility``: the scan's range image (the farthest return per 0.5 x 0.5 degree direction bin
+  around its sensor): the scan saw a position when, in its direction, it has a return at least as
+  far (``SEEN_MARGIN``): a static point there would have been hit. A nearer return (occlusion) or
+  none (the beams missed it, or only ground there, removed) says nothing.
+
+The point's own position decides, never where a motion takes it, so no motion can escape a
+scan's residual by leaving its sight. Everything runs on the device without a host
+synchronisation; a scan's sight is built with its distance transform and cached with it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["Sight", "scan_sight", "observed_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN"]
+
+AZ_BIN = math.radians(0.5)   # range image bins: coarser than a 64-beam lidar's rays, so that a
+EL_BIN = math.radians(0.5)   # bin holds a return wherever the scan has one nearby
+SEEN_MARGIN = 0.5            # m: a return this much nearer than the point still counts as seeing it
+NUM_AZ = int(round(2 * math.pi / AZ_BIN))
+NUM_EL = int(round(math.pi / EL_BIN)) + 1
+
+
+@dataclass
+class Sight:
+    """One support scan's sight: its sensor (3,), its range band (2,: r_min, r_max) or None, its
+    range image (NUM_AZ * NUM_EL,: farthest return per bin, -1 where none) or None; float32 on
+    the scan's device."""
+
+    sensor: torch.Tensor
+    band: torch.Tensor | None
+    image: torch.Tensor | None
+
+    def tensors(self) -> list[torch.Tensor]:
+        return [t for t in (self.sensor, self.band, self.image) if t is not None]
+
+
+def _bins(rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Direction bin and range of positions relative to a sensor (n, 3)."""
+    horiz = torch.hypot(rel[:, 0], rel[:, 1])
+    az = torch.atan2(rel[:, 1], rel[:, 0])
+    el = torch.atan2(rel[:, 2], horiz)
+    ia = ((az + math.pi) / AZ_BIN).floor().long().clamp(0, NUM_AZ - 1)
+    ie = ((el + math.pi / 2) / EL_BIN).floor().long().clamp(0, NUM_EL - 1)
+    return ia * NUM_EL + ie, torch.linalg.vector_norm(rel, dim=1)
+
+
+def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool) -> Sight:
+    """The sight of a scan (n, 3) float32 from ``sensor`` (xyz in the scans' frame)."""
+    # fills, not host-to-device copies: nothing here waits for the device
+    s = torch.stack([torch.full((), float(v), dtype=torch.float32, device=points.device) for v in sensor[:3]])
+    rel = points.to(torch.float32) - s
+    b = img = None
+    if band:
+        lo, hi = torch.aminmax(torch.hypot(rel[:, 0], rel[:, 1]))
+        b = torch.stack([lo, hi])
+    if image:
+        idx, rr = _bins(rel)
+        img = torch.full((NUM_AZ * NUM_EL,), -1.0, dtype=torch.float32, device=points.device)
+        img.scatter_reduce_(0, idx, rr, "amax")  # a maximum: the same bits in any order
+    return Sight(s, b, img)
+
+
+def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Tensor:
+    """(n,) int32: bit k set where support scan k could see the point's position (a scan
+    without a sight counts everywhere); the ``observed`` of ``floxels::dt_evidence`` /
+    ``dt_residual``."""
+    p = points.to(torch.float32)
+    bits = torch.zeros(p.shape[0], dtype=torch.int32, device=p.device)
+    for k, s in enumerate(sights):
+        if s is None:
+            bits |= 1 << k if k < 31 else -(1 << 31)
+            continue
+        rel = p - s.sensor
+        ok = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
+        if s.band is not None:
+            r = torch.hypot(rel[:, 0], rel[:, 1])
+            ok &= (r >= s.band[0]) & (r <= s.band[1])
+        if s.image is not None:
+            idx, rr = _bins(rel)
+            ok &= s.image[idx] >= rr - SEEN_MARGIN
+        bits |= ok.to(torch.int32) << k
+    return bits
