@@ -64,12 +64,16 @@ def test_all_bits_change_nothing_and_bit_31_counts():
                                ref.dt_residual(*qargs(c32), c32["weights"], c32["cap"], False, b))
 
 
+def evidence_case(K, n, dtype, seed, bits_seed, runs_seed):
+    """A random case with its bits and group keys (labelled runs, cells)."""
+    c = make_case(K, n, dtype, seed=seed)
+    return (c, bits_for(c, seed=bits_seed)[0], *runs(n, runs_seed))
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_evidence_with_bits_matches_reference(dtype):
     n = 2500
-    c = make_case(4, n, dtype, seed=21)
-    b, _ = bits_for(c, seed=1)
-    lab, cells = runs(n, 2)
+    c, b, lab, cells = evidence_case(4, n, dtype, 21, 1, 2)
     a = (c["points"], c["motion"], lab, cells, c["dts"], c["origins"], c["spacing"], c["time_offsets"],
          c["weights"], c["cap"], 0.02, 0.05)
     got, want = dt_evidence(*a, observed=b), ref.dt_evidence(*a, observed=b)
@@ -107,10 +111,7 @@ def test_opcheck_with_bits():
 @cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_cuda_bits_match_cpu_and_repeat_bytes(dtype):
-    n = 30000
-    c = make_case(5, n, dtype, seed=33)
-    b, _ = bits_for(c, seed=3)
-    lab, cells = runs(n, 4)
+    c, b, lab, cells = evidence_case(5, 30000, dtype, 33, 3, 4)
     d = {k: (v.cuda() if isinstance(v, torch.Tensor) else [x.cuda() for x in v] if k == "dts" else v)
          for k, v in c.items()}
     bd = b.cuda()
