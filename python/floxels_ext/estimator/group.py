@@ -173,7 +173,7 @@ def pack(cfg: FloxelsConfig, prepared: Prepared) -> list:
 def _searched_start(cfg: FloxelsConfig, p: SolverProblem) -> torch.Tensor:
     """Grid parameters started from each cluster's searched velocity (refine.py)."""
     sup = supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell)
-    vel = cluster_velocity_search(p.points, p.labels, sup, observed=problem_observed(p))
+    vel = cluster_velocity_search(p.points, p.labels, sup, observed=problem_observed(p), num_clusters=p.num_clusters)
     return vertex_init(vel, p.corners.corner_idx, p.corners.corner_w, p.corners.num_params)
 
 

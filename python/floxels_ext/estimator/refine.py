@@ -85,10 +85,11 @@ def robust_residual(points: torch.Tensor, motion: torch.Tensor, supports: list[S
                               observed=observed) / max(wsum, 1e-12)
 
 
-def _cluster_index(labels: torch.Tensor, min_points: int):
-    """(cluster id per point (-1: not searched), number of clusters, points per cluster)."""
+def _cluster_index(labels: torch.Tensor, min_points: int, num_clusters: int | None = None):
+    """(cluster id per point (-1: not searched), number of clusters, points per cluster).
+    ``num_clusters``: ``labels.max() + 1`` if known (saves a host synchronisation)."""
     lab = labels.to(torch.int64)
-    C = int(lab.max()) + 1 if lab.numel() else 0
+    C = int(num_clusters) if num_clusters is not None else (int(lab.max()) + 1 if lab.numel() else 0)
     if C <= 0:
         return lab, 0, lab.new_zeros(0)
     counts = torch.zeros(C, dtype=torch.int64, device=lab.device).index_add_(
@@ -157,15 +158,17 @@ def _principal_axes(q: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
 
 
 def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
-                            tau: float = TAU, observed: torch.Tensor | None = None) -> torch.Tensor:
+                            tau: float = TAU, observed: torch.Tensor | None = None,
+                            num_clusters: int | None = None) -> torch.Tensor:
     """Per-point initial velocity (n, 3) in m/frame: each cluster's best constant horizontal
     velocity where it explains the support scans clearly better than zero flow (see the
     module's constants), zero elsewhere (noise points, small clusters, no evidence). ``observed``:
-    (n,) int32 bits, which support scans could see each point (see :func:`robust_residual`)."""
+    (n,) int32 bits, which support scans could see each point (see :func:`robust_residual`).
+    ``num_clusters``: ``labels.max() + 1`` if known (saves a host synchronisation)."""
     out = torch.zeros_like(points)
     if labels is None or points.shape[0] == 0 or not supports:
         return out
-    lab, C, counts = _cluster_index(labels, MIN_CLUSTER_POINTS)
+    lab, C, counts = _cluster_index(labels, MIN_CLUSTER_POINTS, num_clusters)
     if C == 0:
         return out
     rows = _subsample(lab, C, counts, SEARCH_POINTS)
