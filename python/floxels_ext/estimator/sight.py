@@ -6,7 +6,7 @@ Why: the paper's loss compares a point's motion with the scans' points, and a st
 a support scan did not see looks unmatched under zero flow. Structure whose visible part follows
 the sensor -- a long wall or barrier cut by each scan's own range crop, by occluding traffic or by
 the beams' reach -- is then better explained by the sensor's motion than by standing still, and
-the plain evidence test keeps that motion (bench/RESULTS.md, "the range bands" and "visibility").
+the plain evidence test keeps that motion (bench/RESULTS.md, "What each support scan could see").
 
 * ``range_mask``: the scan's horizontal range band around its sensor (its nearest to its farthest
   point): a cropped scan has no points outside it.
