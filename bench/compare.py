@@ -40,7 +40,6 @@ metrics of rows split over parts (e.g. scenes) from the NPZ files and prints the
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import os
 import platform
@@ -190,11 +189,7 @@ def _same_flows(a: dict, b: dict) -> bool:
 
 def _sensor_kw(method, sensors) -> dict:
     """``sensors=`` for methods that take it (Floxels' range_mask), as ``floxels run`` does."""
-    try:
-        takes = "sensors" in inspect.signature(method.estimate_sequence).parameters
-    except (TypeError, ValueError):
-        takes = False
-    return {"sensors": sensors} if takes else {}
+    return {"sensors": sensors} if methods.accepts(method.estimate_sequence, "sensors") else {}
 
 
 def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):

@@ -53,11 +53,10 @@ at::Tensor dt_residual_cpu(const at::Tensor& points, const at::Tensor& motion, a
       for (int64_t i = b; i < e; ++i) {
         const T* pi = pp + 3 * i;
         const T* mi = mp + 3 * i;
-        const uint32_t bits = obs ? static_cast<uint32_t>(obs[i]) : dt_loss::kAllScans;
         T r = squared ? dt_loss::point_residual<true, T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], mi[0],
-                                                                  mi[1], mi[2], inv, c, bits)
+                                                                  mi[1], mi[2], inv, c, dt_loss::point_bits(obs, i))
                       : dt_loss::point_residual<false, T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], mi[0],
-                                                                   mi[1], mi[2], inv, c, bits);
+                                                                   mi[1], mi[2], inv, c, dt_loss::point_bits(obs, i));
         if (!finite3(pi[0], pi[1], pi[2]) || !finite3(mi[0], mi[1], mi[2])) [[unlikely]] r = quiet_nan<T>();
         o[i] = r;
       }
@@ -161,7 +160,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dt_evidence_cpu(
         const T* pi = pp + 3 * i;
         const T* fi = fp + 3 * i;
         dt_loss::point_residual_pair<T, int64_t>(scans.data(), K, pi[0], pi[1], pi[2], fi[0], fi[1], fi[2], inv, c,
-                                                 rf[i], rz[i], obs ? static_cast<uint32_t>(obs[i]) : dt_loss::kAllScans);
+                                                 rf[i], rz[i], dt_loss::point_bits(obs, i));
         if (!finite3(pi[0], pi[1], pi[2]) || !finite3(fi[0], fi[1], fi[2])) [[unlikely]] rf[i] = rz[i] = quiet_nan<T>();
       }
     });

@@ -65,8 +65,7 @@ __global__ void __launch_bounds__(kThreads) residual_kernel(const __grid_constan
   const T* pi = p.points + 3 * static_cast<int64_t>(i);
   const T* mi = p.motion + 3 * static_cast<int64_t>(i);
   T r = dt_loss::point_residual<kSquared, T, int>(p.scans, p.num_scans, pi[0], pi[1], pi[2], mi[0], mi[1], mi[2],
-                                                  p.inv_spacing, p.cap,
-                                                  p.observed ? static_cast<uint32_t>(p.observed[i]) : dt_loss::kAllScans);
+                                                  p.inv_spacing, p.cap, dt_loss::point_bits(p.observed, i));
   if (!finite3(pi[0], pi[1], pi[2]) || !finite3(mi[0], mi[1], mi[2])) r = quiet_nan<T>();
   p.out[i] = r;
 }
@@ -185,8 +184,7 @@ __global__ void __launch_bounds__(kThreads) evidence_values_kernel(const __grid_
     const T* fi = p.q.motion + 3 * static_cast<int64_t>(i);
     T rf, rz;
     dt_loss::point_residual_pair<T, int>(p.q.scans, p.q.num_scans, pi[0], pi[1], pi[2], fi[0], fi[1], fi[2],
-                                         p.q.inv_spacing, p.q.cap, rf, rz,
-                                         p.q.observed ? static_cast<uint32_t>(p.q.observed[i]) : dt_loss::kAllScans);
+                                         p.q.inv_spacing, p.q.cap, rf, rz, dt_loss::point_bits(p.q.observed, i));
     const bool ok = finite3(pi[0], pi[1], pi[2]) && finite3(fi[0], fi[1], fi[2]) && is_finite(rf) && is_finite(rz);
     v[0] = ok ? static_cast<double>(rf) : 0.0;
     v[1] = ok ? static_cast<double>(rz) : 0.0;

@@ -170,6 +170,11 @@ constexpr uint32_t kAllScans = 0xffffffffu;
 
 FLX_HD bool counts(uint32_t bits, int k) { return ((bits >> k) & 1u) != 0u; }
 
+// Point i's bits from an optional observed array (nullptr: every scan counts).
+FLX_HD uint32_t point_bits(const int32_t* observed, int64_t i) {
+  return observed != nullptr ? static_cast<uint32_t>(observed[i]) : kAllScans;
+}
+
 // sum_k coef_k * c(min(DT_k(p + t_k m), cap)), c = identity or square (kSquared), over the
 // scans whose bit is set in `bits`.
 template <bool kSquared, typename T, typename Index>

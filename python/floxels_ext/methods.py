@@ -36,10 +36,11 @@ Modules register their methods lazily: list the module in ``METHOD_MODULES``; it
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-__all__ = ["Method", "METHOD_MODULES", "register", "get_method", "available_methods"]
+__all__ = ["Method", "METHOD_MODULES", "register", "get_method", "available_methods", "accepts"]
 
 # Modules that register methods when imported (floxels' own is below).
 METHOD_MODULES: list[str] = ["floxels_ext.baselines"]
@@ -60,6 +61,15 @@ _REGISTRY: dict[str, Method] = {}
 def register(method: Method) -> None:
     """Add (or replace) a method under ``method.name``."""
     _REGISTRY[method.name] = method
+
+
+def accepts(fn, name: str) -> bool:
+    """Whether method function ``fn`` takes the keyword ``name`` (``times``, ``sensors``: callers
+    pass them only to methods that name them, so older methods keep working)."""
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _load_all() -> None:

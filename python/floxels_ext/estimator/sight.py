@@ -83,11 +83,11 @@ def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Ten
     p = points.to(torch.float32)
     bits = torch.zeros(p.shape[0], dtype=torch.int32, device=p.device)
     for k, s in enumerate(sights):
+        ok = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
         if s is None:
-            bits |= 1 << k if k < 31 else -(1 << 31)
+            bits |= ok.to(torch.int32) << k  # (bit 31 wraps to the sign bit, as the kernels read it)
             continue
         rel = p - s.sensor
-        ok = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
         if s.band is not None:
             r = torch.hypot(rel[:, 0], rel[:, 1])
             ok &= (r >= s.band[0]) & (r <= s.band[1])

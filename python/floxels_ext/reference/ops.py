@@ -216,11 +216,11 @@ def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.
     set in ``observed`` (all without it); NaN for a non-finite point or motion row."""
     total = points.new_zeros(points.shape[0])
     for k, d in enumerate(dts):
-        q, ok = _dt_queries(points, motion, time_offsets[k])
+        q, _ = _dt_queries(points, motion, time_offsets[k])
         v = trilinear_gather(d[None].to(points.dtype), q, origins[3 * k : 3 * k + 3], spacing)[:, 0].clamp_max(cap)
-        v = torch.where(ok, v, torch.full_like(v, math.nan))
         total = total + torch.where(_counts(points, observed, k), weights[k] * (v * v if squared else v), 0.0)
-    return torch.where(ok, total, math.nan) if dts else total
+    # a non-finite row is NaN whatever its bits (like the kernels)
+    return torch.where(_finite_rows(points) & _finite_rows(motion), total, math.nan)
 
 
 def dt_sample(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],

@@ -38,7 +38,8 @@ import numpy as np
 
 from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
 from floxels_ext.lidar.pipeline.frame_loader import FrameLoader, SensorView
-from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError, accepts
+from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError
+from floxels_ext.methods import accepts
 
 __all__ = ["SeqJob", "Ahead", "run_stream"]
 

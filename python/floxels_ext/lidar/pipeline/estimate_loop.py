@@ -14,7 +14,6 @@ moved into one world frame re-centred on the first readable frame of the chunk.
 from __future__ import annotations
 
 import bisect
-import inspect
 import sys
 import threading
 import time
@@ -23,6 +22,7 @@ import numpy as np
 
 from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader, SensorView
 from floxels_ext.lidar.pipeline.frame_writer import WriterPool
+from floxels_ext.methods import accepts
 
 # Python hands the GIL to a waiting thread only every "switch interval" (5 ms by default): with
 # reader and writer threads holding it for numpy work, the thread driving the GPU waited that
@@ -62,15 +62,6 @@ def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
     """Targets per method call: ``chunk`` at a time (None: ``DEFAULT_CHUNK``)."""
     size = chunk or DEFAULT_CHUNK
     return [todo[k:k + size] for k in range(0, len(todo), size)]
-
-
-def accepts(fn, name: str) -> bool:
-    """Whether method function ``fn`` takes the keyword ``name`` (``times``, ``sensors``: passed
-    only to methods that name them, so older methods keep working)."""
-    try:
-        return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[int], n: int, num_scans: int,
