@@ -77,9 +77,12 @@ PORT = {"lr_milestones": (10, 20), "lr_gamma": 0.5, "patience": 20, "min_delta":
         "truncation_mode": "clamp", "cluster_loss_mean": "clustered"}
 # The accurate preset's ingredients (a field and the fields that qualify it): the rigid
 # refinement with its window limit is one ingredient
-INGREDIENTS = {k: {kk: vv for kk, vv in PRESETS["accurate"].items() if kk == k or (k, kk) == ("rigid_refine", "refine_max_supports")}
-               for k in PRESETS["accurate"] if k != "refine_max_supports"}
-INGREDIENTS = {(f"{k}={v[k]}" if len(v) == 1 else f"{k} (windows <= {v['refine_max_supports']} supports)"): v
+_QUALIFIERS = ("refine_max_supports", "refine_sided")  # fields that qualify rigid_refine
+INGREDIENTS = {k: {kk: vv for kk, vv in PRESETS["accurate"].items() if kk == k or (k == "rigid_refine" and kk in _QUALIFIERS)}
+               for k in PRESETS["accurate"] if k not in _QUALIFIERS}
+INGREDIENTS = {(f"{k}={v[k]}" if len(v) == 1 else
+                f"{k} (plain in windows <= {v['refine_max_supports']} supports"
+                + (", sided beyond)" if v.get("refine_sided") else ")")): v
                for k, v in INGREDIENTS.items()}
 # (group, label, Floxels options): the paper's ablations (Tables 2-4) and the readings
 ABLATIONS = [
@@ -104,12 +107,10 @@ ABLATIONS = [
     ("beyond-only", "only rigid_refine, every window", {"rigid_refine": True}),
     ("beyond-only", "only velocity_search=True (not in the preset)", {"velocity_search": True}),
     ("beyond-only", "accurate + velocity_search", {**PRESETS["accurate"], "velocity_search": True}),
-    ("beyond-only", "accurate + visibility (not in the preset)", {**PRESETS["accurate"], "visibility": True}),
-    ("beyond-only", "accurate + visibility + velocity_search",
-     {**PRESETS["accurate"], "visibility": True, "velocity_search": True}),
+    ("beyond-only", "accurate without refine_sided (the preset before it)", {**PRESETS["accurate"], "refine_sided": False}),
     *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk not in v})
       for k, v in INGREDIENTS.items()],
-    ("beyond-loo", "accurate, rigid_refine in every window", {**PRESETS["accurate"], "refine_max_supports": 0}),
+    ("beyond-loo", "accurate, rigid_refine plain in every window", {**PRESETS["accurate"], "refine_max_supports": 0}),
 ]
 GROUPS = sorted({g for g, _, _ in ABLATIONS})
 MAX_WINDOW = 11

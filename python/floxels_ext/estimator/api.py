@@ -114,7 +114,7 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     default configuration) or ``"accurate"`` (README "Beyond the paper"), instead of ``config``.
     ``sensor_origins``: each scan's sensor position (x, y, z) in the scans' frame (an (n, 3)
     array, e.g. the translations of the poses that compensated the ego-motion); used by
-    ``range_mask`` (on in ``"accurate"``) and ``visibility``, which without them are skipped
+    ``range_mask`` and ``visibility`` (both on in ``"accurate"``), which without them are skipped
     with a warning.
     """
     config = _config_of(config, preset)

@@ -92,6 +92,10 @@ class FloxelsConfig:
                                      # failure (2 scans: AV2 cars at 0.57 of their speed; 5-11 scans:
                                      # 0.99 on the simulator); with 9-11 scans it cost 10x the time
                                      # and raised urban dynamic EPE (bench/RESULTS.md, accurate preset)
+    refine_sided: bool = False       # ... and the longer windows too, where a cluster keeps its rigid
+                                     # motion only if it explains the window's past scans and its
+                                     # future scans each no worse than its flow (refine.rigid_refine:
+                                     # turning cars; no effect with refine_max_supports=0)
 
     @classmethod
     def preset(cls, name: str, **changes) -> "FloxelsConfig":
@@ -205,18 +209,17 @@ class FloxelsConfig:
 # measures every entry of "accurate" alone and together).
 PRESETS: dict[str, dict] = {
     "paper": {},
-    # Beyond the paper (bench/RESULTS.md, "the accurate preset"): 11-scan windows (chosen on the
-    # simulator's tuning seeds among 7/9/11, confirmed on held-out seeds), the evidence test
-    # zeroing unexplained groups, and the rigid refinement only where speed shrinkage occurs
-    # (windows of at most 2 support scans, e.g. a frame pair), and the range bands in the evidence
-    # test (range_mask: on the KITTI sweeps, moving output points whose flow does not explain the
-    # next sweep 4.2 % -> 0.9 %; the simulator and the AV2 pair unchanged). Measured and left out:
-    # velocity_search (gives static highway barriers the ego's speed: their visible part follows
-    # the sensor by occlusion and the beams' reach), visibility (rejects those barriers, static
-    # EPE 0.153 -> 0.002, but also some true movers seen against removed ground), and both together
-    # (better on every accuracy column, 3.1-3.2x paper's time, over issue 33's 3x).
+    # Beyond the paper (bench/RESULTS.md, "the accurate preset" and its follow-ups): 11-scan windows
+    # (chosen on the simulator's tuning seeds among 7/9/11, confirmed on held-out seeds), the
+    # evidence test zeroing unexplained groups, counting for each point only the support scans
+    # that could see it (range_mask: the scan's range band; visibility: its range image), and the
+    # rigid refinement of every moving cluster: plain in windows of at most 2 support scans (speed
+    # shrinkage, e.g. a frame pair), in longer windows only where the rigid motion explains the
+    # past and the future scans each no worse than the flow (refine_sided: turning cars).
+    # Measured and left out: velocity_search (gives static highway barriers the ego's speed; with
+    # the rest of the preset over issue 33's 3x time budget).
     "accurate": {"num_scans": 11, "evidence": "zero", "rigid_refine": True, "refine_max_supports": 2,
-                 "range_mask": True},
+                 "refine_sided": True, "range_mask": True, "visibility": True},
 }
 
 

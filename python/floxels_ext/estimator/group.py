@@ -275,10 +275,11 @@ class Solving:
             # evidence of motion (static structure seen in a band that moves with the sensor is
             # fitted *better* by a rigid motion: simulated highway, static EPE 0.52 -> 0.99 when
             # the test judged the refined flow); the verdict stays the optimiser flow's
-            if cfg.rigid_refine and (cfg.refine_max_supports <= 0 or len(p.dts) <= cfg.refine_max_supports):
+            short = cfg.refine_max_supports <= 0 or len(p.dts) <= cfg.refine_max_supports
+            if cfg.rigid_refine and (short or cfg.refine_sided):
                 flow_s = rigid_refine(p.points, flow_s, p.labels,
                                       supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell),
-                                      num_clusters=p.num_clusters)
+                                      num_clusters=p.num_clusters, sided=not short)
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
             flows.append(flow)
