@@ -82,6 +82,15 @@ TORCH_LIBRARY(floxels, m) {
   m.def("dt_evidence(Tensor points, Tensor flow, Tensor? labels, Tensor cells, Tensor[] dts, float[] origins, "
         "float spacing, float[] time_offsets, float[] weights, float cap, float margin, float ratio, "
         "Tensor? observed=None) -> (Tensor, Tensor, Tensor, Tensor)");
+  // The rigid refinement's Levenberg-Marquardt loop (estimator/refine.py; kernels/rigid_lm.h has
+  // the math, reference.rigid_lm the pure-PyTorch loop): points (m, 3) and their offsets rel
+  // (m, 3) from their cluster's centroid, rows grouped by cluster (cluster c: rows
+  // segments[c] .. segments[c + 1], int64 (C + 1,)); per cluster the start theta (C, 3) =
+  // (vx, vy, yaw rate) and a fixed vertical velocity vz (C,); weights: the scans' w_k. Returns
+  // (theta (C, 3), cost (C,)) after `iters` steps; data-only, deterministic on every device.
+  m.def("rigid_lm(Tensor points, Tensor rel, Tensor segments, Tensor theta, Tensor vz, Tensor[] dts, "
+        "float[] origins, float spacing, float[] time_offsets, float[] weights, float tau, int iters) "
+        "-> (Tensor, Tensor)");
 
   // --- cluster reductions (csrc/kernels/cluster.h) ---
   // Per-cluster mean (num_clusters, C) of values (N, C); labels (N,) int64 in [-1, num_clusters),

@@ -11,8 +11,9 @@ import torch
 
 from floxels_ext.estimator.api import Floxels
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.refine import rigid_refine, supports_of
-from floxels_ext.ops import dbscan, distance_transform
+from floxels_ext.estimator.refine import rigid_refine
+from floxels_ext.ops import dbscan
+from test_refine import _supports  # the support scans' distance transforms
 
 CUDA = pytest.param("cuda", marks=pytest.mark.cuda)
 STEP = 0.15
@@ -49,19 +50,6 @@ def turning_car(offsets, v=(0.45, 0.0), w=0.07, centre=(0.0, 3.0, 0.0)):
     return scans, slice(0, len(body)), (at1 - at0).astype(np.float32)
 
 
-def _supports(scans, offsets, device="cpu", cfg=FloxelsConfig()):
-    dts, origins, ts, ws = [], [], [], []
-    for s, t in zip(scans, offsets):
-        if t == 0:
-            continue
-        v, o = distance_transform(torch.from_numpy(s).to(device), cfg.dt_cell, cfg.dt_padding)
-        dts.append(v)
-        origins.append(o)
-        ts.append(float(t))
-        ws.append(cfg.time_weight(t))
-    return supports_of(dts, origins, ts, ws, cfg.dt_cell)
-
-
 @pytest.mark.parametrize("device", ["cpu", CUDA])
 def test_sided_refinement_gives_a_turning_car_its_yaw(device):
     # the grid's failure: the car's flow is one translation (its mean), the rotation lost
@@ -71,7 +59,7 @@ def test_sided_refinement_gives_a_turning_car_its_yaw(device):
     flow = torch.zeros_like(P)
     flow[car] = torch.from_numpy(truth.mean(0)).to(device)
     before = np.linalg.norm(flow[car].cpu().numpy() - truth, axis=1).mean()
-    out = rigid_refine(P, flow, dbscan(P, 0.5, 4), _supports(scans, offsets, device), sided=True).cpu().numpy()
+    out = rigid_refine(P, flow, dbscan(P, 0.5, 4), _supports(scans, 3, offsets, device=device), sided=True).cpu().numpy()
     after = np.linalg.norm(out[car] - truth, axis=1).mean()
     assert before > 0.05  # the rotation matters: +-0.16 m across the car
     assert after < 0.3 * before, (before, after)
@@ -88,7 +76,7 @@ def test_sided_refinement_refuses_a_motion_that_trades_one_side_for_the_other():
     P = torch.from_numpy(scans[3])
     flow = torch.zeros_like(P)
     flow[:, 0] = 0.5
-    labels, sup = dbscan(P, 0.5, 4), _supports(scans, offsets)
+    labels, sup = dbscan(P, 0.5, 4), _supports(scans, 3, offsets)
     plain = rigid_refine(P, flow, labels, sup)
     assert not torch.equal(plain, flow)  # without the sides' test the refinement moves it
     assert torch.equal(rigid_refine(P, flow, labels, sup, sided=True), flow)

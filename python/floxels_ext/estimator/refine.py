@@ -56,11 +56,6 @@ MIN_CLUSTER_POINTS = 10
 REFINE_MIN_SPEED = 0.1
 REFINE_POINTS = 256
 REFINE_ITERS = 10
-# ... in windows of many scans (``sided``), started from a flow the 11-scan loss already got
-# close (what is left is mostly a turning car's yaw). Each step is ~60 small tensor ops, which
-# bound the refinement's GPU time: held-out simulator, one H200 call, normalised EPE 0.097 at
-# 3.7x paper's time with 10 steps, 0.099 at 3.1x with 6 (bench/RESULTS.md)
-REFINE_ITERS_SIDED = 6
 
 
 @dataclass
@@ -252,19 +247,8 @@ def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor
                          None if observed is None else observed.contiguous())
 
 
-def _solve3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``A^-1 b`` of symmetric positive definite (C, 3, 3) ``A`` by the adjugate (rows: cross
-    products of the other two rows), in float64: a few elementwise ops, no host
-    synchronisation (``torch.linalg.solve`` checks its pivots on the host) and no solver
-    library call."""
-    r0, r1, r2 = A.to(torch.float64).unbind(1)
-    cof = torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], 1)
-    det = (r0 * cof[:, 0]).sum(-1)
-    return (cof.transpose(1, 2) @ b.to(torch.float64).unsqueeze(-1)).squeeze(-1) / det[:, None]
-
-
 def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
-                 tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int | None = None,
+                 tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS,
                  num_clusters: int | None = None, sided: bool = False) -> torch.Tensor:
     """The flow (n, 3) with every moving cluster (mean flow >= ``min_speed`` m/frame)
     replaced by its best planar rigid motion (horizontal translation v and yaw rate w about
@@ -274,8 +258,7 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     flow unless the rigid motion explains the support scans clearly better than zero flow.
     (Not compared with the Floxels flow itself: a non-rigid flow fits one support scan
     better than the true rigid motion does, by sliding points onto surfaces.)
-    ``num_clusters``: ``labels.max() + 1`` if known (saves a host synchronisation). ``iters``:
-    Levenberg-Marquardt steps (default ``REFINE_ITERS``, ``REFINE_ITERS_SIDED`` when ``sided``).
+    ``num_clusters``: ``labels.max() + 1`` if known (saves a host synchronisation).
 
     ``sided`` (windows of many support scans, ``FloxelsConfig.refine_sided``): the rigid motion
     must also explain each side of the window that has scans (the past ones, t < 0, and the
@@ -286,14 +269,12 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     Not for windows of one or two scans, where the flow can fit a scan better than the true
     motion does (above).
 
-    Every cluster is solved at once: per LM iteration one look-up per support scan, then the
-    clusters' normal equations and costs from one segment sum (their order fixed: no float atomics,
-    issue 31) and a closed-form 3 x 3 solve; the only host synchronisation is the number of
-    sample points (plus ``labels.max()`` without ``num_clusters``)."""
+    Every cluster is solved at once by ``floxels::rigid_lm`` (kernels/rigid_lm.h: per step the
+    clusters' normal equations from one look-up per support scan, sums in a fixed order, and a
+    closed-form 3 x 3 solve; on CUDA one launch for every cluster and step); the only host
+    synchronisation is the number of sample points (plus ``labels.max()`` without ``num_clusters``)."""
     if labels is None or points.shape[0] == 0 or not supports:
         return flow
-    if iters is None:
-        iters = REFINE_ITERS_SIDED if sided else REFINE_ITERS
     lab = labels.to(torch.int64)
     C = int(num_clusters) if num_clusters is not None else (int(lab.max()) + 1 if lab.numel() else 0)
     if C <= 0:
@@ -318,57 +299,19 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     theta = torch.cat([mean_flow[:, :2], torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 3)
     vz = mean_flow[:, 2]
     wsum = sum(s.w for s in supports)
-    tk = torch.tensor([s.t for s in supports], dtype=dt, device=dev)
-    wk = torch.tensor([s.w / wsum for s in supports], dtype=dt, device=dev)
-    # u(p) = M(p) (vx, vy, w, vz): M = [[1, 0, -r_y, 0], [0, 1, r_x, 0], [0, 0, 0, 1]]; the
-    # Jacobian of q + t_k u in DT_k is then t_k g_k^T M[:, :3]
-    o, z = torch.ones_like(rel[:, 0]), torch.zeros_like(rel[:, 0])
-    M = torch.stack([torch.stack([o, z, -rel[:, 1], z], 1), torch.stack([z, o, rel[:, 0], z], 1),
-                     torch.stack([z, z, z, o], 1)], 1)  # (m, 3, 4)
-    Mt = M[:, :, :3]
-    ia = torch.tensor([0, 0, 0, 1, 1, 2], device=dev)  # upper triangle of the 3 x 3 normal matrix
-    ib = torch.tensor([0, 1, 2, 1, 2, 2], device=dev)
-    sym = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]], device=dev)
-    damp = 1e-3 * torch.eye(3, dtype=dt, device=dev)
-    tk3, wk1 = tk[:, None, None], wk[:, None]
-    dts, origins, spacing, ts, _ = _packed(supports)
-
-    def normal(th):
-        """Per cluster (C, 10): the normal equations of the LM step at motion ``th`` (upper
-        triangle of H = mean J^T W J, b = mean J^T W d) and its cost (mean of the loss-weighted
-        squared robust residuals), all from one look-up per support and one segment sum."""
-        u = (M @ torch.cat([th, vz[:, None]], 1)[cid].unsqueeze(-1)).squeeze(-1)
-        smp = F.dt_sample(q, u, dts, origins, spacing, ts)  # (K, m, 4): DT value, gradient
-        d, g = smp[..., 0], smp[..., 1:]
-        # Jacobian of q + t_k u(th) in DT_k: t_k g_k^T M[:, :3] = t_k (g_x, g_y, g_y r_x - g_x r_y)
-        J = tk3 * (g.unsqueeze(-2) @ Mt).squeeze(-2)  # (K, m, 3)
-        wJ = ((d < tau) * wk1).unsqueeze(-1) * J  # inliers, loss weights
-        per = torch.cat([(wJ[..., ia] * J[..., ib]).sum(0), (wJ * d.unsqueeze(-1)).sum(0),
-                         (wk1 * d.clamp_max(tau).square()).sum(0).unsqueeze(-1)], 1)  # (m, 10)
-        return _segment_sum(C, cid, per) / n[:, None]
-
-    # Levenberg-Marquardt, every cluster at once; per iteration one look-up per support: the
-    # trial motion's sums give its cost and, where it is taken, the next step's equations
-    # (clusters with no sample points have b = 0, so their step is 0 and they never change)
-    S = normal(theta)
-    lam = torch.full((C,), 1e-2, dtype=dt, device=dev)
-    for _ in range(iters):
-        H = S[:, sym]
-        # Marquardt damping plus a small absolute term: unconstrained directions keep their value
-        A = H + lam[:, None, None] * (torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + damp)
-        trial = theta - _solve3(A, S[:, 6:9]).to(dt)
-        St = normal(trial)
-        better = St[:, 9] < S[:, 9]
-        theta = torch.where(better[:, None], trial, theta)
-        S = torch.where(better[:, None], St, S)
-        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
-    cur = S[:, 9]
+    # Levenberg-Marquardt on every cluster at once (floxels::rigid_lm: one launch on CUDA; the
+    # reference is floxels_ext.reference.rigid_lm); the sample rows are grouped by cluster
+    dts, origins, spacing, ts, ws = _packed(supports)
+    segments = torch.searchsorted(cid, torch.arange(C + 1, device=dev, dtype=cid.dtype))
+    theta, cur = F.rigid_lm(q, rel.contiguous(), segments, theta, vz.contiguous(), dts, origins, spacing, ts,
+                            [w / wsum for w in ws], float(tau), int(iters))
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
     zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     if sided:
-        u = (M @ torch.cat([theta, vz[:, None]], 1)[cid].unsqueeze(-1)).squeeze(-1)
+        th = theta[cid]
+        u = torch.stack([th[:, 0] - th[:, 2] * rel[:, 1], th[:, 1] + th[:, 2] * rel[:, 0], vz[cid]], 1)
         for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):
             if side:  # summed loss-weighted residuals of the sample points: rigid minus the flow's
                 worse = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, flow[rows], tau, True)
