@@ -91,6 +91,16 @@ TORCH_LIBRARY(floxels, m) {
   m.def("rigid_lm(Tensor points, Tensor rel, Tensor segments, Tensor theta, Tensor vz, Tensor[] dts, "
         "float[] origins, float spacing, float[] time_offsets, float[] weights, float tau, int iters) "
         "-> (Tensor, Tensor)");
+  // The per-cluster velocity search (estimator/refine.py cluster_velocity_search; math in
+  // kernels/velocity_search.h, reference reference.velocity_search): rows grouped by cluster as
+  // rigid_lm's (segments, int64 (C + 1,)); observed as dt_residual's; weights: w_k / sum w.
+  // Scores zero flow and speeds (1..num_speeds) * speed_step along num_directions directions
+  // from each cluster's principal axis, then a 3 x 3 pattern search (local_steps halving steps,
+  // at most local_rounds moves each). Returns (best velocity (C, 3), its score (C,), zero flow's
+  // score (C,)); data-only, deterministic on every device.
+  m.def("velocity_search(Tensor points, Tensor segments, Tensor? observed, Tensor[] dts, float[] origins, "
+        "float spacing, float[] time_offsets, float[] weights, float tau, int num_directions, float speed_step, "
+        "int num_speeds, int local_steps, int local_rounds) -> (Tensor, Tensor, Tensor)");
 
   // --- cluster reductions (csrc/kernels/cluster.h) ---
   // Per-cluster mean (num_clusters, C) of values (N, C); labels (N,) int64 in [-1, num_clusters),

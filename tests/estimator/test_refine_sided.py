@@ -3,8 +3,6 @@ estimator/refine.py): a turning car, whose yaw the grid's cluster consistency ca
 gets its rigid motion; a rigid motion that explains one side of the window better at the
 other side's cost is refused."""
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -13,40 +11,25 @@ from floxels_ext.estimator.api import Floxels
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.refine import rigid_refine
 from floxels_ext.ops import dbscan
+from synthetic_boxes import box_sides, posed
 from test_refine import _supports  # the support scans' distance transforms
 
 CUDA = pytest.param("cuda", marks=pytest.mark.cuda)
-STEP = 0.15
-
-
-def car_body(length=4.5, width=1.8, height=1.5):
-    """The four sides of a box centred on the origin, sampled every STEP (body frame)."""
-    xs = np.arange(-length / 2, length / 2 + 1e-6, STEP)
-    ys = np.arange(-width / 2, width / 2 + 1e-6, STEP)
-    zs = np.arange(0.2, height, STEP)
-    faces = [np.stack(np.meshgrid(xs, [y], zs, indexing="ij"), -1).reshape(-1, 3) for y in (-width / 2, width / 2)]
-    faces += [np.stack(np.meshgrid([x], ys, zs, indexing="ij"), -1).reshape(-1, 3) for x in (-length / 2, length / 2)]
-    return np.concatenate(faces)
-
-
-def pose(body, centre, yaw):
-    c, s = math.cos(yaw), math.sin(yaw)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return body @ rot.T + np.asarray(centre)
+STEP = 0.15  # the pole's sampling (m)
 
 
 def turning_car(offsets, v=(0.45, 0.0), w=0.07, centre=(0.0, 3.0, 0.0)):
     """Scans at time offsets ``offsets`` of a car turning at yaw rate ``w`` rad/frame while its
     centre moves ``v`` m/frame, plus a static pole; returns (scans, car rows of the scan at
     t = 0, the car's true flow to t = +1)."""
-    body = car_body()
+    body = box_sides()
     pole = np.stack(np.meshgrid([-6.0, -5.85], [-4.0, -3.85], np.arange(0.2, 3.0, STEP), indexing="ij"), -1).reshape(-1, 3)
     scans = []
     for t in offsets:
         c = np.asarray(centre) + np.array([v[0], v[1], 0.0]) * t
-        scans.append(np.concatenate([pose(body, c, w * t), pole]).astype(np.float32))
-    at0 = pose(body, centre, 0.0)
-    at1 = pose(body, np.asarray(centre) + np.array([v[0], v[1], 0.0]), w)
+        scans.append(np.concatenate([posed(body, c, w * t), pole]).astype(np.float32))
+    at0 = posed(body, centre, 0.0)
+    at1 = posed(body, np.asarray(centre) + np.array([v[0], v[1], 0.0]), w)
     return scans, slice(0, len(body)), (at1 - at0).astype(np.float32)
 
 
@@ -70,7 +53,7 @@ def test_sided_refinement_refuses_a_motion_that_trades_one_side_for_the_other():
     # the past scans show the box faster (0.8 m/frame) than the future ones (0.5): the flow
     # explains the future exactly; a rigid fit of both sides explains the past better and the
     # future worse, which is no evidence of the object's motion
-    body = car_body()
+    body = box_sides()
     offsets = (-3, -2, -1, 0, 1, 2, 3)
     scans = [(body + np.array([(0.8 if t < 0 else 0.5) * t, 3.0, 0.0])).astype(np.float32) for t in offsets]
     P = torch.from_numpy(scans[3])

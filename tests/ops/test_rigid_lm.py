@@ -4,8 +4,6 @@ CPU and CUDA, on a translating and a turning box whose motions are known."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -13,28 +11,18 @@ import torch
 import floxels_ext  # noqa: F401  (registers torch.ops.floxels.*)
 from floxels_ext.ops import distance_transform, rigid_lm
 from floxels_ext.reference.rigid_lm import rigid_lm as ref_rigid_lm
+from synthetic_boxes import box_sides, posed
 
 ops = torch.ops.floxels
 cuda = pytest.mark.cuda
-STEP, SPACING, TAU = 0.15, 0.1, 1.0
+SPACING, TAU = 0.1, 1.0
 OFFSETS = (-2, -1, 1, 2)
 TRUE = [(0.6, 0.0, 0.0), (0.4, 0.1, 0.06)]  # (vx, vy, yaw rate) per frame of the two boxes
 
 
-def _box(length=4.0, width=1.8, height=1.4):
-    xs = np.arange(-length / 2, length / 2 + 1e-6, STEP)
-    ys = np.arange(-width / 2, width / 2 + 1e-6, STEP)
-    zs = np.arange(0.2, height, STEP)
-    faces = [np.stack(np.meshgrid(xs, [y], zs, indexing="ij"), -1).reshape(-1, 3) for y in (-width / 2, width / 2)]
-    faces += [np.stack(np.meshgrid([x], ys, zs, indexing="ij"), -1).reshape(-1, 3) for x in (-length / 2, length / 2)]
-    return np.concatenate(faces)
-
-
 def _moved(body, centre, motion, t):
     vx, vy, w = motion
-    c, s = math.cos(w * t), math.sin(w * t)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return body @ rot.T + np.asarray(centre) + np.array([vx * t, vy * t, 0.0])
+    return posed(body, np.asarray(centre) + np.array([vx * t, vy * t, 0.0]), w * t)
 
 
 def case(dtype=torch.float64, device="cpu", start=((0.3, 0.0, 0.0), (0.2, 0.0, 0.0)), every=2):
@@ -42,7 +30,8 @@ def case(dtype=torch.float64, device="cpu", start=((0.3, 0.0, 0.0), (0.2, 0.0, 0
     then box 1, every ``every``-th point)."""
     # jittered, so that no point sits on a DT sample plane (where the trilinear gradient has a
     # kink and the op and the reference may take different sides)
-    body = _box() + np.random.default_rng(0).uniform(-0.02, 0.02, (len(_box()), 3))
+    box = box_sides(4.0, 1.8, 1.4)
+    body = box + np.random.default_rng(0).uniform(-0.02, 0.02, box.shape)
     centres = [(0.0, 0.0, 0.0), (0.0, 7.0, 0.0)]
     dts, origins, ts, ws = [], [], [], []
     for t in OFFSETS:

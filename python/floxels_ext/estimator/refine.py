@@ -1,7 +1,7 @@
 """Beyond the paper (issue 33, the ``accurate`` preset): per-cluster motion ingredients that use
 the support scans' distance transforms directly, before and after the grid optimisation. The
 preset uses :func:`rigid_refine`; :func:`cluster_velocity_search` (``velocity_search=True``) is
-left out of it (static highway barriers get the ego's speed: bench/RESULTS.md).
+left out of it (on top of the preset it helps dynamic EPE but not every class: bench/RESULTS.md).
 
 * :func:`cluster_velocity_search`: for every DBSCAN cluster of the target, the constant
   horizontal velocity that best explains the support scans, searched over candidate
@@ -18,14 +18,14 @@ left out of it (static highway barriers get the ego's speed: bench/RESULTS.md).
 
 Both score a motion with the robust residual ``min(DT_t(p + t u), tau)`` over the loss's
 support scans, weighted like the loss (``w(t) = 1/t^2``); a cluster's result is kept only if it
-explains the scans better than the alternative by a margin. Everything is ordinary tensor
-work and ``floxels::dt_residual`` / ``floxels::dt_sample`` look-ups (one launch for all support
-scans), so it runs on the CPU and CUDA alike.
+explains the scans better than the alternative by a margin. The search and the refinement's
+Levenberg-Marquardt loop are ops (``floxels::velocity_search``, ``floxels::rigid_lm``: one
+launch each on CUDA, a block per cluster; their references are in ``floxels_ext.reference``);
+the rest is a few tensor ops and ``floxels::dt_residual`` look-ups, on the CPU and CUDA alike.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -121,42 +121,6 @@ def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.
     return out.index_put_((index,), values, accumulate=True)
 
 
-def _cluster_mean(values: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
-    """Mean of ``values`` (..., m) over each cluster's columns -> (..., C)."""
-    s = _segment_sum(C, cid, values.movedim(-1, 0)).movedim(0, -1)
-    n = _segment_sum(C, cid, torch.ones_like(cid, dtype=values.dtype))
-    return s / n.clamp_min(1)
-
-
-def _score(q: torch.Tensor, cid: torch.Tensor, cand: torch.Tensor, supports: list[Support], C: int,
-           tau: float, chunk: int = 1 << 22, observed: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean robust residual of every cluster under each of its candidates: ``q`` (m, 3)
-    sample points of cluster ``cid`` (m,), ``cand`` (C, K, 3) -> (K, C)."""
-    K = cand.shape[1]
-    out = torch.empty(K, C, dtype=q.dtype, device=q.device)
-    per = max(1, chunk // max(q.shape[0], 1))
-    for k0 in range(0, K, per):
-        v = cand[:, k0:k0 + per].transpose(0, 1)[:, cid]  # (k, m, 3)
-        x = q.unsqueeze(0).expand_as(v).reshape(-1, 3)
-        ob = None if observed is None else observed.repeat(v.shape[0])
-        r = robust_residual(x, v.reshape(-1, 3), supports, tau, ob).view(v.shape[0], -1)
-        out[k0:k0 + per] = _cluster_mean(r, cid, C)
-    return out
-
-
-def _principal_axes(q: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
-    """Unit horizontal principal axis of every cluster's sample points (C, 2)."""
-    xy = q[:, :2].to(torch.float64)
-    mean = _cluster_mean(xy.T, cid, C).T  # (C, 2)
-    d = xy - mean[cid]
-    cov = torch.stack([_cluster_mean((d[:, 0] * d[:, 0])[None], cid, C)[0],
-                       _cluster_mean((d[:, 0] * d[:, 1])[None], cid, C)[0],
-                       _cluster_mean((d[:, 1] * d[:, 1])[None], cid, C)[0]], 1)
-    # angle of the major axis of [[a, b], [b, c]]
-    ang = 0.5 * torch.atan2(2 * cov[:, 1], cov[:, 0] - cov[:, 2])
-    return torch.stack([torch.cos(ang), torch.sin(ang)], 1).to(q.dtype)
-
-
 def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
                             tau: float = TAU, observed: torch.Tensor | None = None,
                             num_clusters: int | None = None) -> torch.Tensor:
@@ -175,37 +139,15 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
     if rows.numel() == 0:
         return out
     q, cid = points[rows], lab[rows]
-    ob = None if observed is None else observed[rows]
-    axis = _principal_axes(q, cid, C)  # (C, 2)
-    ang = torch.arange(NUM_DIRECTIONS, device=q.device, dtype=q.dtype) * (2 * math.pi / NUM_DIRECTIONS)
-    ca, sa = torch.cos(ang), torch.sin(ang)
-    dirs = torch.stack([axis[:, None, 0] * ca - axis[:, None, 1] * sa,
-                        axis[:, None, 0] * sa + axis[:, None, 1] * ca], -1)  # (C, D, 2)
-    speeds = torch.arange(1, int(round(MAX_SPEED / SPEED_STEP)) + 1, device=q.device, dtype=q.dtype) * SPEED_STEP
-    v2 = (dirs[:, :, None, :] * speeds[None, None, :, None]).reshape(C, -1, 2)
-    cand = torch.cat([v2, torch.zeros_like(v2[..., :1])], -1)
-    cand = torch.cat([torch.zeros_like(cand[:, :1]), cand], 1)  # candidate 0: zero flow
-    scores = _score(q, cid, cand, supports, C, tau, observed=ob)  # (K, C)
-    zero = scores[0]
-    best = cand[torch.arange(C, device=q.device), scores.argmin(0)]  # (C, 3)
-    best_score = scores.min(0).values
-    # local refinement (pattern search): 3 x 3 horizontal offsets, repeated while a cluster
-    # still improves (at most LOCAL_ROUNDS times per step), at halving steps
-    off1 = torch.arange(-1, 2, device=q.device, dtype=q.dtype)
-    gx, gy = torch.meshgrid(off1, off1, indexing="ij")
-    unit = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros_like(gx.reshape(-1))], 1)
-    step = SPEED_STEP
-    for _ in range(LOCAL_STEPS):
-        for _ in range(LOCAL_ROUNDS):
-            cand = best[:, None, :] + step * unit[None]
-            s = _score(q, cid, cand, supports, C, tau, observed=ob)
-            smin, k = s.min(0)
-            better = smin < best_score
-            best = torch.where(better[:, None], cand[torch.arange(C, device=q.device), k], best)
-            best_score = torch.minimum(best_score, smin)
-            if not bool(better.any()):
-                break
-        step /= 2
+    ob = None if observed is None else observed[rows].contiguous()
+    # the whole search in one op (floxels::velocity_search: one launch on CUDA; the reference is
+    # floxels_ext.reference.velocity_search); the sample rows are grouped by cluster
+    dts, origins, spacing, ts, ws = _packed(supports)
+    wsum = max(sum(ws), 1e-12)
+    segments = torch.searchsorted(cid, torch.arange(C + 1, device=q.device, dtype=cid.dtype))
+    best, best_score, zero = F.velocity_search(q.contiguous(), segments, ob, dts, origins, spacing, ts,
+                                               [w / wsum for w in ws], float(tau), NUM_DIRECTIONS, SPEED_STEP,
+                                               int(round(MAX_SPEED / SPEED_STEP)), LOCAL_STEPS, LOCAL_ROUNDS)
     moving = (best_score < (1 - SEARCH_GAIN) * zero) & (zero - best_score >= SEARCH_MIN_DROP)
     vel = torch.where(moving[:, None], best, torch.zeros_like(best))
     has = lab >= 0

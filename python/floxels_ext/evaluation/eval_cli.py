@@ -24,6 +24,7 @@ import os
 from pathlib import Path
 
 from floxels_ext.cli import CLIError
+from floxels_ext.numpy_files import open_npz
 
 __all__ = ["add_parser", "run", "load_eval_pair", "format_metrics"]
 
@@ -63,10 +64,8 @@ def add_parser(sub) -> None:
 
 # ----------------------------------------------------------------------------- loading
 def _keys(path: Path) -> set[str]:
-    import numpy as np
-
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             return set(z.files)
     except Exception:  # unreadable files are reported by the full read below
         return set()
@@ -105,7 +104,7 @@ def _read_gt(path: Path, raw_classes: bool):
     if not path.is_file():
         raise CLIError(f"missing frame file {path}")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as e:  # zip/npy errors come in many types
         raise CLIError(f"{path}: cannot read as .npz ({e})") from None
@@ -131,7 +130,7 @@ def _read_pred(pp: Path, gp: Path, n: int, all_points: bool = True):
     if not pp.is_file():
         raise CLIError(f"missing predicted frame {pp} (ground truth {gp} exists)")
     try:
-        with np.load(pp, allow_pickle=False) as z:
+        with open_npz(pp) as z:
             if "flow" not in z.files:
                 raise CLIError(f"{pp}: missing key(s) ['flow'] (present: {sorted(z.files)})")
             flow = z["flow"]

@@ -40,6 +40,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from floxels_ext.numpy_files import open_npz
+
 __all__ = [
     "CLASS_NAMES",
     "Frame",
@@ -202,7 +204,7 @@ def read_frame(path: str | os.PathLike, require: Iterable[str] = ("points",)) ->
     if not path.is_file():
         raise SequenceFormatError(f"missing frame file {path}")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as e:  # zip/npy errors come in many types
         raise SequenceFormatError(f"{path}: cannot read as .npz ({e})") from None

@@ -15,6 +15,7 @@ from floxels_ext.ops.grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_
 from floxels_ext.ops.lidar import frame_flow, lidar_keep_mask, lidar_point_classes, lidar_select, rigid_transform
 from floxels_ext.ops.nearest import nearest_neighbor
 from floxels_ext.ops.rigid_lm import rigid_lm
+from floxels_ext.ops.velocity_search import velocity_search
 from floxels_ext.ops.setup import ProblemSetup, problem_setup, stage_points
 from floxels_ext.ops.trilinear import trilinear_gather, trilinear_scatter
 
@@ -23,7 +24,7 @@ __all__ = [
     "trilinear_gather", "trilinear_scatter",
     "edt", "points_to_occupancy", "distance_transform",
     "dt_loss", "dt_loss_fwd_bwd",
-    "dt_residual", "dt_sample", "dt_evidence", "rigid_lm",
+    "dt_residual", "dt_sample", "dt_evidence", "rigid_lm", "velocity_search",
     "dbscan",
     "cluster_mean", "cluster_consistency_loss", "cluster_consistency_fwd_bwd",
     "corner_gather", "corner_scatter", "compact_corners", "CompactCorners",

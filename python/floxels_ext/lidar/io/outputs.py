@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from floxels_ext.numpy_files import open_npz
+
 __all__ = ["OUTPUT", "FORMAT_VERSION", "OutputError", "write_output", "read_flow_output", "cleanup_temps",
            "remove_temps", "read_settings", "read_resume_record", "settings_mismatch", "run_outputs", "points_crc32"]
 
@@ -148,7 +150,7 @@ def read_settings(path: Path) -> dict | None:
     """The ``settings`` a run output records (None for files of older versions: their
     method/num_scans/options are returned instead, as far as they are known)."""
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             if "settings" in z.files:
                 return json.loads(str(z["settings"]))
             old = {}
@@ -167,7 +169,7 @@ def read_resume_record(path: Path) -> dict | None:
     :mod:`floxels_ext.lidar.pipeline.resume`, None for outputs of earlier versions). None when the file
     cannot be read as an output (truncated, not a zip, no ``flow``, no settings): not done."""
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             if "flow" not in z.files:
                 return None
             inputs = json.loads(str(z["inputs"])) if "inputs" in z.files else None
@@ -244,7 +246,7 @@ def read_flow_output(path, *, points: bool = True) -> dict:
     Errors (:class:`OutputError`) name the file."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             d = {k: z[k] for k in z.files}
     except Exception as e:
         raise OutputError(f"{path}: cannot read ({e})") from None

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from floxels_ext.lidar.io._optional import require
+from floxels_ext.numpy_files import load_npy, open_npz
 
 __all__ = ["PoseFormatError", "read_poses", "read_kitti_calib", "read_av2_poses", "match_timestamps",
            "check_poses", "quat_to_matrix"]
@@ -120,9 +121,9 @@ def read_poses(path, *, calib=None) -> np.ndarray:
     suffix = p.suffix.lower()
     try:
         if suffix == ".npy":
-            a = np.load(p, allow_pickle=False)
+            a = load_npy(p)
         elif suffix == ".npz":
-            with np.load(p, allow_pickle=False) as z:
+            with open_npz(p) as z:
                 keys = z.files
                 if "poses" in keys:
                     a = z["poses"]

@@ -31,6 +31,7 @@ import numpy as np
 from floxels_ext.lidar.io._optional import MissingDependencyError, require
 from floxels_ext.lidar.io.pcd_ply import lzf_decompress, read_pcd, read_ply  # noqa: F401  (lzf_decompress: re-exported)
 from floxels_ext.lidar.io.scan import LidarFormatError, LidarScan, _fail, _finish, natural_key
+from floxels_ext.numpy_files import load_npy, open_npz
 
 _XYZ = ("x", "y", "z")
 
@@ -154,7 +155,7 @@ def _array_points(path, a: np.ndarray, what: str) -> tuple[np.ndarray, dict]:
 
 def read_npy(path) -> LidarScan:
     try:
-        a = np.load(path, allow_pickle=False)
+        a = load_npy(path)
     except Exception as e:  # numpy raises many kinds for a bad header / truncated data
         raise _fail(path, f"cannot read as .npy ({e})") from None
     return _finish(path, *_array_points(path, a, "array"))
@@ -163,7 +164,7 @@ def read_npy(path) -> LidarScan:
 def read_npz(path) -> LidarScan:
     """Key ``points`` (else the first (N, >=3) numeric array); ``pose`` (4, 4) when present."""
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as e:
         raise _fail(path, f"cannot read as .npz ({e})") from None
