@@ -218,7 +218,7 @@ PRESETS: dict[str, dict] = {
     # past and the future scans each no worse than the flow (refine_sided: turning cars).
     # Measured and left out: velocity_search (on top of the preset it lowers dynamic EPE on every
     # data set, but raises some classes' normalised EPE (pedestrians, AV2 cars) and takes the
-    # preset to 2.7-2.8x paper's time; alone it gives static highway barriers the ego's speed).
+    # preset to 2.7-3.1x paper's time; alone it gives static highway barriers the ego's speed).
     "accurate": {"num_scans": 11, "evidence": "zero", "rigid_refine": True, "refine_max_supports": 2,
                  "refine_sided": True, "range_mask": True, "visibility": True},
 }
