@@ -16,6 +16,7 @@
 
 #include "common/cuda_compat.h"
 #include "kernels/dt_loss.h"
+#include "kernels/finite.h"
 
 namespace floxels::rigid_lm {
 
@@ -33,6 +34,10 @@ FLX_HD void add_point(const dt_loss::Scan<T, Index>* scans, int num_scans, T inv
                       T rx, T ry, const T* th, T vz, double* s) {
   const T ux = th[0] - th[2] * ry;
   const T uy = th[1] + th[2] * rx;
+  if (!finite3(qx, qy, qz) || !finite3(rx, ry, vz)) [[unlikely]] {
+    s[9] += double(quiet_nan<T>());  // a non-finite row: the cluster's cost is NaN, no step is taken
+    return;
+  }
   for (int k = 0; k < num_scans; ++k) {
     T g[3];
     const T d = dt_loss::scan_sample<true, T, Index>(scans[k], qx, qy, qz, ux, uy, vz, inv_spacing, g);

@@ -15,6 +15,7 @@
 
 #include "common/cuda_compat.h"
 #include "kernels/dt_loss.h"
+#include "kernels/finite.h"
 
 namespace floxels::velocity_search {
 
@@ -74,7 +75,12 @@ FLX_HD double row_sum(const dt_loss::Scan<T, Index>* scans, int num_scans, T inv
                       const int32_t* observed, int64_t begin, int64_t end, int64_t first, int64_t stride,
                       const T* v) {
   double s = 0.0;
+  const bool v_ok = finite3(v[0], v[1], v[2]);
   for (int64_t i = begin + first; i < end; i += stride) {
+    if (!v_ok || !finite3(q[3 * i], q[3 * i + 1], q[3 * i + 2])) [[unlikely]] {
+      s += double(quiet_nan<T>());  // a non-finite row: its cluster's scores are NaN (zero flow stays best)
+      continue;
+    }
     s += double(dt_loss::point_residual<false, T, Index>(scans, num_scans, q[3 * i], q[3 * i + 1], q[3 * i + 2],
                                                           v[0], v[1], v[2], inv_spacing, tau,
                                                           dt_loss::point_bits(observed, i)));

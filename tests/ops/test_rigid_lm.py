@@ -134,6 +134,18 @@ def test_offsets_out_of_range_are_clamped_by_the_raw_op():
     assert torch.isfinite(th).all() and torch.isfinite(cost).all()
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=cuda)])
+def test_a_non_finite_row_stops_only_its_cluster(device):
+    # the raw op (the wrapper refuses such rows): cluster 0's cost is NaN, so it takes no step
+    points, rel, segments, theta, vz, *rest = case(device=device)
+    bad = points.clone()
+    bad[3, 1] = float("nan")
+    th, cost = ops.rigid_lm(bad, rel, segments, theta, vz, *rest, 10)
+    assert torch.equal(th[0], theta[0]) and torch.isnan(cost[0])
+    good_th, good_cost = ops.rigid_lm(points, rel, segments, theta, vz, *rest, 10)
+    assert torch.equal(th[1], good_th[1]) and torch.equal(cost[1], good_cost[1])
+
+
 @cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_cuda_matches_cpu_and_repeats_its_bytes(dtype):

@@ -116,6 +116,19 @@ def test_bad_input_is_named():
     assert torch.isfinite(best).all()
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=cuda)])
+def test_a_non_finite_row_leaves_its_cluster_at_zero(device):
+    # the raw op (the wrapper refuses such rows): cluster 0's scores are NaN, zero flow its best
+    p, seg, ob, *rest = case(device=device)
+    bad = p.clone()
+    bad[2, 0] = float("inf")
+    best, score, zero = ops.velocity_search(bad, seg, ob, *rest, 8, 0.1, 40, 4, 4)
+    assert torch.equal(best[0], torch.zeros(3, dtype=p.dtype, device=device))
+    assert torch.isnan(score[0]) and torch.isnan(zero[0])
+    good = ops.velocity_search(p, seg, ob, *rest, 8, 0.1, 40, 4, 4)
+    assert all(torch.equal(x[1:], y[1:]) for x, y in zip((best, score, zero), good))
+
+
 @cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("every", [3, 1])
