@@ -7,7 +7,7 @@ and the Argoverse 2 pair's comparison with scan 1's ground removed like scan 0's
 
 KITTI: writes the sweeps of ``../shared/data/kitti_raw_13f`` as ``velodyne/NNNNNN.bin`` (the
 data README's recipe), runs ``floxels run velodyne --odometry kiss-icp --preset paper`` (``--preset``; the
-preset's window, paper 5 scans, accurate 9, unless ``--scans``) through the CLI (``--frames`` limits the estimated frames, e.g. ``0:3`` on a CPU; all 13 sweeps still serve
+preset's window, paper 5 scans, accurate 11, unless ``--scans``) through the CLI (``--frames`` limits the estimated frames, e.g. ``0:3`` on a CPU; all 13 sweeps still serve
 as odometry input and support scans) and reads every output back: per frame the shares of the
 file's points that were kept (optimised), removed as ground, removed as outliers (the run
 summary's ``point_classes``), the share of kept points moving (``dynamic``), the share of moving
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--frames", default=None, help="KITTI frames to estimate (slice A:B; default all 13)")
     ap.add_argument("--scans", type=int, default=None, help="scans per window (default: the preset's: paper 5, "
-                    "accurate 9)")
+                    "accurate 11)")
     ap.add_argument("--preset", default="paper", help="floxels run --preset (paper, accurate)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="floxels run --option (repeatable), e.g. range_mask=no to measure an ingredient")
