@@ -19,7 +19,7 @@ import numpy as np
 
 __all__ = ["open_npz", "load_npy"]
 
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()  # re-entrant: a read inside another read cannot deadlock
 
 
 @contextmanager
