@@ -6,6 +6,7 @@
 
 #include <cmath>
 #include <optional>
+#include <string>
 #include <string_view>
 
 #include "common/check.h"
@@ -109,6 +110,20 @@ inline void check_observed(std::string_view op, const std::optional<at::Tensor>&
             points.size(0), ",) (one bit mask per point), got ", b.sizes());
   FLX_CHECK(b.scalar_type() == at::kInt, "floxels: ", op, ": observed must be int32, got ", b.scalar_type());
   check_same_device(points, b, "points", "observed");
+}
+
+// Row offsets of C clusters (rigid_lm, velocity_search): int64 (C + 1,) on the points' device;
+// num_clusters < 0: any C >= 0. Their values are not read (that would synchronise a CUDA caller):
+// the kernels clamp them to the rows (kernels/rigid_lm.h cluster_rows).
+inline void check_segments(std::string_view op, const at::Tensor& segments, const at::Tensor& points,
+                           int64_t num_clusters = -1) {
+  const bool any = num_clusters < 0;
+  FLX_CHECK(segments.dim() == 1 && (any ? segments.size(0) >= 1 : segments.size(0) == num_clusters + 1),
+            "floxels: ", op, ": segments must have shape (", any ? std::string("C + 1") : std::to_string(num_clusters + 1),
+            ",) (row offsets of the C clusters), got ", segments.sizes());
+  FLX_CHECK(segments.scalar_type() == at::kLong, "floxels: ", op, ": segments must be int64, got ",
+            segments.scalar_type());
+  check_same_device(points, segments, "points", "segments");
 }
 
 // dt_evidence's group keys: (N,) int32/int64 on the points' device (any stride).

@@ -1,7 +1,5 @@
 // Argument checks of floxels::rigid_lm, shared by the CPU implementation and the CUDA binding
-// so both reject bad input with the same messages (before touching memory). The segment
-// offsets' values are not read here (that would synchronise a CUDA caller); the kernels clamp
-// them to the rows (kernels/rigid_lm.h cluster_rows).
+// so both reject bad input with the same messages (before touching memory).
 #pragma once
 #include <ATen/core/Tensor.h>
 
@@ -27,11 +25,7 @@ inline void check_rigid_lm_args(const at::Tensor& points, const at::Tensor& rel,
   FLX_CHECK(vz.dim() == 1 && vz.size(0) == C, "floxels: rigid_lm: vz must have shape (", C, ",), got ", vz.sizes());
   check_same_dtype(points, vz, "points", "vz");
   check_same_device(points, vz, "points", "vz");
-  FLX_CHECK(segments.dim() == 1 && segments.size(0) == C + 1, "floxels: rigid_lm: segments must have shape (",
-            C + 1, ",) (row offsets of the C clusters), got ", segments.sizes());
-  FLX_CHECK(segments.scalar_type() == at::kLong, "floxels: rigid_lm: segments must be int64, got ",
-            segments.scalar_type());
-  check_same_device(points, segments, "points", "segments");
+  check_segments("rigid_lm", segments, points, C);
   FLX_CHECK(iters >= 0 && iters <= kRigidLmMaxIters, "floxels: rigid_lm: iters must be in [0, ",
             kRigidLmMaxIters, "], got ", iters);
 }

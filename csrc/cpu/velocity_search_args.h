@@ -1,6 +1,5 @@
 // Argument checks of floxels::velocity_search, shared by the CPU implementation and the CUDA
-// binding (the same messages). The segment offsets' values are not read (the kernels clamp
-// them to the rows, kernels/rigid_lm.h cluster_rows).
+// binding (the same messages).
 #pragma once
 #include <ATen/core/Tensor.h>
 
@@ -20,11 +19,7 @@ inline void check_velocity_search_args(const at::Tensor& points, const at::Tenso
                                        int64_t local_steps, int64_t local_rounds) {
   check_dt_query_args("velocity_search", points, points, dts, origins, spacing, time_offsets, &weights, &tau);
   check_observed("velocity_search", observed, points);
-  FLX_CHECK(segments.dim() == 1 && segments.size(0) >= 1, "floxels: velocity_search: segments must have shape "
-            "(C + 1,) (row offsets of the C clusters), got ", segments.sizes());
-  FLX_CHECK(segments.scalar_type() == at::kLong, "floxels: velocity_search: segments must be int64, got ",
-            segments.scalar_type());
-  check_same_device(points, segments, "points", "segments");
+  check_segments("velocity_search", segments, points);
   FLX_CHECK(num_directions >= 1 && num_speeds >= 1 &&
                 1 + num_directions * num_speeds <= velocity_search::kMaxCandidates,
             "floxels: velocity_search: 1 + num_directions * num_speeds must be in [2, ",

@@ -121,6 +121,20 @@ def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.
     return out.index_put_((index,), values, accumulate=True)
 
 
+def _segments(cid: torch.Tensor, C: int) -> torch.Tensor:
+    """(C + 1,) row offsets of the clusters of sample rows grouped by cluster (``cid``
+    non-decreasing): cluster c owns rows ``[offsets[c], offsets[c + 1])``, the ``segments`` of
+    ``floxels::velocity_search`` / ``floxels::rigid_lm``."""
+    return torch.searchsorted(cid, torch.arange(C + 1, device=cid.device, dtype=cid.dtype))
+
+
+def _planar(theta: torch.Tensor, rel: torch.Tensor, vz: torch.Tensor) -> torch.Tensor:
+    """Per-row motion (m, 3) of planar rigid motions ``theta`` (m, 3) = (vx, vy, yaw rate) at
+    offsets ``rel`` (m, 3) from their centroids, vertical velocity ``vz`` (m,):
+    ``(vx - w r_y, vy + w r_x, vz)`` (kernels/rigid_lm.h)."""
+    return torch.stack([theta[:, 0] - theta[:, 2] * rel[:, 1], theta[:, 1] + theta[:, 2] * rel[:, 0], vz], 1)
+
+
 def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
                             tau: float = TAU, observed: torch.Tensor | None = None,
                             num_clusters: int | None = None) -> torch.Tensor:
@@ -144,8 +158,7 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
     # floxels_ext.reference.velocity_search); the sample rows are grouped by cluster
     dts, origins, spacing, ts, ws = _packed(supports)
     wsum = max(sum(ws), 1e-12)
-    segments = torch.searchsorted(cid, torch.arange(C + 1, device=q.device, dtype=cid.dtype))
-    best, best_score, zero = F.velocity_search(q.contiguous(), segments, ob, dts, origins, spacing, ts,
+    best, best_score, zero = F.velocity_search(q.contiguous(), _segments(cid, C), ob, dts, origins, spacing, ts,
                                                [w / wsum for w in ws], float(tau), NUM_DIRECTIONS, SPEED_STEP,
                                                int(round(MAX_SPEED / SPEED_STEP)), LOCAL_STEPS, LOCAL_ROUNDS)
     moving = (best_score < (1 - SEARCH_GAIN) * zero) & (zero - best_score >= SEARCH_MIN_DROP)
@@ -233,7 +246,8 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     if rows.numel() == 0:  # (the one host synchronisation)
         return flow
     q, cid = points[rows], lab[rows]
-    n = _segment_sum(C, cid, torch.ones_like(q[:, 0])).clamp_min(1)  # sample points per cluster
+    segments = _segments(cid, C)
+    n = segments.diff().clamp_min(1).to(dt)  # sample points per cluster
     cen = _segment_sum(C, cid, q) / n[:, None]  # (C, 3)
     rel = q - cen[cid]
     # planar rigid motion (vx, vy, yaw rate); the vertical velocity stays the flow's mean (the
@@ -244,7 +258,6 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     # Levenberg-Marquardt on every cluster at once (floxels::rigid_lm: one launch on CUDA; the
     # reference is floxels_ext.reference.rigid_lm); the sample rows are grouped by cluster
     dts, origins, spacing, ts, ws = _packed(supports)
-    segments = torch.searchsorted(cid, torch.arange(C + 1, device=dev, dtype=cid.dtype))
     theta, cur = F.rigid_lm(q, rel.contiguous(), segments, theta, vz.contiguous(), dts, origins, spacing, ts,
                             [w / wsum for w in ws], float(tau), int(iters))
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
@@ -252,14 +265,12 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     if sided:
-        th = theta[cid]
-        u = torch.stack([th[:, 0] - th[:, 2] * rel[:, 1], th[:, 1] + th[:, 2] * rel[:, 0], vz[cid]], 1)
+        u = _planar(theta[cid], rel, vz[cid])
         for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):
             if side:  # summed loss-weighted residuals of the sample points: rigid minus the flow's
                 worse = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, flow[rows], tau, True)
                 accept &= _segment_sum(C, cid, worse) <= 0
     cl = lab.clamp_min(0)
     take = (lab >= 0) & accept[cl]
-    rel_all, th = points - cen[cl], theta[cl]
-    rigid = torch.stack([th[:, 0] - th[:, 2] * rel_all[:, 1], th[:, 1] + th[:, 2] * rel_all[:, 0], vz[cl]], 1)
+    rigid = _planar(theta[cl], points - cen[cl], vz[cl])
     return torch.where(take[:, None], rigid, flow)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import torch
 
 from floxels_ext.ops._checks import as_spacing, require_tensors
+from floxels_ext.ops._data_only import check_observed, register_data_only
 from floxels_ext.ops._lib import ops_ns
 from floxels_ext.ops.dt_loss import check_dt_args
 
@@ -38,19 +39,8 @@ def _evidence_fake(points, flow, labels, cells, dts, origins, spacing, time_offs
             points.new_empty((n,)))
 
 
-def _no_gradient(name):
-    def backward(ctx, *grads):
-        raise RuntimeError(f"floxels::{name} is a data-only op: no gradient flows through it "
-                           "(use dt_sample's gradients, or dt_loss for a differentiable loss)")
-    return backward
-
-
-def _no_context(ctx, inputs, output):
-    pass
-
-
 for _name in ("dt_residual", "dt_sample", "dt_evidence"):
-    torch.library.register_autograd(f"floxels::{_name}", _no_gradient(_name), setup_context=_no_context)
+    register_data_only(_name, " (use dt_sample's gradients, or dt_loss for a differentiable loss)")
 
 
 def _check(op, points, motion, dts, origins, time_offsets, weights=None, cap=None, motion_name="motion"):
@@ -60,20 +50,6 @@ def _check(op, points, motion, dts, origins, time_offsets, weights=None, cap=Non
         if not 0 < cap < float("inf"):
             raise ValueError(f"{op}: cap must be positive and finite, got {cap}")
     return (*checked, cap)
-
-
-def _observed(op, observed, points):
-    """``observed`` checked: None, or an (N,) int32 tensor on the points' device (bit k of row i:
-    scan k counts for point i)."""
-    if observed is None:
-        return None
-    require_tensors(observed=observed)
-    if observed.dim() != 1 or observed.shape[0] != points.shape[0] or observed.dtype != torch.int32:
-        raise ValueError(f"{op}: observed must be an ({points.shape[0]},) int32 tensor (a bit mask per point), "
-                         f"got {observed.dtype} {tuple(observed.shape)}")
-    if observed.device != points.device:
-        raise ValueError(f"{op}: observed is on {observed.device} but points are on {points.device}")
-    return observed.contiguous()
 
 
 def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
@@ -90,7 +66,7 @@ def dt_residual(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.
     ``motion`` (N, 3) like ``points``. Data only: no gradient flows."""
     p, m, d, o, t, w, c = _check("dt_residual", points, motion, dts, origins, time_offsets, weights, cap)
     return ops_ns.dt_residual(p, m, d, o, as_spacing(spacing), t, w, c, bool(squared),
-                              _observed("dt_residual", observed, p))
+                              check_observed("dt_residual", observed, p))
 
 
 def dt_sample(points: torch.Tensor, motion: torch.Tensor, dts: Sequence[torch.Tensor], origins: Sequence[float],
@@ -133,4 +109,4 @@ def dt_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor |
     if not (abs(float(margin)) < float("inf") and abs(float(ratio)) < float("inf")):
         raise ValueError(f"dt_evidence: margin and ratio must be finite, got {margin}, {ratio}")
     return ops_ns.dt_evidence(p, f, labels, cells, d, o, as_spacing(spacing), t, w, c, float(margin), float(ratio),
-                              _observed("dt_evidence", observed, p))
+                              check_observed("dt_evidence", observed, p))

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 import torch
 
 from floxels_ext.ops._checks import as_spacing, require_tensors
+from floxels_ext.ops._data_only import check_segments, register_data_only
 from floxels_ext.ops._lib import ops_ns
 from floxels_ext.ops.dt_loss import check_dt_args
 
@@ -28,11 +29,7 @@ def _rigid_lm_fake(points, rel, segments, theta, vz, dts, origins, spacing, time
     return theta.new_empty(theta.shape), theta.new_empty((theta.shape[0],))
 
 
-def _no_gradient(ctx, *grads):
-    raise RuntimeError("floxels::rigid_lm is a data-only op: no gradient flows through it")
-
-
-torch.library.register_autograd("floxels::rigid_lm", _no_gradient, setup_context=lambda ctx, inputs, output: None)
+register_data_only("rigid_lm")
 
 
 def rigid_lm(points: torch.Tensor, rel: torch.Tensor, segments: torch.Tensor, theta: torch.Tensor,
@@ -49,25 +46,20 @@ def rigid_lm(points: torch.Tensor, rel: torch.Tensor, segments: torch.Tensor, th
     its inliers (``kernels/rigid_lm.h``), taken when the cost falls. ``dts``/``origins``/
     ``spacing``: as :func:`~floxels_ext.ops.dt_residual`. Data only."""
     p, r, d, o, t, w = check_dt_args("rigid_lm", points, rel, dts, origins, time_offsets, weights, "rel")
-    require_tensors(segments=segments, theta=theta, vz=vz)
+    require_tensors(theta=theta, vz=vz)
     C = theta.shape[0] if theta.dim() == 2 else -1
     if theta.dim() != 2 or theta.shape[1] != 3 or theta.dtype != p.dtype:
         raise ValueError(f"rigid_lm: theta must be a (C, 3) {p.dtype} tensor, got {theta.dtype} {tuple(theta.shape)}")
     if vz.shape != (C,) or vz.dtype != p.dtype:
         raise ValueError(f"rigid_lm: vz must be a ({C},) {p.dtype} tensor, got {vz.dtype} {tuple(vz.shape)}")
-    if segments.shape != (C + 1,) or segments.dtype != torch.int64:
-        raise ValueError(f"rigid_lm: segments must be a ({C + 1},) int64 tensor of row offsets, got "
-                         f"{segments.dtype} {tuple(segments.shape)}")
-    for name, v in (("theta", theta), ("vz", vz), ("segments", segments)):
+    for name, v in (("theta", theta), ("vz", vz)):
         if v.device != p.device:
             raise ValueError(f"rigid_lm: {name} is on {v.device} but points are on {p.device}")
-    if C > 0 and (int(segments[0]) != 0 or int(segments[-1]) != p.shape[0] or bool((segments.diff() < 0).any())):
-        raise ValueError(f"rigid_lm: segments must rise from 0 to the number of rows ({p.shape[0]}), got "
-                         f"{segments.tolist() if C < 20 else 'other values'}")
+    segments = check_segments("rigid_lm", segments, p, C)
     tau = float(tau)
     if not 0 < tau < float("inf"):
         raise ValueError(f"rigid_lm: tau must be positive and finite, got {tau}")
     if isinstance(iters, bool) or not isinstance(iters, int) or not 0 <= iters <= MAX_ITERS:
         raise ValueError(f"rigid_lm: iters must be an integer in [0, {MAX_ITERS}], got {iters!r}")
-    return ops_ns.rigid_lm(p, r, segments.contiguous(), theta.contiguous(), vz.contiguous(), d, o,
+    return ops_ns.rigid_lm(p, r, segments, theta.contiguous(), vz.contiguous(), d, o,
                            as_spacing(spacing), t, w, tau, iters)

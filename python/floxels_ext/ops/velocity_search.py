@@ -14,7 +14,8 @@ from collections.abc import Sequence
 
 import torch
 
-from floxels_ext.ops._checks import as_spacing, require_tensors
+from floxels_ext.ops._checks import as_spacing
+from floxels_ext.ops._data_only import check_observed, check_segments, register_data_only
 from floxels_ext.ops._lib import ops_ns
 from floxels_ext.ops.dt_loss import check_dt_args
 
@@ -30,12 +31,7 @@ def _velocity_search_fake(points, segments, observed, dts, origins, spacing, tim
     return points.new_empty((C, 3)), points.new_empty((C,)), points.new_empty((C,))
 
 
-def _no_gradient(ctx, *grads):
-    raise RuntimeError("floxels::velocity_search is a data-only op: no gradient flows through it")
-
-
-torch.library.register_autograd("floxels::velocity_search", _no_gradient,
-                                setup_context=lambda ctx, inputs, output: None)
+register_data_only("velocity_search")
 
 
 def velocity_search(points: torch.Tensor, segments: torch.Tensor, observed: torch.Tensor | None,
@@ -54,21 +50,8 @@ def velocity_search(points: torch.Tensor, segments: torch.Tensor, observed: torc
     ``local_steps`` steps halving from ``speed_step``, at most ``local_rounds`` moves per step.
     Ties go to the lowest candidate. Data only."""
     p, _, d, o, t, w = check_dt_args("velocity_search", points, points, dts, origins, time_offsets, weights)
-    require_tensors(segments=segments)
-    if segments.dim() != 1 or segments.shape[0] < 1 or segments.dtype != torch.int64:
-        raise ValueError(f"velocity_search: segments must be a (C + 1,) int64 tensor of row offsets, got "
-                         f"{segments.dtype} {tuple(segments.shape)}")
-    if segments.device != p.device:
-        raise ValueError(f"velocity_search: segments is on {segments.device} but points are on {p.device}")
-    C = segments.shape[0] - 1
-    if int(segments[0]) != 0 or int(segments[-1]) != p.shape[0] or bool((segments.diff() < 0).any()):
-        raise ValueError(f"velocity_search: segments must rise from 0 to the number of rows ({p.shape[0]}), got "
-                         f"{segments.tolist() if C < 20 else 'other values'}")
-    if observed is not None:
-        require_tensors(observed=observed)
-        if observed.shape != (p.shape[0],) or observed.dtype != torch.int32 or observed.device != p.device:
-            raise ValueError(f"velocity_search: observed must be a ({p.shape[0]},) int32 tensor on {p.device}, got "
-                             f"{observed.dtype} {tuple(observed.shape)} on {observed.device}")
+    segments = check_segments("velocity_search", segments, p)
+    observed = check_observed("velocity_search", observed, p)
     for name, v in (("num_directions", num_directions), ("num_speeds", num_speeds), ("local_steps", local_steps),
                     ("local_rounds", local_rounds)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -82,6 +65,6 @@ def velocity_search(points: torch.Tensor, segments: torch.Tensor, observed: torc
     tau, speed_step = float(tau), float(speed_step)
     if not 0 < tau < float("inf") or not 0 < speed_step < float("inf"):
         raise ValueError(f"velocity_search: tau and speed_step must be positive and finite, got {tau}, {speed_step}")
-    return ops_ns.velocity_search(p, segments.contiguous(), None if observed is None else observed.contiguous(), d, o,
+    return ops_ns.velocity_search(p, segments, observed, d, o,
                                   as_spacing(spacing), t, w, tau, num_directions, speed_step, num_speeds,
                                   local_steps, local_rounds)

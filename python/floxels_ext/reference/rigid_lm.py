@@ -10,16 +10,11 @@ from collections.abc import Sequence
 
 import torch
 
-from floxels_ext.reference.ops import dt_sample
+from floxels_ext.reference.ops import cluster_mean, dt_sample
 
 __all__ = ["rigid_lm"]
 
 LAM_START, LAM_DOWN, LAM_UP, LAM_MIN, LAM_MAX, DAMP = 1e-2, 0.3, 10.0, 1e-6, 1e6, 1e-3
-
-
-def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    out = torch.zeros((rows,) + tuple(values.shape[1:]), dtype=values.dtype, device=values.device)
-    return out.index_put_((index,), values, accumulate=True)
 
 
 def _solve3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -36,9 +31,7 @@ def rigid_lm(points: torch.Tensor, rel: torch.Tensor, segments: torch.Tensor, th
     """(theta (C, 3), cost (C,)): see ``floxels_ext.ops.rigid_lm``."""
     dev, dt = points.device, points.dtype
     C = theta.shape[0]
-    counts = segments.diff()
-    cid = torch.repeat_interleave(torch.arange(C, device=dev), counts)
-    n = counts.to(dt).clamp_min(1)
+    cid = torch.repeat_interleave(torch.arange(C, device=dev), segments.diff())
     tk = torch.tensor(list(time_offsets), dtype=dt, device=dev)[:, None, None]
     wk = torch.tensor(list(weights), dtype=dt, device=dev)[:, None]
     o, z = torch.ones_like(rel[:, 0]), torch.zeros_like(rel[:, 0])
@@ -58,7 +51,7 @@ def rigid_lm(points: torch.Tensor, rel: torch.Tensor, segments: torch.Tensor, th
         wJ = ((d < tau) * wk).unsqueeze(-1) * J
         per = torch.cat([(wJ[..., ia] * J[..., ib]).sum(0), (wJ * d.unsqueeze(-1)).sum(0),
                          (wk * d.clamp_max(tau).square()).sum(0).unsqueeze(-1)], 1)
-        return _segment_sum(C, cid, per) / n[:, None]
+        return cluster_mean(per, cid, C)
 
     S = normal(theta)
     lam = torch.full((C,), LAM_START, dtype=dt, device=dev)

@@ -11,18 +11,9 @@ from collections.abc import Sequence
 
 import torch
 
-from floxels_ext.reference.ops import dt_residual
+from floxels_ext.reference.ops import cluster_mean, dt_residual
 
 __all__ = ["velocity_search"]
-
-
-def _segment_mean(values: torch.Tensor, cid: torch.Tensor, C: int) -> torch.Tensor:
-    """Mean of ``values`` (..., m) over each cluster's columns -> (..., C)."""
-    s = torch.zeros((C,) + tuple(values.shape[:-1]), dtype=values.dtype, device=values.device)
-    s.index_put_((cid,), values.movedim(-1, 0), accumulate=True)
-    n = torch.zeros(C, dtype=values.dtype, device=values.device).index_put_(
-        (cid,), torch.ones_like(cid, dtype=values.dtype), accumulate=True)
-    return (s / n.clamp_min(1).view((C,) + (1,) * (values.dim() - 1))).movedim(0, -1)
 
 
 def velocity_search(points: torch.Tensor, segments: torch.Tensor, observed: torch.Tensor | None,
@@ -41,13 +32,12 @@ def velocity_search(points: torch.Tensor, segments: torch.Tensor, observed: torc
         x = points.unsqueeze(0).expand_as(v).reshape(-1, 3)
         ob = None if observed is None else observed.repeat(K)
         r = dt_residual(x, v.reshape(-1, 3), dts, origins, spacing, time_offsets, weights, tau, False, ob)
-        return _segment_mean(r.view(K, -1), cid, C)
+        return cluster_mean(r.view(K, -1).T, cid, C).T
 
     xy = points[:, :2].to(torch.float64)
-    mean = _segment_mean(xy.T, cid, C).T
-    d = xy - mean[cid]
-    cov = [_segment_mean((d[:, a] * d[:, b])[None], cid, C)[0] for a, b in ((0, 0), (0, 1), (1, 1))]
-    ang = 0.5 * torch.atan2(2 * cov[1], cov[0] - cov[2])
+    d = xy - cluster_mean(xy, cid, C)[cid]
+    cov = cluster_mean(d[:, [0, 0, 1]] * d[:, [0, 1, 1]], cid, C)  # (C, 3): xx, xy, yy
+    ang = 0.5 * torch.atan2(2 * cov[:, 1], cov[:, 0] - cov[:, 2])
     axis = torch.stack([torch.cos(ang), torch.sin(ang)], 1).to(dt)  # (C, 2)
     a = torch.arange(num_directions, device=dev, dtype=dt) * (2 * math.pi / num_directions)
     ca, sa = torch.cos(a), torch.sin(a)
