@@ -77,12 +77,13 @@ PORT = {"lr_milestones": (10, 20), "lr_gamma": 0.5, "patience": 20, "min_delta":
         "truncation_mode": "clamp", "cluster_loss_mean": "clustered"}
 # The accurate preset's ingredients (a field and the fields that qualify it): the rigid
 # refinement with its window limit is one ingredient
-_QUALIFIERS = ("refine_max_supports", "refine_sided")  # fields that qualify rigid_refine
+_QUALIFIERS = ("refine_max_supports", "refine_sided", "refine_search")  # fields that qualify rigid_refine
 INGREDIENTS = {k: {kk: vv for kk, vv in PRESETS["accurate"].items() if kk == k or (k == "rigid_refine" and kk in _QUALIFIERS)}
                for k in PRESETS["accurate"] if k not in _QUALIFIERS}
 INGREDIENTS = {(f"{k}={v[k]}" if len(v) == 1 else
                 f"{k} (plain in windows <= {v['refine_max_supports']} supports"
-                + (", sided beyond)" if v.get("refine_sided") else ")")): v
+                + (", sided beyond" if v.get("refine_sided") else "")
+                + (", searched start)" if v.get("refine_search") else ")")): v
                for k, v in INGREDIENTS.items()}
 # (group, label, Floxels options): the paper's ablations (Tables 2-4) and the readings
 ABLATIONS = [
@@ -107,7 +108,8 @@ ABLATIONS = [
     ("beyond-only", "only rigid_refine, every window", {"rigid_refine": True}),
     ("beyond-only", "only velocity_search=True (not in the preset)", {"velocity_search": True}),
     ("beyond-only", "accurate + velocity_search", {**PRESETS["accurate"], "velocity_search": True}),
-    ("beyond-only", "accurate without refine_sided (the preset before it)", {**PRESETS["accurate"], "refine_sided": False}),
+    ("beyond-only", "accurate without refine_search (the preset before it)", {**PRESETS["accurate"], "refine_search": False}),
+    ("beyond-only", "accurate without refine_sided", {**PRESETS["accurate"], "refine_sided": False}),
     *[("beyond-loo", f"accurate without {k}", {kk: vv for kk, vv in PRESETS["accurate"].items() if kk not in v})
       for k, v in INGREDIENTS.items()],
     ("beyond-loo", "accurate, rigid_refine plain in every window", {**PRESETS["accurate"], "refine_max_supports": 0}),

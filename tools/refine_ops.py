@@ -6,8 +6,10 @@ without the view and no-op ops that launch no kernel on CUDA), the
 ``aten::_local_scalar_dense``, ``aten::nonzero``; on CUDA also the kernels launched) of one call of
 ``floxels_ext.estimator.refine.rigid_refine`` on the synthetic passing cars of
 tests/estimator/test_refine.py, with 2, 4 and 8 support scans; and its wall time (median of 5).
+``--search``: the call as the preset makes it, also started from the searched velocity
+(``refine_search``).
 
-    PYTHONPATH=python python tools/refine_ops.py [--device cpu|cuda] [--json PATH]
+    PYTHONPATH=python python tools/refine_ops.py [--device cpu|cuda] [--search] [--json PATH]
 """
 
 from __future__ import annotations
@@ -80,21 +82,26 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--supports", type=int, nargs="+", default=[2, 4, 8])
+    ap.add_argument("--search", action="store_true", help="rigid_refine(search=True), the preset's call")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+
+    def refine(P, flow, lab, sup):
+        return rigid_refine(P, flow, lab, sup, search=args.search)
+
     out = []
     print("| supports | ops | ops not views | floxels ops | index_put_ | item (syncs) | nonzero | ms (median of 5) | max car error m |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for k in args.supports:
         P, flow, lab, sup, (a, b, v) = case(k, args.device)
-        res = rigid_refine(P, flow, lab, sup)  # warm-up
-        c = count_ops(lambda: rigid_refine(P, flow, lab, sup), args.device.startswith("cuda"))
+        res = refine(P, flow, lab, sup)  # warm-up
+        c = count_ops(lambda: refine(P, flow, lab, sup), args.device.startswith("cuda"))
         ts = []
         for _ in range(5):
             if args.device.startswith("cuda"):
                 torch.cuda.synchronize()
             t0 = time.perf_counter()
-            res = rigid_refine(P, flow, lab, sup)
+            res = refine(P, flow, lab, sup)
             if args.device.startswith("cuda"):
                 torch.cuda.synchronize()
             ts.append(time.perf_counter() - t0)

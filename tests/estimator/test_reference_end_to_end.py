@@ -35,8 +35,8 @@ REFERENCE_SETTINGS = dict(
     # motion evidence (issue 29) is not part of the paper: off, the paper's output
     evidence="off", evidence_margin=0.02, evidence_ratio=0.05,
     # the accurate preset's ingredients (issue 33) are not part of the paper: off
-    velocity_search=False, rigid_refine=False, refine_max_supports=0, refine_sided=False, range_mask=False,
-    visibility=False)
+    velocity_search=False, rigid_refine=False, refine_max_supports=0, refine_sided=False, refine_search=False,
+    range_mask=False, visibility=False)
 
 SCENES = [("crossing", 3), ("parking", 1), ("urban", 2)]
 

@@ -279,7 +279,7 @@ class Solving:
             if cfg.rigid_refine and (short or cfg.refine_sided):
                 flow_s = rigid_refine(p.points, flow_s, p.labels,
                                       supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell),
-                                      num_clusters=p.num_clusters, sided=not short)
+                                      num_clusters=p.num_clusters, sided=not short, search=cfg.refine_search)
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
             flows.append(flow)

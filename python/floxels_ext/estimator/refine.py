@@ -1,7 +1,9 @@
 """Beyond the paper (issue 33, the ``accurate`` preset): per-cluster motion ingredients that use
 the support scans' distance transforms directly, before and after the grid optimisation. The
-preset uses :func:`rigid_refine`; :func:`cluster_velocity_search` (``velocity_search=True``) is
-left out of it (on top of the preset it helps dynamic EPE but not every class: bench/RESULTS.md).
+preset uses :func:`rigid_refine`, whose loop also starts from the refined clusters' searched
+velocities (``refine_search``); :func:`cluster_velocity_search` for every cluster as the grid's
+start (``velocity_search=True``) is left out of it (on top of the preset it helps dynamic EPE but
+not every class: bench/RESULTS.md).
 
 * :func:`cluster_velocity_search`: for every DBSCAN cluster of the target, the constant
   horizontal velocity that best explains the support scans, searched over candidate
@@ -14,7 +16,8 @@ left out of it (on top of the preset it helps dynamic EPE but not every class: b
   rate, constant over the window) by Levenberg-Marquardt on the distance transforms,
   started from the cluster's mean Floxels flow. A DT-based ICP (point-to-surface distances
   from the EDT, their gradients as normals): directions the scans do not constrain (a flat
-  side sliding along itself) have no gradient and keep the start value (damping).
+  side sliding along itself) have no gradient and keep the start value (damping). With
+  ``search``, also started from the cluster's searched velocity; the lower cost wins.
 
 Both score a motion with the robust residual ``min(DT_t(p + t u), tau)`` over the loss's
 support scans, weighted like the loss (``w(t) = 1/t^2``); a cluster's result is kept only if it
@@ -204,7 +207,7 @@ def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor
 
 def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
                  tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS,
-                 num_clusters: int | None = None, sided: bool = False) -> torch.Tensor:
+                 num_clusters: int | None = None, sided: bool = False, search: bool = False) -> torch.Tensor:
     """The flow (n, 3) with every moving cluster (mean flow >= ``min_speed`` m/frame)
     replaced by its best planar rigid motion (horizontal translation v and yaw rate w about
     the cluster's centroid c: u(p) = v + w z x (p - c) per frame, the vertical velocity kept
@@ -223,6 +226,13 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     which the grid's cluster-mean consistency cannot hold) explains both sides better.
     Not for windows of one or two scans, where the flow can fit a scan better than the true
     motion does (above).
+
+    ``search`` (``FloxelsConfig.refine_search``): the Levenberg-Marquardt loop also starts from
+    each moving cluster's best constant velocity of the velocity search (the search of
+    :func:`cluster_velocity_search`, over these clusters only), and the cluster takes the motion
+    of the two with the lower cost. The loop is local: from a flow stopped short it can settle in
+    a partial match, e.g. a far car's points on its own next-frame surface (AV2 pair: 0.30 m/frame
+    with a 4 degree/frame yaw, against the label's 0.80 and the scans' 0.84).
 
     Every cluster is solved at once by ``floxels::rigid_lm`` (kernels/rigid_lm.h: per step the
     clusters' normal equations from one look-up per support scan, sums in a fixed order, and a
@@ -258,8 +268,17 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     # Levenberg-Marquardt on every cluster at once (floxels::rigid_lm: one launch on CUDA; the
     # reference is floxels_ext.reference.rigid_lm); the sample rows are grouped by cluster
     dts, origins, spacing, ts, ws = _packed(supports)
-    theta, cur = F.rigid_lm(q, rel.contiguous(), segments, theta, vz.contiguous(), dts, origins, spacing, ts,
-                            [w / wsum for w in ws], float(tau), int(iters))
+    wn = [w / wsum for w in ws]
+    rel, vz = rel.contiguous(), vz.contiguous()
+    theta, cur = F.rigid_lm(q, rel, segments, theta, vz, dts, origins, spacing, ts, wn, float(tau), int(iters))
+    if search:  # the second start: the searched velocity (floxels::velocity_search, one launch)
+        best, _, _ = F.velocity_search(q.contiguous(), segments, None, dts, origins, spacing, ts, wn, float(tau),
+                                       NUM_DIRECTIONS, SPEED_STEP, int(round(MAX_SPEED / SPEED_STEP)), LOCAL_STEPS,
+                                       LOCAL_ROUNDS)
+        start = torch.cat([best[:, :2].to(dt), torch.zeros(C, 1, device=dev, dtype=dt)], 1)
+        theta_s, cur_s = F.rigid_lm(q, rel, segments, start, vz, dts, origins, spacing, ts, wn, float(tau), int(iters))
+        lower = sel & (cur_s < cur)
+        theta, cur = torch.where(lower[:, None], theta_s, theta), torch.where(lower, cur_s, cur)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
     zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n

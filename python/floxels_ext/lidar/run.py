@@ -53,8 +53,8 @@ def add_parser(sub) -> None:
                    help="scans per window, target in the middle (default: the preset's, paper 5, accurate 11)")
     p.add_argument("--preset", default="paper",
                    help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
-                        "11 scans, motion evidence, rigid refinement of moving clusters in windows of 2-3 scans; "
-                        "README 'Beyond the paper')")
+                        "11 scans, motion evidence judged where each scan could see, rigid refinement of moving "
+                        "clusters from their flow and their searched velocity; README 'Beyond the paper')")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
                    "neighbours outside still serve as support scans")
