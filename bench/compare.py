@@ -119,11 +119,16 @@ MAX_WINDOW = 11
 SCENE_SEED = {"urban": 0, "crossing": 1, "highway": 2, "parking": 3}
 
 def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_options):
-    """Protocol-cropped scans and ground truth of one simulated sequence."""
+    """Protocol-cropped scans and ground truth of one simulated sequence, and what the scans'
+    sights need (:func:`_sight`): each scan's sensor position and its ground returns inside the
+    protocol's crop (removed from the scan, as ``floxels run``'s preprocessing removes them)."""
     seq = simulate_sequence(scene, num_frames=num_frames, seed=seed, small=(lidar == "small"), **sim_options)
     rng = np.random.default_rng([seed, 7])
-    scans, truth, sensors = [], [], []
+    scans, truth, sensors, grounds = [], [], [], []
     for fr in seq.frames:
+        grounds.append(np.ascontiguousarray(
+            fr.points[protocol_mask(fr.points, fr.pose[:3, 3], max_range=max_range) & fr.ground.astype(bool)],
+            dtype=np.float32))
         idx = np.flatnonzero(protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=max_range))
         if max_points and idx.size > max_points:
             idx = np.sort(rng.choice(idx, max_points, replace=False))
@@ -131,7 +136,13 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
         truth.append({"flow": fr.flow[idx].astype(np.float32), "classes": fr.classes[idx].astype(np.int64),
                       "dynamic": fr.dynamic[idx].astype(bool)})
         sensors.append(fr.pose[:3, 3].astype(np.float64))
-    return scans, truth, sensors
+    return scans, truth, _sight(sensors, grounds)
+
+
+def _sight(sensors, grounds) -> dict:
+    """What the Floxels sights read besides the scans: ``sensors`` (each scan's sensor position)
+    and ``ground`` (each scan's removed ground returns, in the scans' frame)."""
+    return {"sensors": sensors, "ground": grounds}
 
 
 def project_ground(points):
@@ -154,7 +165,8 @@ def ground_agreement(pred, label, points, box=35.0):
 
 def load_av2_pair(path, max_points=0):
     """(scans [pc0, pc1 in pc0's frame], truth of pc0 (object motion) and of pc1 (None), the
-    sensor positions [ego 0's origin, ego 1's origin in pc0's frame])."""
+    sights' inputs (:func:`_sight`): the sensor positions [ego 0's origin, ego 1's origin in pc0's
+    frame] and each scan's removed ground within the crop)."""
     d = np.load(path)
     p0, p1 = d["pc0"].astype(np.float64), d["pc1"].astype(np.float64)
     g0 = d["is_ground0"].astype(bool)
@@ -173,12 +185,14 @@ def load_av2_pair(path, max_points=0):
     truth = {"flow": flow, "classes": classes, "dynamic": d["dynamic0"].astype(bool)[k0],
              "ground": ~box(p0[k0], 35.0)}  # "ground" = excluded from the metrics
     s0, s1 = p0[k0].astype(np.float32), p1[k1].astype(np.float32)
+    grounds = [p[box(p, 40.0) & g].astype(np.float32) for p, g in ((p0, g0), (p1, g1))]
     if max_points:
         rng = np.random.default_rng(3)
         i0 = np.sort(rng.choice(len(s0), min(max_points, len(s0)), replace=False))
         s0, truth = s0[i0], {k: v[i0] for k, v in truth.items()}
         s1 = s1[np.sort(rng.choice(len(s1), min(max_points, len(s1)), replace=False))]
-    return [np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None], [np.zeros(3), T[:3, 3].copy()]
+    return ([np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None],
+            _sight([np.zeros(3), T[:3, 3].copy()], grounds))
 
 
 def _sync(dev: str) -> None:
@@ -190,9 +204,13 @@ def _same_flows(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(np.array_equal(np.asarray(a[f]), np.asarray(b[f])) for f in a)
 
 
-def _sensor_kw(method, sensors) -> dict:
-    """``sensors=`` for methods that take it (Floxels' range_mask), as ``floxels run`` does."""
-    return {"sensors": sensors} if methods.accepts(method.estimate_sequence, "sensors") else {}
+def _sensor_kw(method, sight: dict, options: dict) -> dict:
+    """``sensors=`` for methods that take it (Floxels' range_mask and visibility) and ``ground=``
+    where the options read it (Floxels' visibility), as ``floxels run`` passes them."""
+    kw = {"sensors": sight["sensors"]} if methods.accepts(method.estimate_sequence, "sensors") else {}
+    if method.wants_ground(options):
+        kw["ground"] = sight["ground"]
+    return kw
 
 
 def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):
@@ -207,21 +225,21 @@ def run_rows(rows, data, dev, repeat=3, warmup="full", progress=True):
     for key, label, name, opts, _group in rows:
         method = methods.get_method(name)
         if warmup != "none":
-            scans, _, frames, _, sensors = data[0]
+            scans, _, frames, _, sight = data[0]
             w = opts if warmup == "full" else {**opts, "max_iters": 3}
             method.estimate_sequence(scans, frames[:1], dev, w, lambda f, flow, *extra: None,
-                                     **_sensor_kw(method, sensors))
+                                     **_sensor_kw(method, sight, w))
             _sync(dev)
         out[key] = {}
         t_row = time.perf_counter()
-        for scans, _truth, frames, scene, sensors in data:
+        for scans, _truth, frames, scene, sight in data:
             runs, preds = [], None
             for i in range(repeat):
                 got = {}
                 _sync(dev)
                 t0 = time.perf_counter()
                 method.estimate_sequence(scans, frames, dev, opts, lambda f, flow, *extra: got.__setitem__(f, flow),
-                                         **_sensor_kw(method, sensors))
+                                         **_sensor_kw(method, sight, opts))
                 _sync(dev)
                 runs.append(time.perf_counter() - t0)
                 if preds is None:
@@ -324,8 +342,8 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     data = []  # (scans, truth, evaluated frames, scene name, sensor positions)
     if args.dataset == "av2":
-        scans, truth, sensors = load_av2_pair(args.av2, args.max_points)
-        data.append((scans, truth, [0], "av2_pair", sensors))
+        scans, truth, sight = load_av2_pair(args.av2, args.max_points)
+        data.append((scans, truth, [0], "av2_pair", sight))
         log(f"av2 pair: {len(scans[0])} / {len(scans[1])} points, {int(truth[0]['dynamic'].sum())} dynamic")
     else:
         need = max([MAX_WINDOW if "scans" in args.ablations else 5] +
@@ -338,9 +356,9 @@ def main(argv=None) -> int:
             raise SystemExit(f"--seeds needs one seed per scene ({len(args.scenes)}), got {len(args.seeds)}")
         for i, scene in enumerate(args.scenes):
             seed = SCENE_SEED.get(scene, 0) if args.seeds is None else args.seeds[i]
-            scans, truth, sensors = load_sim_scene(scene, seed, num_frames, args.lidar, args.max_range,
-                                                   args.max_points, args.sim)
-            data.append((scans, truth, frames, scene, sensors))
+            scans, truth, sight = load_sim_scene(scene, seed, num_frames, args.lidar, args.max_range,
+                                                 args.max_points, args.sim)
+            data.append((scans, truth, frames, scene, sight))
             log(f"scene {scene}: {num_frames} scans; frames {frames}: {[len(scans[f]) for f in frames]} points "
                 f"({[int(truth[f]['dynamic'].sum()) for f in frames]} dynamic) [{time.perf_counter() - t_all:.1f} s]")
 

@@ -16,7 +16,10 @@ A method is a :class:`Method`: a name, a one-line description, and
   unequally spaced scans (a dropped frame) give flows comparable with the others. A method
   may also take ``sensors=`` (each scan's sensor position in the scans' frame, or None per
   scan where unknown; Floxels' ``range_mask`` uses them); callers pass it (like ``times``)
-  only to methods whose function names it.
+  only to methods whose function names it. Likewise ``ground=`` (each scan's ground returns
+  that preprocessing removed, an (m, 3) float32 array in the scans' frame, or None): callers
+  pass it only where ``Method.uses_ground(options)`` says the options read it (keeping the
+  ground costs the reader a copy per frame).
 
 ``estimate_stream(scans, targets, device, options, callback)`` (optional): the same for many
 sequences laid end to end in one index space (``floxels run DATASET``): ``targets`` yields
@@ -53,6 +56,18 @@ class Method:
     estimate_sequence: Callable[[list, Sequence[int], object, dict, Callable], None]
     config: type | None = None
     estimate_stream: Callable | None = None
+    # options -> whether the method reads the scans' removed ground (``ground=``) with them
+    uses_ground: Callable[[dict], bool] | None = None
+
+    def wants_ground(self, options: dict) -> bool:
+        """Whether to keep and pass each scan's removed ground for ``options`` (bad options:
+        False; the method reports them itself)."""
+        if self.uses_ground is None or not accepts(self.estimate_sequence, "ground"):
+            return False
+        try:
+            return bool(self.uses_ground(dict(options or {})))
+        except (TypeError, ValueError):
+            return False
 
 
 _REGISTRY: dict[str, Method] = {}
@@ -91,7 +106,7 @@ def get_method(name: str) -> Method:
 
 
 # ----------------------------------------------------------------------------- floxels
-def _floxels_sequence(scans, frames, device, options, callback, times=None, sensors=None) -> None:
+def _floxels_sequence(scans, frames, device, options, callback, times=None, sensors=None, ground=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.api import estimate_sequence
 
@@ -102,14 +117,14 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None, sens
         raise ValueError(f"floxels: bad option: {e}") from None
     if cfg.evidence == "off":
         estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times, sensor_origins=sensors,
-                          callback=lambda f, res: callback(f, res.flow))
+                          ground_points=ground, callback=lambda f, res: callback(f, res.flow))
     else:
         estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times, sensor_origins=sensors,
-                          callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
+                          ground_points=ground, callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
                                                                           "explained": res.explained}))
 
 
-def _floxels_stream(scans, targets, device, options, callback, sensors=None) -> None:
+def _floxels_stream(scans, targets, device, options, callback, sensors=None, ground=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.stream import estimate_stream
 
@@ -118,10 +133,10 @@ def _floxels_stream(scans, targets, device, options, callback, sensors=None) -> 
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
     if cfg.evidence == "off":
-        estimate_stream(scans, targets, cfg, device=device, sensors=sensors,
+        estimate_stream(scans, targets, cfg, device=device, sensors=sensors, grounds=ground,
                         callback=lambda f, res: callback(f, res.flow))
     else:  # the same per-point fields as _floxels_sequence
-        estimate_stream(scans, targets, cfg, device=device, sensors=sensors,
+        estimate_stream(scans, targets, cfg, device=device, sensors=sensors, grounds=ground,
                         callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
                                                                         "explained": res.explained}))
 
@@ -130,7 +145,8 @@ def _register_floxels() -> None:
     from floxels_ext.estimator.config import FloxelsConfig
 
     register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence,
-                    FloxelsConfig, estimate_stream=_floxels_stream))
+                    FloxelsConfig, estimate_stream=_floxels_stream,
+                    uses_ground=lambda options: FloxelsConfig(**options).visibility))
 
 
 _register_floxels()

@@ -24,7 +24,7 @@ from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DistanceTransform, DtStreams
 from floxels_ext.estimator.group import fit_group
 from floxels_ext.estimator.result import FloxelsResult
-from floxels_ext.estimator.scans import check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
+from floxels_ext.estimator.scans import check_ground, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
 from floxels_ext.estimator.stream import RAMP_START, Window, solve_windows, window_for
 from floxels_ext.estimator.streams import serial_stages
 from floxels_ext.ops.solver import MAX_PROBLEMS
@@ -48,18 +48,18 @@ class Floxels:
     def fit(self, scans: Sequence, target: int | None = None,
             dt_cache: dict[int, DistanceTransform | None] | None = None, *,
             times: Sequence[float] | None = None, frame_period: float | None = None,
-            sensor_origins: Sequence | None = None) -> FloxelsResult:
+            sensor_origins: Sequence | None = None, ground_points: Sequence | None = None) -> FloxelsResult:
         """Estimate the flow of ``scans[target]`` (default: the middle scan), per frame period.
 
         ``dt_cache`` maps scan index -> distance transform and is filled in place, so that
         callers optimising several targets over the same scans build each DT once.
-        ``times``/``frame_period``/``sensor_origins``: see :func:`estimate_flow`.
+        ``times``/``frame_period``/``sensor_origins``/``ground_points``: see :func:`estimate_flow`.
         """
         cache = dt_cache if dt_cache is not None else {}
         early = DtStreams(self.config, cache)
         warn_if_no_sensors(self.config, sensor_origins)
         prep = prepare_scans(scans, target, self.device, on_ready=early, times=times, period=frame_period,
-                             sensors=sensor_origins)
+                             sensors=sensor_origins, grounds=ground_points)
         return fit_group(self.config, [(prep, cache)], early)[0]
 
     def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
@@ -98,7 +98,8 @@ def _config_of(config: FloxelsConfig | None, preset: str | None) -> FloxelsConfi
 
 def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None,
                   *, times: Sequence[float] | None = None, frame_period: float | None = None,
-                  flow_unit: str = "frame", preset: str | None = None, sensor_origins: Sequence | None = None):
+                  flow_unit: str = "frame", preset: str | None = None, sensor_origins: Sequence | None = None,
+                  ground_points: Sequence | None = None):
     """Flow of every point of ``scans[target]``.
 
     ``scans``: 2 to 13 (N_i, 3) float arrays/tensors in one ego-motion-compensated frame;
@@ -115,7 +116,10 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     ``sensor_origins``: each scan's sensor position (x, y, z) in the scans' frame (an (n, 3)
     array, e.g. the translations of the poses that compensated the ego-motion); used by
     ``range_mask`` and ``visibility`` (both on in ``"accurate"``), which without them are skipped
-    with a warning.
+    with a warning. ``ground_points``: each scan's ground returns that preprocessing removed
+    (one (m, 3) array or None per scan, in the scans' frame): ``visibility``'s range images
+    count them as returns (a road return behind a place shows it empty); ignored without
+    ``visibility`` or without the scan's sensor.
     """
     config = _config_of(config, preset)
     if flow_unit not in ("frame", "m/s"):  # argument mistakes before any work
@@ -124,7 +128,7 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
         raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
     frame_period_of(None, frame_period)  # checks it
     flow = Floxels(config, device).fit(scans, target, times=times, frame_period=frame_period,
-                                       sensor_origins=sensor_origins).flow
+                                       sensor_origins=sensor_origins, ground_points=ground_points).flow
     to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
     return flow if to_unit == 1.0 else flow * to_unit
 
@@ -158,7 +162,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
                       callback: Callable[[int, FloxelsResult], None] | None = None,
                       batch_size: int | None = None, *, times: Sequence[float] | None = None,
                       frame_period: float | None = None, flow_unit: str = "frame",
-                      preset: str | None = None, sensor_origins: Sequence | None = None) -> list:
+                      preset: str | None = None, sensor_origins: Sequence | None = None,
+                      ground_points: Sequence | None = None) -> list:
     """Flow of every frame of a sequence (or of ``frames``) with a sliding window of
     ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
     every window that needs it (and freed once no later window does).
@@ -177,8 +182,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk), with
     ``result.flow`` in ``flow_unit``. ``preset``: a named configuration instead of ``config``
-    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 11-scan windows). ``sensor_origins``:
-    each scan's sensor position, as in :func:`estimate_flow`.
+    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 11-scan windows). ``sensor_origins``,
+    ``ground_points``: each scan's sensor position and removed ground, as in :func:`estimate_flow`.
     """
     cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:
@@ -194,6 +199,8 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         times = check_times(times, n)
     if sensor_origins is not None and len(sensor_origins) != n:
         check_sensors(sensor_origins, n)  # raises, naming the counts
+    if ground_points is not None and len(ground_points) != n:
+        check_ground(ground_points, n)  # raises, naming the counts
     warn_if_no_sensors(cfg, sensor_origins)
     period = frame_period_of(times, frame_period)
     to_unit = _unit_factor(flow_unit, times, frame_period)
@@ -239,5 +246,6 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
             callback(f, res)
 
     solve_windows(scans, cfg, device, batches, deliver, pipelined=dev if pipelined else None,
-                  horizon=lambda nxt: math.inf if not nxt else low[batch_no[id(nxt)]], sensors=sensor_origins)
+                  horizon=lambda nxt: math.inf if not nxt else low[batch_no[id(nxt)]], sensors=sensor_origins,
+                  grounds=ground_points)
     return out

@@ -86,6 +86,7 @@ class FloxelsConfig:
     # position it could see (estimator/sight.py; both need sensor_origins):
     range_mask: bool = False         # ... inside the horizontal range band it observed (its crop)
     visibility: bool = False         # ... where its range image has a return at or beyond the point
+                                     # (its ground returns count where given: ground_points=)
     rigid_refine: bool = False       # refine each moving cluster as a rigid body after the optimisation
     refine_max_supports: int = 0     # ... only in windows of at most this many support scans (0: all).
                                      # Speed shrinkage, which the refinement corrects, is a few-scan
@@ -215,8 +216,9 @@ PRESETS: dict[str, dict] = {
     # Beyond the paper (bench/RESULTS.md, "the accurate preset" and its follow-ups): 11-scan windows
     # (chosen on the simulator's tuning seeds among 7/9/11, confirmed on held-out seeds), the
     # evidence test zeroing unexplained groups, counting for each point only the support scans
-    # that could see it (range_mask: the scan's range band; visibility: its range image), and the
-    # rigid refinement of every moving cluster: plain in windows of at most 2 support scans (speed
+    # that could see it (range_mask: the scan's range band; visibility: its range image, with its
+    # removed ground where the caller passes it), and the rigid refinement of every moving
+    # cluster: plain in windows of at most 2 support scans (speed
     # shrinkage, e.g. a frame pair), in longer windows only where the rigid motion explains the
     # past and the future scans each no worse than the flow (refine_sided: turning cars).
     # The refinement also starts from each refined cluster's searched velocity (refine_search:

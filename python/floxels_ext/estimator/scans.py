@@ -44,10 +44,25 @@ class PreparedScans:
     recentring: Recentring | None = None
     # each scan's sensor position (float64 xyz, re-centred like the scans), when given
     sensors: list[np.ndarray] | None = None
+    # each scan's removed ground returns (checked (m, 3) tensors, not re-centred),
+    # when given: only the range images of ``visibility`` read them
+    grounds: list[torch.Tensor | None] | None = None
 
     def sensor(self, i: int) -> np.ndarray | None:
         """Sensor position of scan ``i`` of the window, or None when not given."""
         return None if self.sensors is None else self.sensors[i]
+
+    def ground(self, i: int) -> torch.Tensor | None:
+        """Ground returns of scan ``i`` of the window, re-centred like the scans (float32), or None."""
+        return recentred_ground(self.grounds, i, self.recentring)
+
+
+def recentred_ground(grounds, i: int, recentring: Recentring | None) -> torch.Tensor | None:
+    """``grounds[i]`` (checked) re-centred like the scans, float32; None where not given."""
+    g = None if grounds is None else grounds[i]
+    if g is None:
+        return None
+    return (recentring.apply(g) if recentring is not None else g).to(torch.float32)
 
 
 def check_times(times, n: int) -> list[float]:
@@ -137,7 +152,7 @@ def resolve_device(device, first: torch.Tensor | np.ndarray) -> torch.device:
 def prepare_scans(scans: Sequence, target: int | None, device, converted: dict | None = None,
                   first_index: int = 0, on_ready=None, times: Sequence[float] | None = None,
                   period: float | None = None, recentring: Recentring | None = None,
-                  sensors: Sequence | None = None) -> PreparedScans:
+                  sensors: Sequence | None = None, grounds: Sequence | None = None) -> PreparedScans:
     """Validate a window of scans and move them to the compute device.
 
     ``converted`` (sequence index -> (points, finite mask, bounds)) lets sliding windows over one
@@ -149,7 +164,8 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     ``period`` (default: their median step) give the time offsets; else ``index - target``.
     ``recentring``: the shift shared by the windows of one call (default: one for this
     window); scans far from the origin are moved near it in float64 first. ``sensors``: each
-    scan's sensor position (xyz, in the scans' frame; checked, see :func:`check_sensors`)."""
+    scan's sensor position (xyz, in the scans' frame; checked, see :func:`check_sensors`).
+    ``grounds``: each scan's removed ground returns (see :func:`check_ground`)."""
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -187,6 +203,8 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     dev = resolve_device(device, scans[0])
     if sensors is not None:
         sensors = check_sensors(sensors, n, first_index)
+    if grounds is not None:
+        grounds = check_ground(grounds, n, first_index)
 
     todo = [i for i in range(n) if converted is None or first_index + i not in converted]
     todo.sort(key=lambda i: i == target)  # support scans first (their EDTs are the longest work)
@@ -196,7 +214,8 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     if sensors is not None:
         sensors = [None if s is None else s - recentring.shift for s in sensors]
     ready = None if on_ready is None else (
-        lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target, None if sensors is None else sensors[todo[k]]))
+        lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target, None if sensors is None else sensors[todo[k]],
+                                 lambda i=todo[k]: recentred_ground(grounds, i, recentring)))
     fresh = dict(zip(todo, _finite_rows([recentring.apply(tensors[i]) for i in todo], dev,
                                         [first_index + i for i in todo],
                                         [i == target for i in todo], ready)))
@@ -218,7 +237,7 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
                          offsets=offsets, supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
                          in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds,
-                         recentring=recentring, sensors=sensors)
+                         recentring=recentring, sensors=sensors, grounds=grounds)
 
 
 def check_sensors(sensors, n: int, first_index: int = 0) -> list[np.ndarray | None]:
@@ -246,6 +265,31 @@ def check_sensors(sensors, n: int, first_index: int = 0) -> list[np.ndarray | No
         if not np.isfinite(a).all():
             raise ValueError(f"sensor_origins[{first_index + i}] is not finite: {a.tolist()}")
         out.append(a)
+    return out
+
+
+def check_ground(grounds, n: int, first_index: int = 0) -> list[torch.Tensor | None]:
+    """``grounds`` (per scan, its ground returns that preprocessing removed: an (m, 3) numpy array
+    or tensor in the scans' frame, or None) as tensors; ValueError/TypeError naming the problem.
+    Non-finite rows are allowed: the range image skips them (estimator/sight.py)."""
+    if isinstance(grounds, (str, bytes, np.ndarray, torch.Tensor)) or not hasattr(grounds, "__len__"):
+        raise TypeError(f"ground_points must be one (m, 3) array (or None) per scan, got {type(grounds).__name__}")
+    if len(grounds) != n:
+        raise ValueError(f"ground_points must hold one (m, 3) array (or None) per scan: got {len(grounds)} for {n} scans")
+    out = []
+    for i, g in enumerate(grounds):
+        if g is None:
+            out.append(None)
+            continue
+        if not isinstance(g, (np.ndarray, torch.Tensor)):
+            raise TypeError(f"ground_points[{first_index + i}] must be a numpy array or torch tensor of shape (m, 3), "
+                            f"got {type(g).__name__}")
+        t = torch.from_numpy(g) if isinstance(g, np.ndarray) else g.detach()
+        if not (t.dtype.is_floating_point and not t.is_complex()):
+            raise TypeError(f"ground_points[{first_index + i}] must hold floating-point coordinates, got {t.dtype}")
+        if t.ndim != 2 or t.shape[1] != 3:
+            raise ValueError(f"ground_points[{first_index + i}] must have shape (m, 3), got {tuple(t.shape)}")
+        out.append(t)
     return out
 
 
@@ -327,6 +371,18 @@ def _index(dev: torch.device) -> int:
 
 
 _STAGER = _Stager()
+
+
+def upload(t: torch.Tensor, dev: torch.device) -> torch.Tensor:
+    """``t`` (m, 3) as float32 on ``dev``; a host tensor bound for a GPU through the page-locked
+    staging buffers, its copy queued on the current stream (the host waits for nothing)."""
+    if dev.type != "cuda" or t.device.type != "cpu" or t.shape[0] == 0:
+        return t.to(device=dev, dtype=torch.float32)
+    buf = _STAGER.take(dev, t.shape[0] * 3)
+    buf.view(-1, 3).copy_(t)
+    out = buf.view(-1, 3).to(dev, non_blocking=True)
+    _STAGER.used(buf, dev)
+    return out
 
 
 def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):

@@ -13,7 +13,9 @@ the plain evidence test keeps that motion (bench/RESULTS.md, "What each support 
 * ``visibility``: the scan's range image (the farthest return per 0.5 x 0.5 degree direction bin
   around its sensor): the scan saw a position when, in its direction, it has a return at least as
   far (``SEEN_MARGIN``): a static point there would have been hit. A nearer return (occlusion) or
-  none (the beams missed it, or only ground there, removed) says nothing.
+  none (the beams missed it) says nothing. The scan's ground returns, which preprocessing removed
+  from the points the loss sees, count too where they are given (``ground_points=``): a return
+  from the road behind a pedestrian's old place shows the place empty.
 
 The point's own position decides, never where a motion takes it, so no motion can escape a
 scan's residual by leaving its sight. Everything runs on the device without a host
@@ -60,8 +62,10 @@ def _bins(rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return ia * NUM_EL + ie, torch.linalg.vector_norm(rel, dim=1)
 
 
-def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool) -> Sight:
-    """The sight of a scan (n, 3) float32 from ``sensor`` (xyz in the scans' frame)."""
+def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: torch.Tensor | None = None) -> Sight:
+    """The sight of a scan (n, 3) float32 from ``sensor`` (xyz in the scans' frame). ``ground``:
+    the scan's removed ground returns (m, 3) float32 in the same frame, any device: they join the
+    range image (not the band: the scan's crop is that of its points)."""
     # fills, not host-to-device copies: nothing here waits for the device
     s = torch.stack([torch.full((), float(v), dtype=torch.float32, device=points.device) for v in sensor[:3]])
     rel = points.to(torch.float32) - s
@@ -73,7 +77,18 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool) -> Sight:
         idx, rr = _bins(rel)
         img = torch.full((NUM_AZ * NUM_EL,), -1.0, dtype=torch.float32, device=points.device)
         img.scatter_reduce_(0, idx, rr, "amax")  # a maximum: the same bits in any order
+        if ground is not None and ground.shape[0]:
+            rel_g = _on_device(ground, points.device) - s
+            idx, rr = _bins(rel_g)
+            ok = torch.isfinite(rel_g).all(dim=1)  # non-finite rows: no return (no host synchronisation)
+            img.scatter_reduce_(0, torch.where(ok, idx, torch.zeros_like(idx)),
+                                torch.where(ok, rr, torch.full_like(rr, -1.0)), "amax")
     return Sight(s, b, img)
+
+
+def _on_device(t: torch.Tensor, dev: torch.device) -> torch.Tensor:
+    """``t`` as float32 on ``dev`` (the estimator uploads the ground before: distance.build_dt)."""
+    return t.to(device=dev, dtype=torch.float32)
 
 
 def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Tensor:

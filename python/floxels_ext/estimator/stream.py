@@ -86,14 +86,15 @@ def segment_window(frame: int, seg: Segment, num_scans: int, period: float | Non
 def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable[list[Window]],
                   deliver: Callable[[int, object], None], *, pipelined: torch.device | None = None,
                   horizon: Callable[[list[Window] | None], float] | None = None,
-                  sensors: Sequence | None = None) -> None:
+                  sensors: Sequence | None = None, grounds: Sequence | None = None) -> None:
     """Optimise the windows of ``batches`` (lists of :class:`Window`), one batch at a time;
     ``deliver(frame, result)`` per target in order. Each scan's distance transform is built
     once and shared by the windows that use it. ``pipelined`` (a CUDA device): the next batch
     is prepared on a side stream of it while the device optimises this one. ``horizon(next_batch)``:
     the lowest scan index a later window uses (default: the next batch's lowest start, right
     when window starts never decrease); DTs and device scans below it are freed. ``sensors``:
-    each scan's sensor position (indexed like ``scans``; ``FloxelsConfig.range_mask``)."""
+    each scan's sensor position (indexed like ``scans``; ``FloxelsConfig.range_mask``);
+    ``grounds``: each scan's removed ground returns (indexed like ``scans``; ``visibility``)."""
     cache: dict = {}
     converted: dict = {}  # stream index -> scan on the device (converted and NaN-checked once)
     # one float64 shift per segment (scans far from the origin), chosen at its first window and
@@ -109,7 +110,8 @@ def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable
             return [(prepare_scans(scans[w.start:w.stop], w.frame - w.start, device, converted, w.start,
                                    times=w.times, period=w.period,
                                    recentring=recentrings.setdefault(w.segment, Recentring()),
-                                   sensors=None if sensors is None else [sensors[j] for j in range(w.start, w.stop)]),
+                                   sensors=None if sensors is None else [sensors[j] for j in range(w.start, w.stop)],
+                                   grounds=None if grounds is None else [grounds[j] for j in range(w.start, w.stop)]),
                      WindowCache(cache, w.start)) for w in batch]
         if side is None:
             return prepare_group(cfg, items())
@@ -161,14 +163,17 @@ def _stream_batches(windows: Iterator[Window], size: int, ramp: bool) -> Iterato
 
 def estimate_stream(scans: Sequence, targets: Iterable[tuple[int, Segment]], config: FloxelsConfig | None = None,
                     device=None, callback: Callable[[int, object], None] | None = None,
-                    batch_size: int | None = None, sensors: Sequence | None = None) -> None:
+                    batch_size: int | None = None, sensors: Sequence | None = None,
+                    grounds: Sequence | None = None) -> None:
     """Flow of every target of ``targets`` (an iterable of ``(stream index, Segment)``, indices
     increasing; it may be a generator that waits for the next segment): ``callback(index,
     result)`` as each is done, nothing kept (a stream may be a whole dataset). ``scans[a:b]``
     gives stream scans ``a..b-1`` (read lazily; a scan is asked for when a window first needs
     it, and never again once no later window does). Results equal ``estimate_sequence`` over
     each segment alone (per frame period; ``times`` per segment). ``sensors``: each stream
-    scan's sensor position (indexed like ``scans``), for ``range_mask``."""
+    scan's sensor position (indexed like ``scans``), for ``range_mask`` and ``visibility``;
+    ``grounds``: each stream scan's removed ground returns (indexed like ``scans``), for
+    ``visibility``'s range images."""
     if config is not None and not isinstance(config, FloxelsConfig):
         raise TypeError(f"config must be a FloxelsConfig, got {type(config).__name__}")
     cfg = config or FloxelsConfig()
@@ -195,4 +200,4 @@ def estimate_stream(scans: Sequence, targets: Iterable[tuple[int, Segment]], con
     batches = _stream_batches(windows(), batch_size, ramp=pipelined and flag("FLOXELS_RAMP"))
     warn_if_no_sensors(cfg, sensors)
     solve_windows(scans, cfg, device, batches, callback or (lambda f, r: None), pipelined=dev if pipelined else None,
-                  sensors=sensors)
+                  sensors=sensors, grounds=grounds)

@@ -130,20 +130,29 @@ class StreamScans(Sequence):
             self._futs[self._next] = self.tpool.submit(self._make, self._next)
             self._next += 1
 
-    def _make(self, g: int) -> np.ndarray:
+    def _make(self, g: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(the scan, its ground returns or None), both in its chunk's world frame."""
         seg, i = self.layout.locate(g)
         p = seg.job.loader.get(i)
         t0 = time.perf_counter()
         anchor = seg.anchor()
         if p is None or anchor is None:
-            return np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
+            return np.zeros((0, 3), np.float32), None  # keeps the time offsets of the others right
         T = p.to_world.copy()
         T[:3, 3] -= anchor
         s = transform_points(p.kept, T)
+        ground = None if p.ground is None else transform_points(p.ground, T)
         self.stages.add("transform", time.perf_counter() - t0)
-        return s
+        return s, ground
 
     def _scan(self, g: int) -> np.ndarray:
+        return self._made(g)[0]
+
+    def ground(self, g: int) -> np.ndarray | None:
+        """Ground returns of item ``g`` in its chunk's world frame (None unless its loader keeps them)."""
+        return self._made(g)[1]
+
+    def _made(self, g: int):
         while g >= self.layout.end and self.layout.extend(block=True):
             pass
         self._advance(g)

@@ -44,6 +44,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
     from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
     from floxels_ext.lidar.pipeline.frame_writer import FrameOutput
     from floxels_ext.lidar.pipeline.run_inputs import next_pose_reader, output_meta
+    from floxels_ext.methods import get_method
 
     args = ctx.args
     st = _resume_state(task, args, ctx.options, ctx.settings, ctx.report, sweep=True)
@@ -54,6 +55,7 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
                             self_contained=args.self_contained, inputs=st["inputs"])
     loader = FrameLoader(seq, ctx.settings, st["poses"], st["pose_mode"], ctx.report, pools=ctx.pools,
                          pre_device=ctx.pre_device, keep_points=args.self_contained, stages=ctx.stages,
+                         keep_ground=get_method(args.method).wants_ground(ctx.options),
                          warn=lambda m: ctx.report(f"floxels: warning: {m}"))
 
     next_pose = next_pose_reader(seq, st["pose_mode"], st["poses"], loader)

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
-from floxels_ext.lidar.pipeline.frame_loader import FrameLoader, SensorView
+from floxels_ext.lidar.pipeline.frame_loader import FrameLoader, GroundView, SensorView
 from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError
 from floxels_ext.methods import accepts
 
@@ -183,6 +183,8 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
             try:
                 if stream is not None:
                     extra = {"sensors": SensorView(scans)} if accepts(stream, "sensors") else {}
+                    if method.wants_ground(options) and accepts(stream, "ground"):
+                        extra["ground"] = GroundView(scans)
                     stream(scans, targets, device, dict(options), deliver, **extra)
                 else:
                     _per_segment(method, scans, targets, device, options, deliver)
@@ -219,6 +221,7 @@ def _per_segment(method, scans: StreamScans, targets: Targets, device, options: 
     starts and drains its pipeline per chunk, as the plain run does)."""
     pass_times = accepts(method.estimate_sequence, "times")
     pass_sensors = accepts(method.estimate_sequence, "sensors")
+    pass_ground = method.wants_ground(options)
     batch: list = []
     seg_now = None
 
@@ -230,6 +233,8 @@ def _per_segment(method, scans: StreamScans, targets: Targets, device, options: 
         extra = {"times": list(seg.times)} if pass_times and seg.times is not None else {}
         if pass_sensors:
             extra["sensors"] = SensorView(view)
+        if pass_ground:
+            extra["ground"] = GroundView(view)
         method.estimate_sequence(view, [g - seg.lo for g in batch], device, dict(options),
                                  lambda f, flow, fields=None, lo=seg.lo: deliver(lo + int(f), flow, fields), **extra)
         batch.clear()
@@ -268,3 +273,6 @@ class _SegmentView(Sequence):
 
     def sensor(self, k: int):
         return self.scans.sensor(self.lo + k)
+
+    def ground(self, k: int):
+        return self.scans.ground(self.lo + k)

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader, SensorView
+from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader, GroundView, SensorView
 from floxels_ext.lidar.pipeline.frame_writer import WriterPool
 from floxels_ext.methods import accepts
 
@@ -82,6 +82,7 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
     chunks = plan_chunks(todo, chunk)
     pass_times = times_s is not None and accepts(method.estimate_sequence, "times")
     pass_sensors = accepts(method.estimate_sequence, "sensors")
+    pass_ground = method.wants_ground(options)  # (the loader keeps the ground for the same test)
     failed: dict[int, str] = {}
     elapsed: list[float] = []
     delivered = 0
@@ -146,6 +147,8 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
             extra = {"times": list(times_s[lo:hi])} if pass_times else {}
             if pass_sensors:
                 extra["sensors"] = SensorView(scans)
+            if pass_ground:
+                extra["ground"] = GroundView(scans)
             t0 = time.perf_counter()
             stages.in_estimate = True
             try:

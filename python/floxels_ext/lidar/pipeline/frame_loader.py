@@ -38,6 +38,9 @@ class PreparedFrame:
     # the sensor's position in the world frame (the native frame's origin, or the file's pose
     # for points already in the world frame); None where unknown. Floxels' range_mask.
     sensor: np.ndarray | None = None
+    # (G, 3) float32: the returns preprocessing classed as ground, native coordinates; only when
+    # the method reads them (Floxels' visibility: its range images), else None
+    ground: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -91,16 +94,18 @@ class Stages:
         return d
 
 
-def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, pre_device=None) -> dict:
+def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, pre_device=None,
+               keep_ground: bool = False) -> dict:
     """Read and preprocess frame ``i`` (runs on a worker thread or process). Returns a dict:
     ``frame`` (a PreparedFrame) or ``error`` (a message naming the file), ``warning``, and the
     seconds spent reading and preprocessing. ``pose_mode``: "table" (``poses[i]``), "frame" (the
     file's own ``pose``), "identity" (no ego-motion) or "seqio" (points already in the world
-    frame; the file's ``pose`` locates the sensor for cropping)."""
+    frame; the file's ``pose`` locates the sensor for cropping). ``keep_ground``: the frame keeps
+    its ground returns (``PreparedFrame.ground``)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
     from floxels_ext.lidar.io.outputs import points_crc32
     from floxels_ext.lidar.preprocess.masks import preprocess_classes
-    from floxels_ext.lidar.preprocess.settings import KEPT
+    from floxels_ext.lidar.preprocess.settings import GROUND, KEPT
     from floxels_ext.lidar.preprocess.transform import host_rows
     from floxels_ext.ops.lidar import lidar_select
 
@@ -171,16 +176,18 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     if stray is not None:
         out["stray"] = f"{path}: " + stray
     out["preprocess"] = time.perf_counter() - t1
-    counts = None
+    counts = ground = None
     if classes is not None:
         n = np.bincount(classes, minlength=4)
         counts = {"kept": int(n[1]), "ground": int(n[2]), "outlier": int(n[3]), "cropped": int(n[0])}
+        if keep_ground:
+            ground = lidar_select(rows, classes == GROUND)[0].numpy()
     to_world = np.asarray(to_world, np.float64)
     if pose_mode != "seqio":
         sensor = to_world[:3, 3].copy()  # the native frame's origin: the sensor
     out["frame"] = PreparedFrame(kept_np, mask, nonfinite, to_world,
                                  np.ascontiguousarray(pts) if keep_points else None,
-                                 None if keep_points else points_crc32(pts), counts, sensor)
+                                 None if keep_points else points_crc32(pts), counts, sensor, ground)
     return out
 
 
@@ -317,10 +324,11 @@ class FrameLoader:
 
     def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
                  pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn,
-                 pools: LoaderPools | None = None) -> None:
+                 pools: LoaderPools | None = None, keep_ground: bool = False) -> None:
         self.seq, self.report, self.warn = seq, report, warn
         self.stages = stages or Stages()
-        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points)
+        self.kwargs = dict(seq=seq, settings=settings, pose_mode=pose_mode, poses=poses, keep_points=keep_points,
+                           keep_ground=keep_ground)
         self._own_pools = pools is None
         if pools is None:
             pools = LoaderPools(workers, kind, self.kwargs if kind == "process" else None)
@@ -446,18 +454,27 @@ class ChunkScans(Sequence):
     def __len__(self) -> int:
         return self.hi - self.lo
 
-    def _make(self, k: int) -> np.ndarray:
+    def _make(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(the scan, its ground returns or None), both in the chunk's world frame."""
         p = self.loader.get(self.lo + k)
         t0 = time.perf_counter()
         if p is None:
-            return np.zeros((0, 3), np.float32)  # keeps the time offsets of the others right
+            return np.zeros((0, 3), np.float32), None  # keeps the time offsets of the others right
         T = p.to_world.copy()
         T[:3, 3] -= self.anchor
         s = transform_points(p.kept, T)
+        g = None if p.ground is None else transform_points(p.ground, T)
         self.loader.stages.add("transform", time.perf_counter() - t0)
-        return s
+        return s, g
 
     def _scan(self, k: int) -> np.ndarray:
+        return self._made(k)[0]
+
+    def ground(self, k: int) -> np.ndarray | None:
+        """Ground returns of item ``k`` in the chunk's world frame (None unless the loader keeps them)."""
+        return self._made(k)[1]
+
+    def _made(self, k: int):
         self._advance(k)
         fut = self._futs.get(k)
         if fut is None:  # dropped (asked for again after its window passed): make it again
@@ -493,9 +510,11 @@ class ChunkScans(Sequence):
         self._futs.clear()
 
 
-class SensorView(Sequence):
-    """The sensor positions of a scan sequence that has ``sensor(k)`` (ChunkScans,
-    StreamScans), as a sequence: the ``sensors=`` of the methods that take it."""
+class ScanFieldView(Sequence):
+    """One per-scan field (``FIELD(k)``) of a scan sequence that has it (ChunkScans, StreamScans),
+    as a sequence of its own: what the methods that take it get (``sensors=``, ``ground=``)."""
+
+    FIELD = ""
 
     def __init__(self, scans) -> None:
         self.scans = scans
@@ -504,6 +523,19 @@ class SensorView(Sequence):
         return len(self.scans)
 
     def __getitem__(self, k):
+        get = getattr(self.scans, self.FIELD)
         if isinstance(k, slice):
-            return [self.scans.sensor(j) for j in range(len(self))[k]]
-        return self.scans.sensor(int(k))
+            return [get(j) for j in range(len(self))[k]]
+        return get(int(k))
+
+
+class SensorView(ScanFieldView):
+    """Each scan's sensor position (``sensors=``)."""
+
+    FIELD = "sensor"
+
+
+class GroundView(ScanFieldView):
+    """Each scan's ground returns, where the loader keeps them (``ground=``)."""
+
+    FIELD = "ground"

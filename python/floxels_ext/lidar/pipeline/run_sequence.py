@@ -114,6 +114,7 @@ def run_sequence(args) -> int:
     try:
         loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
                              keep_points=args.self_contained, stages=stages,
+                             keep_ground=get_method(args.method).wants_ground(options),
                              warn=lambda m: report(f"floxels: warning: {m}"))
     except BaseException:
         writer.close()
