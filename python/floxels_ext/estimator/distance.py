@@ -3,6 +3,7 @@ streams as the scans are uploaded, and the per-window view of a sequence-wide ca
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -30,11 +31,12 @@ class DistanceTransform:
 
 
 def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None,
-             ground: torch.Tensor | None = None) -> DistanceTransform | None:
+             ground_of: Callable[[], torch.Tensor | None] | None = None) -> DistanceTransform | None:
     """DT of a validated scan; ``bounds`` (its min/max xyz, see point_bounds) saves a host sync.
     ``sensor`` (the scan's sensor position, xyz in the scans' frame) with ``cfg.range_mask`` or
     ``cfg.visibility``: its :class:`~floxels_ext.estimator.sight.Sight` comes with it, its range
-    image with the scan's removed ``ground`` returns where given."""
+    image with the scan's removed ground returns where ``ground_of()`` gives them (called only
+    then: re-centring and uploading them is work no other option needs)."""
     if points.shape[0] == 0:
         return None
     if bounds is None:
@@ -45,7 +47,8 @@ def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None,
         occ = F.points_to_occupancy(points, origin, cfg.dt_cell, shape)
         d = DistanceTransform(F.edt(occ, cfg.dt_cell), origin)
     if (cfg.range_mask or cfg.visibility) and sensor is not None:
-        if ground is not None and cfg.visibility:
+        ground = ground_of() if cfg.visibility and ground_of is not None else None
+        if ground is not None:
             ground = upload(ground, points.device)  # on this (the EDT's) stream
         d.sight = scan_sight(points, sensor, band=cfg.range_mask, image=cfg.visibility, ground=ground)
     return d
@@ -63,7 +66,7 @@ class DtStreams:
         self.start: torch.cuda.Event | None = None  # on the main stream, before the first EDT
         self.streams: list = []  # the streams used, for the main stream to wait for
 
-    def launch(self, points: torch.Tensor, bounds, sensor=None, ground=None) -> DistanceTransform | None:
+    def launch(self, points: torch.Tensor, bounds, sensor=None, ground_of=None) -> DistanceTransform | None:
         """Queue the EDT of ``points`` (on a CUDA device) after the current stream's work."""
         main = torch.cuda.current_stream(points.device)
         if self.start is None:
@@ -72,17 +75,17 @@ class DtStreams:
         st = side_stream(points.device, f"dt{len(self.streams) % 4}")
         st.wait_stream(main)  # the upload
         with torch.cuda.stream(st):
-            d = build_dt(points, self.cfg, bounds, sensor, ground)
+            d = build_dt(points, self.cfg, bounds, sensor, ground_of)
         self.streams.append(st)
         return d
 
-    def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool, sensor=None, ground=None) -> None:
+    def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool, sensor=None, ground_of=None) -> None:
         dev = points.device
         if dev.type != "cuda" or serial_stages(dev) or is_target or i in self.cache or points.shape[0] == 0:
             return
         if not flag("FLOXELS_EARLY_DT"):
             return
-        self.cache[i] = self.launch(points, bounds, sensor, ground() if callable(ground) else ground)
+        self.cache[i] = self.launch(points, bounds, sensor, ground_of)
 
 
 class WindowCache:

@@ -54,13 +54,13 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
     t0 = time.perf_counter()
     # DTs still to build, by scan tensor (windows of one sequence share scan tensors,
     # so each scan is built once)
-    todo: dict[int, list] = {}  # id -> [points, [(cache, index in window)], bounds or None, sensor, ground]
+    todo: dict[int, list] = {}  # id -> [points, [(cache, index in window)], bounds or None, sensor, ground_of]
     for prep, cache in items:
         if prep.points[prep.target].shape[0] > 0:
             for i in prep.supports:
                 if i not in cache and prep.points[i].shape[0] > 0:
                     todo.setdefault(id(prep.points[i]), [prep.points[i], [], known_bounds(prep, i),
-                                                         prep.sensor(i), prep.ground(i)])[1].append((cache, i))
+                                                         prep.sensor(i), prep.ground_of(i)])[1].append((cache, i))
     targets = [(prep.points[prep.target], known_bounds(prep, prep.target)) for prep, _ in items
                if prep.points[prep.target].shape[0] > 0]
     # bounds not known from the upload (device scans): all in one host synchronisation
@@ -87,12 +87,12 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
     if streams is None and edt_stream is not None and todo:
         dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
         dt_events[0].record(edt_stream)
-    for (pts, users, _, sensor, ground), b in zip(todo.values(), dt_bounds):
+    for (pts, users, _, sensor, ground_of), b in zip(todo.values(), dt_bounds):
         if streams is not None:
-            d = streams.launch(pts, b, sensor, ground)
+            d = streams.launch(pts, b, sensor, ground_of)
         else:
             with torch.cuda.stream(edt_stream) if edt_stream is not None else contextlib.nullcontext():
-                d = build_dt(pts, cfg, b, sensor, ground)
+                d = build_dt(pts, cfg, b, sensor, ground_of)
         for cache, i in users:
             cache[i] = d
     if streams is not None and streams.start is not None:

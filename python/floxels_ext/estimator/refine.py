@@ -157,13 +157,7 @@ def cluster_velocity_search(points: torch.Tensor, labels: torch.Tensor | None, s
         return out
     q, cid = points[rows], lab[rows]
     ob = None if observed is None else observed[rows].contiguous()
-    # the whole search in one op (floxels::velocity_search: one launch on CUDA; the reference is
-    # floxels_ext.reference.velocity_search); the sample rows are grouped by cluster
-    dts, origins, spacing, ts, ws = _packed(supports)
-    wsum = max(sum(ws), 1e-12)
-    best, best_score, zero = F.velocity_search(q.contiguous(), _segments(cid, C), ob, dts, origins, spacing, ts,
-                                               [w / wsum for w in ws], float(tau), NUM_DIRECTIONS, SPEED_STEP,
-                                               int(round(MAX_SPEED / SPEED_STEP)), LOCAL_STEPS, LOCAL_ROUNDS)
+    best, best_score, zero = _search(q, _segments(cid, C), ob, supports, tau)
     moving = (best_score < (1 - SEARCH_GAIN) * zero) & (zero - best_score >= SEARCH_MIN_DROP)
     vel = torch.where(moving[:, None], best, torch.zeros_like(best))
     has = lab >= 0
@@ -183,6 +177,19 @@ def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
     num = _segment_sum(num_vertices, idx, w * v)
     den = _segment_sum(num_vertices, idx, w)
     return num / den.clamp_min(1e-12)
+
+
+def _search(q: torch.Tensor, segments: torch.Tensor, observed: torch.Tensor | None, supports: list[Support],
+            tau: float):
+    """(best velocity (C, 3), its score (C,), zero flow's score (C,)) of every cluster of the
+    sample rows ``q`` (grouped by cluster, ``segments``), with the module's search constants: the
+    whole search in one op (floxels::velocity_search: one launch on CUDA; the reference is
+    floxels_ext.reference.velocity_search)."""
+    dts, origins, spacing, ts, ws = _packed(supports)
+    wsum = max(sum(ws), 1e-12)
+    return F.velocity_search(q.contiguous(), segments, observed, dts, origins, spacing, ts, [w / wsum for w in ws],
+                             float(tau), NUM_DIRECTIONS, SPEED_STEP, int(round(MAX_SPEED / SPEED_STEP)), LOCAL_STEPS,
+                             LOCAL_ROUNDS)
 
 
 def _packed(supports: list[Support]):
@@ -271,10 +278,8 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     wn = [w / wsum for w in ws]
     rel, vz = rel.contiguous(), vz.contiguous()
     theta, cur = F.rigid_lm(q, rel, segments, theta, vz, dts, origins, spacing, ts, wn, float(tau), int(iters))
-    if search:  # the second start: the searched velocity (floxels::velocity_search, one launch)
-        best, _, _ = F.velocity_search(q.contiguous(), segments, None, dts, origins, spacing, ts, wn, float(tau),
-                                       NUM_DIRECTIONS, SPEED_STEP, int(round(MAX_SPEED / SPEED_STEP)), LOCAL_STEPS,
-                                       LOCAL_ROUNDS)
+    if search:  # the second start: the searched velocity (the search of cluster_velocity_search)
+        best = _search(q, segments, None, supports, tau)[0]
         start = torch.cat([best[:, :2].to(dt), torch.zeros(C, 1, device=dev, dtype=dt)], 1)
         theta_s, cur_s = F.rigid_lm(q, rel, segments, start, vz, dts, origins, spacing, ts, wn, float(tau), int(iters))
         lower = sel & (cur_s < cur)

@@ -52,17 +52,21 @@ class PreparedScans:
         """Sensor position of scan ``i`` of the window, or None when not given."""
         return None if self.sensors is None else self.sensors[i]
 
-    def ground(self, i: int) -> torch.Tensor | None:
-        """Ground returns of scan ``i`` of the window, re-centred like the scans (float32), or None."""
-        return recentred_ground(self.grounds, i, self.recentring)
+    def ground_of(self, i: int):
+        """None without ground returns, else a call giving scan ``i``'s (see :func:`ground_of`)."""
+        return ground_of(self.grounds, i, self.recentring)
 
 
-def recentred_ground(grounds, i: int, recentring: Recentring | None) -> torch.Tensor | None:
-    """``grounds[i]`` (checked) re-centred like the scans, float32; None where not given."""
-    g = None if grounds is None else grounds[i]
-    if g is None:
+def ground_of(grounds, i: int, recentring: Recentring | None):
+    """None where no scan's ground was given, else a call giving ``grounds[i]`` (checked; None
+    for that scan) re-centred like the scans: made only when a range image needs it."""
+    if grounds is None:
         return None
-    return (recentring.apply(g) if recentring is not None else g).to(torch.float32)
+
+    def get():
+        g = grounds[i]
+        return g if g is None or recentring is None else recentring.apply(g)
+    return get
 
 
 def check_times(times, n: int) -> list[float]:
@@ -215,7 +219,7 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
         sensors = [None if s is None else s - recentring.shift for s in sensors]
     ready = None if on_ready is None else (
         lambda k, t, b: on_ready(todo[k], t, b, todo[k] == target, None if sensors is None else sensors[todo[k]],
-                                 lambda i=todo[k]: recentred_ground(grounds, i, recentring)))
+                                 ground_of(grounds, todo[k], recentring)))
     fresh = dict(zip(todo, _finite_rows([recentring.apply(tensors[i]) for i in todo], dev,
                                         [first_index + i for i in todo],
                                         [i == target for i in todo], ready)))

@@ -78,17 +78,12 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
         img = torch.full((NUM_AZ * NUM_EL,), -1.0, dtype=torch.float32, device=points.device)
         img.scatter_reduce_(0, idx, rr, "amax")  # a maximum: the same bits in any order
         if ground is not None and ground.shape[0]:
-            rel_g = _on_device(ground, points.device) - s
+            rel_g = ground.to(device=points.device, dtype=torch.float32) - s
             idx, rr = _bins(rel_g)
             ok = torch.isfinite(rel_g).all(dim=1)  # non-finite rows: no return (no host synchronisation)
             img.scatter_reduce_(0, torch.where(ok, idx, torch.zeros_like(idx)),
                                 torch.where(ok, rr, torch.full_like(rr, -1.0)), "amax")
     return Sight(s, b, img)
-
-
-def _on_device(t: torch.Tensor, dev: torch.device) -> torch.Tensor:
-    """``t`` as float32 on ``dev`` (the estimator uploads the ground before: distance.build_dt)."""
-    return t.to(device=dev, dtype=torch.float32)
 
 
 def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Tensor:
