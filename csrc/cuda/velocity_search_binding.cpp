@@ -1,5 +1,6 @@
 // Torch binding of the CUDA velocity_search kernel: checks inputs (the CPU implementation's
-// checks), allocates the outputs and launches on the current stream; no host synchronisation.
+// checks), allocates the outputs and the kernels' scratch and launches on the current stream; no
+// host synchronisation.
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
@@ -38,13 +39,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> velocity_search_cuda(
   at::Tensor best = at::empty({C, 3}, points.options());
   at::Tensor best_score = at::empty({C}, points.options());
   at::Tensor zero_score = at::empty({C}, points.options());
+  at::Tensor axes = at::empty({C, 2}, in.points.options());  // scratch of the three launches
+  at::Tensor global = at::empty({C, 1 + num_directions * num_speeds}, in.points.options().dtype(at::kDouble));
   const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(in.points.scalar_type(), "velocity_search_cuda", [&] {
     C10_CUDA_CHECK(cuda::launch_velocity_search(
         in.points.const_data_ptr<scalar_t>(), sg.const_data_ptr<int64_t>(),
         ob.defined() ? ob.const_data_ptr<int32_t>() : nullptr, points.size(0), C, in.descs.data(), in.num_scans,
         spacing, tau, static_cast<int>(num_directions), speed_step, static_cast<int>(num_speeds),
-        static_cast<int>(local_steps), static_cast<int>(local_rounds), best.mutable_data_ptr<scalar_t>(),
+        static_cast<int>(local_steps), static_cast<int>(local_rounds), axes.mutable_data_ptr<scalar_t>(),
+        global.mutable_data_ptr<double>(), best.mutable_data_ptr<scalar_t>(),
         best_score.mutable_data_ptr<scalar_t>(), zero_score.mutable_data_ptr<scalar_t>(), stream));
   });
   return {best, best_score, zero_score};

@@ -157,3 +157,35 @@ def test_staged_upload_matches_device_input():
     with pytest.warns(UserWarning, match="dropping 1 point"):
         r = Floxels(cfg, "cuda").fit(bad, 1)
     assert np.isnan(r.flow[7]).all() and np.isfinite(np.delete(r.flow, 7, 0)).all()
+
+
+@pytest.mark.cuda
+def test_staging_buffers_are_reused_by_size():
+    # uploads larger than the smallest staging buffer, of slowly growing sizes (ground returns),
+    # reuse buffers once their copies have run: no new page-locked memory per upload; a small
+    # upload takes the smallest free buffer, leaving the large one to the next large upload
+    from floxels_ext.estimator import scans as S
+
+    dev = torch.device("cuda")
+    stager = S._STAGER
+    made = []
+    orig = torch.empty
+
+    def counting_empty(*a, **k):
+        if k.get("pin_memory"):
+            made.append(a)
+        return orig(*a, **k)
+
+    sizes = [110_000 + 500 * k for k in range(12)]  # rows; 330k+ floats, above the 2^18 minimum
+    torch.empty = counting_empty
+    try:
+        for k, n in enumerate(sizes):
+            t = torch.full((n, 3), float(k))
+            out = S.upload(t, dev)
+            small = S.upload(torch.ones(1000, 3), dev)
+            torch.cuda.synchronize()
+            assert torch.equal(out.cpu(), t) and torch.equal(small.cpu(), torch.ones(1000, 3))
+    finally:
+        torch.empty = orig
+    assert len(made) <= 2, f"{len(made)} page-locked buffers for {len(sizes)} uploads"
+    assert all(b.numel() >= 1 << 18 for b, _ in stager.free[S._index(dev)])

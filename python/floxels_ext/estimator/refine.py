@@ -22,8 +22,8 @@ not every class: bench/RESULTS.md).
 Both score a motion with the robust residual ``min(DT_t(p + t u), tau)`` over the loss's
 support scans, weighted like the loss (``w(t) = 1/t^2``); a cluster's result is kept only if it
 explains the scans better than the alternative by a margin. The search and the refinement's
-Levenberg-Marquardt loop are ops (``floxels::velocity_search``, ``floxels::rigid_lm``: one
-launch each on CUDA, a block per cluster; their references are in ``floxels_ext.reference``);
+Levenberg-Marquardt loop are ops (``floxels::velocity_search``, ``floxels::rigid_lm``: three
+launches and one on CUDA; their references are in ``floxels_ext.reference``);
 the rest is a few tensor ops and ``floxels::dt_residual`` look-ups, on the CPU and CUDA alike.
 """
 
@@ -59,6 +59,12 @@ MIN_CLUSTER_POINTS = 10
 REFINE_MIN_SPEED = 0.1
 REFINE_POINTS = 256
 REFINE_ITERS = 10
+# The clusters' mean flow (the refinement's selection and start) is summed in fixed point:
+# steps of 2^-24 m/frame (a float32's resolution at 1 m/frame), flows clamped to +-4096 m/frame,
+# so that sums of up to 2^27 points cannot overflow int64 (_cluster_means).
+FIXED_POINT = float(2 ** 24)
+MAX_FIXED_FLOW = 4096.0
+SPARE_ROWS = 1024
 
 
 @dataclass
@@ -124,6 +130,24 @@ def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.
     return out.index_put_((index,), values, accumulate=True)
 
 
+def _cluster_means(flow: torch.Tensor, lab: torch.Tensor, C: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean flow (C, 3) in the flow's dtype, points (C,) in the flow's dtype) of the clusters
+    ``lab`` (n,) in [-1, C) of every point. The sums are of the flow in fixed point (FIXED_POINT
+    steps), as integers: exact, so the same bits in any order and on any device. Why not
+    :func:`_segment_sum`: its fixed order adds each cluster's rows one after another, and over
+    every point of a frame (large static clusters, the unclustered points) that took 1.4-2.7 ms
+    a frame on an H100, the largest part of the accurate preset's refinement after the search."""
+    n = lab.shape[0]
+    # points of no cluster: spread over spare rows C.., so that no row takes them all
+    key = torch.where(lab >= 0, lab, C + (torch.arange(n, device=lab.device) & (SPARE_ROWS - 1)))
+    f = flow.to(torch.float64).nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_FLOW, MAX_FIXED_FLOW)
+    rows = torch.cat([torch.round(f * FIXED_POINT).to(torch.int64), torch.ones_like(key)[:, None]], 1)
+    sums = torch.zeros(C + SPARE_ROWS, 4, dtype=torch.int64, device=lab.device).index_add_(0, key, rows)[:C]
+    size = sums[:, 3].to(torch.float64)
+    mean = sums[:, :3].to(torch.float64) / FIXED_POINT / size.clamp_min(1)[:, None]
+    return mean.to(flow.dtype), size.to(flow.dtype)
+
+
 def _segments(cid: torch.Tensor, C: int) -> torch.Tensor:
     """(C + 1,) row offsets of the clusters of sample rows grouped by cluster (``cid``
     non-decreasing): cluster c owns rows ``[offsets[c], offsets[c + 1])``, the ``segments`` of
@@ -183,7 +207,7 @@ def _search(q: torch.Tensor, segments: torch.Tensor, observed: torch.Tensor | No
             tau: float):
     """(best velocity (C, 3), its score (C,), zero flow's score (C,)) of every cluster of the
     sample rows ``q`` (grouped by cluster, ``segments``), with the module's search constants: the
-    whole search in one op (floxels::velocity_search: one launch on CUDA; the reference is
+    whole search in one op (floxels::velocity_search: three launches on CUDA; the reference is
     floxels_ext.reference.velocity_search)."""
     dts, origins, spacing, ts, ws = _packed(supports)
     wsum = max(sum(ws), 1e-12)
@@ -252,11 +276,7 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     if C <= 0:
         return flow
     dev, dt = points.device, points.dtype
-    # clusters' mean flow and size (points of no cluster summed into a spare row C)
-    seg = torch.where(lab >= 0, lab, torch.full_like(lab, C))
-    sums = _segment_sum(C + 1, seg, torch.cat([flow, torch.ones_like(flow[:, :1])], 1))[:C]
-    size = sums[:, 3]
-    mean_flow = sums[:, :3] / size.clamp_min(1)[:, None]
+    mean_flow, size = _cluster_means(flow, lab, C)
     sel = (mean_flow[:, :2].norm(dim=1) >= min_speed) & (size >= MIN_CLUSTER_POINTS)
     lab = torch.where((lab >= 0) & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
     rows = _subsample(lab, C, torch.where(sel, size, torch.zeros_like(size)).to(torch.int64), REFINE_POINTS)

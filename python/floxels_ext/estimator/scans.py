@@ -352,12 +352,21 @@ class _Stager:
         self.free: dict = {}  # device index -> [(buffer, event after its last upload)]
 
     def take(self, dev: torch.device, numel: int) -> torch.Tensor:
+        """A free buffer of at least ``numel`` floats: the smallest that fits (a large one taken
+        by a small scan would leave the next large upload none), else a new one of the next
+        power of two (the next scan, a little larger, fits it too). Without both, uploads larger
+        than the smallest buffer (ground returns: 110k points a 128-beam scan) allocated and
+        first-touched fresh page-locked memory per scan: ~3-4 ms a frame of the run's
+        optimiser thread (bench/RESULTS.md)."""
         pool = self.free.setdefault(_index(dev), [])
+        best = None
         for k, (buf, ev) in enumerate(pool):
-            if buf.numel() >= numel and ev.query():
-                del pool[k]
-                return buf[:numel]
-        return torch.empty(max(numel, 1 << 18), dtype=torch.float32, pin_memory=True)[:numel]
+            if buf.numel() >= numel and (best is None or buf.numel() < pool[best][0].numel()) and ev.query():
+                best = k
+        if best is not None:
+            return pool.pop(best)[0][:numel]
+        size = max(1 << 18, 1 << max(numel - 1, 0).bit_length())
+        return torch.empty(size, dtype=torch.float32, pin_memory=True)[:numel]
 
     def used(self, view: torch.Tensor, dev: torch.device) -> None:
         """``view`` (from take) has its upload to ``dev`` queued on dev's current stream."""

@@ -36,6 +36,7 @@ EL_BIN = math.radians(0.5)   # bin holds a return wherever the scan has one near
 SEEN_MARGIN = 0.5            # m: a return this much nearer than the point still counts as seeing it
 NUM_AZ = int(round(2 * math.pi / AZ_BIN))
 NUM_EL = int(round(math.pi / EL_BIN)) + 1
+CHUNK_ELEMENTS = 1 << 23     # observed_bits: scans tested together, at most this many (scan, point) pairs
 
 
 @dataclass
@@ -89,20 +90,39 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
 def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Tensor:
     """(n,) int32: bit k set where support scan k could see the point's position (a scan
     without a sight counts everywhere); the ``observed`` of ``floxels::dt_evidence`` /
-    ``dt_residual``."""
+    ``dt_residual``. The scans are tested together, a few at a time (CHUNK_ELEMENTS): one scan
+    at a time, the ~20 small launches per scan (120-240 a window of the accurate preset) kept
+    the optimiser thread busy while the GPU idled (``floxels run``, bench/RESULTS.md). Each
+    element's arithmetic is that of one scan alone: the same bits."""
     p = points.to(torch.float32)
-    bits = torch.zeros(p.shape[0], dtype=torch.int32, device=p.device)
+    n = p.shape[0]
+    bits = torch.zeros(n, dtype=torch.int32, device=p.device)
     for k, s in enumerate(sights):
-        ok = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
-        if s is None:
-            bits |= ok.to(torch.int32) << k  # (bit 31 wraps to the sign bit, as the kernels read it)
-            continue
-        rel = p - s.sensor
-        if s.band is not None:
-            r = torch.hypot(rel[:, 0], rel[:, 1])
-            ok &= (r >= s.band[0]) & (r <= s.band[1])
-        if s.image is not None:
-            idx, rr = _bins(rel)
-            ok &= s.image[idx] >= rr - SEEN_MARGIN
-        bits |= ok.to(torch.int32) << k
+        if s is None:  # (bit 31 wraps to the sign bit, as the kernels read it)
+            bits |= torch.ones(n, dtype=torch.int32, device=p.device) << k
+    have = [k for k, s in enumerate(sights) if s is not None]
+    step = max(1, CHUNK_ELEMENTS // max(n, 1))
+    for c in range(0, len(have), step):
+        ks = have[c:c + step]
+        bits |= _seen(p, [sights[k] for k in ks], ks)
     return bits
+
+
+def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> torch.Tensor:
+    """(n,) int32 with bit ks[j] set where sights[j] saw the point (see :func:`observed_bits`)."""
+    n, K = p.shape[0], len(sights)
+    rel = p[None] - torch.stack([s.sensor for s in sights])[:, None]  # (K, n, 3)
+    ok = torch.ones(K, n, dtype=torch.bool, device=p.device)
+    band = [j for j, s in enumerate(sights) if s.band is not None]
+    if band:
+        lim = torch.stack([sights[j].band for j in band])  # (B, 2)
+        r = torch.hypot(rel[band, :, 0], rel[band, :, 1])
+        ok[band] &= (r >= lim[:, :1]) & (r <= lim[:, 1:])
+    image = [j for j, s in enumerate(sights) if s.image is not None]
+    if image:
+        imgs = torch.stack([sights[j].image for j in image])  # (I, bins)
+        idx, rr = _bins(rel[image].reshape(-1, 3))
+        idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
+        ok[image] &= imgs.view(-1)[idx] >= rr.view(len(image), n) - SEEN_MARGIN
+    shifts = torch.tensor(ks, dtype=torch.int32, device=p.device)[:, None]
+    return (ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32)  # distinct bits: the sum is their OR

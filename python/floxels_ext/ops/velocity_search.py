@@ -4,8 +4,10 @@ csrc/kernels/velocity_search.h): fake and autograd registration and the checked 
 Why an op: in tensor code (``floxels_ext.reference.velocity_search``, the reference) the search
 scores 321 candidates per cluster in chunks and then runs up to 16 pattern-search rounds, each a
 handful of small ops and a host read-back; on a GPU its time was the host's (about 20 ms per
-frame, more than the paper's whole frame). As one op it is one launch on CUDA (a block per
-cluster runs the whole search) and one parallel loop over clusters on the CPU. Data only.
+frame, more than the paper's whole frame). As one op it is three launches on CUDA (the
+clusters' axes; the global candidates over (cluster, candidate chunk) blocks, so that a few
+moving clusters still fill the GPU; the pattern search, a block per cluster) and one parallel
+loop over clusters on the CPU. Data only.
 """
 
 from __future__ import annotations

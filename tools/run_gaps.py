@@ -1,0 +1,100 @@
+"""Why does the GPU idle during ``floxels run``? Runs it in this process on a simulated 128-beam
+KITTI-style sequence (as bench/bench_run.py builds it) under the torch profiler (with Python
+stacks), then attributes every GPU idle gap to the innermost Python frames of the thread that
+launches the kernels (the optimiser thread) at the gap's middle, and prints the GPU's busy time
+and its largest kernels. The profiler slows the host, so the gaps are larger than in a plain run;
+their ranking is what it is for (issue 33: the page-locked staging's reallocations and the
+per-scan sight launches were found this way).
+
+    python tools/run_gaps.py [--frames 32] [--run-args "--preset accurate --scans 11"] [--trace T.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+
+
+def busy_and_gaps(events: list) -> tuple[float, float, list]:
+    """(span, busy) in microseconds of the GPU's work, and its idle gaps [(length, start)]."""
+    gpu = sorted((e for e in events if e.get("cat") in ("kernel", "gpu_memcpy", "gpu_memset")), key=lambda e: e["ts"])
+    if not gpu:
+        return 0.0, 0.0, []
+    end, busy, gaps = gpu[0]["ts"], 0.0, []
+    for e in gpu:
+        if e["ts"] > end:
+            gaps.append((e["ts"] - end, end))
+        busy += max(0.0, e["ts"] + e["dur"] - max(end, e["ts"]))
+        end = max(end, e["ts"] + e["dur"])
+    return end - gpu[0]["ts"], busy, gaps
+
+
+def attribute(events: list, gaps: list, min_gap: float, depth: int = 3) -> collections.Counter:
+    """Idle microseconds per innermost ``depth`` Python frames of the launching thread."""
+    launches = collections.Counter(e["tid"] for e in events if e.get("cat") == "cuda_runtime")
+    main = launches.most_common(1)[0][0]
+    frames = sorted((e for e in events if e.get("cat") == "python_function" and e["tid"] == main),
+                    key=lambda e: e["ts"])
+    out: collections.Counter = collections.Counter()
+    for length, start in gaps:
+        if length < min_gap:
+            continue
+        mid = start + length / 2
+        stack = [e["name"] for e in frames if e["ts"] <= mid <= e["ts"] + e["dur"]]
+        out[" < ".join(s.split("(")[0].split("/")[-1][:60] for s in stack[:-depth - 1:-1])] += length
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=32, help="frames profiled (after 8 warm-up frames)")
+    ap.add_argument("--beams", type=int, default=128)
+    ap.add_argument("--run-args", default="--preset accurate --scans 11")
+    ap.add_argument("--min-gap-us", type=float, default=50.0)
+    ap.add_argument("--top", type=int, default=20)
+    ap.add_argument("--trace", help="keep the Chrome trace here (default: deleted)")
+    args = ap.parse_args()
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from bench_run import build
+    from floxels_ext import cli
+
+    if not torch.cuda.is_available():
+        sys.exit("run_gaps.py needs a CUDA device")
+    tmp = Path(tempfile.mkdtemp(prefix="run_gaps_"))
+    kitti, _, _ = build(tmp, args.frames + 8, args.beams, 1800, 0)
+    base = [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), *args.run_args.split(), "-q"]
+    cli.main(["run", *base, "--out", str(tmp / "warm"), "--frames", "0:8"])
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], with_stack=True) as prof:
+        cli.main(["run", *base, "--out", str(tmp / "out"), "--frames", f"8:{args.frames + 8}"])
+    trace = args.trace or str(tmp / "trace.json")
+    prof.export_chrome_trace(trace)
+    events = [e for e in json.load(open(trace))["traceEvents"] if e.get("ph") == "X"]
+    span, busy, gaps = busy_and_gaps(events)
+    print(f"{args.frames} frames ({args.run_args}): GPU span {span / 1e3:.1f} ms, busy {busy / 1e3:.1f} ms")
+    idle = attribute(events, gaps, args.min_gap_us)
+    print(f"idle gaps >= {args.min_gap_us:g} us: {sum(idle.values()) / 1e3:.1f} ms, by the optimiser thread's "
+          "innermost Python frames:")
+    for key, v in idle.most_common(args.top):
+        print(f"  {v / 1e3:7.1f} ms  {key}")
+    work: collections.Counter = collections.Counter()
+    for e in events:
+        if e.get("cat") == "kernel":
+            work[e["name"][:80]] += e["dur"]
+    print("largest GPU work:")
+    for name, d in work.most_common(10):
+        print(f"  {d / 1e3:7.1f} ms  {name}")
+    if not args.trace:
+        os.remove(trace)
+
+
+if __name__ == "__main__":
+    main()
