@@ -224,9 +224,9 @@ PRESETS: dict[str, dict] = {
     # The refinement also starts from each refined cluster's searched velocity (refine_search:
     # its loop is local; far cars and highway vehicles stopped short).
     # Measured and left out: velocity_search (the same search for every cluster, as the grid's
-    # start: on top of the preset it lowers dynamic EPE on every data set, but raises some
-    # classes' normalised EPE (pedestrians, AV2 cars) and takes the preset to 2.7-3.1x paper's
-    # time; alone it gives static highway barriers the ego's speed).
+    # start: on top of today's preset it adds nothing on the held-out seeds and costs the AV2
+    # pair a little, at 2.3-2.6x paper's time; alone it gives static highway barriers the ego's
+    # speed).
     "accurate": {"num_scans": 11, "evidence": "zero", "rigid_refine": True, "refine_max_supports": 2,
                  "refine_sided": True, "refine_search": True, "range_mask": True, "visibility": True},
 }
