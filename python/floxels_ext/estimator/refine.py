@@ -140,11 +140,15 @@ def _cluster_means(flow: torch.Tensor, lab: torch.Tensor, C: int) -> tuple[torch
     n = lab.shape[0]
     # points of no cluster: spread over spare rows C.., so that no row takes them all
     key = torch.where(lab >= 0, lab, C + (torch.arange(n, device=lab.device) & (SPARE_ROWS - 1)))
-    f = flow.to(torch.float64).nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_FLOW, MAX_FIXED_FLOW)
-    rows = torch.cat([torch.round(f * FIXED_POINT).to(torch.int64), torch.ones_like(key)[:, None]], 1)
-    sums = torch.zeros(C + SPARE_ROWS, 4, dtype=torch.int64, device=lab.device).index_add_(0, key, rows)[:C]
+    f = flow.to(torch.float64)
+    bad = ~torch.isfinite(f).all(dim=1)  # a cluster with a non-finite flow gets a NaN mean (not refined)
+    f = f.nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_FLOW, MAX_FIXED_FLOW)
+    rows = torch.cat([torch.round(f * FIXED_POINT).to(torch.int64), torch.ones_like(key)[:, None],
+                      bad.to(torch.int64)[:, None]], 1)
+    sums = torch.zeros(C + SPARE_ROWS, 5, dtype=torch.int64, device=lab.device).index_add_(0, key, rows)[:C]
     size = sums[:, 3].to(torch.float64)
     mean = sums[:, :3].to(torch.float64) / FIXED_POINT / size.clamp_min(1)[:, None]
+    mean = torch.where(sums[:, 4:] > 0, torch.full_like(mean, float("nan")), mean)
     return mean.to(flow.dtype), size.to(flow.dtype)
 
 
