@@ -13,6 +13,7 @@ import time
 import torch
 
 from _solver_problems import simulated_scans
+from _traces import busy_and_gaps, gpu_events
 from floxels_ext import Floxels, FloxelsConfig, estimate_sequence
 
 ap = argparse.ArgumentParser()
@@ -33,12 +34,11 @@ torch.cuda.synchronize()
 def summarise(trace_path: str, label: str) -> None:
     with gzip.open(trace_path, "rt") as fh:
         events = json.load(fh)["traceEvents"]
-    kernels = [e for e in events if e.get("cat") in ("kernel", "gpu_memcpy", "gpu_memset") and "dur" in e]
+    kernels = gpu_events(events)
     if not kernels:
         print(label, "no GPU events")
         return
-    t0 = min(e["ts"] for e in kernels)
-    t1 = max(e["ts"] + e["dur"] for e in kernels)
+    t0, t1, busy, gaps = busy_and_gaps(kernels)
     by_stream: dict = {}
     for e in kernels:
         by_stream.setdefault(e.get("tid"), []).append(e)
@@ -46,21 +46,10 @@ def summarise(trace_path: str, label: str) -> None:
     for sid, evs in by_stream.items():
         busy = sum(e["dur"] for e in evs)
         print(f"  stream {sid}: {len(evs)} events, busy {1e-3 * busy:.2f} ms")
-    # union of busy intervals, over all streams
-    iv = sorted((e["ts"], e["ts"] + e["dur"]) for e in kernels)
-    busy, cur_s, cur_e = 0.0, iv[0][0], iv[0][1]
-    gaps = []
-    for s, e in iv[1:]:
-        if s > cur_e:
-            busy += cur_e - cur_s
-            gaps.append((cur_e - t0, s - cur_e))
-            cur_s, cur_e = s, e
-        else:
-            cur_e = max(cur_e, e)
-    busy += cur_e - cur_s
+    # busy: the union of the intervals over all streams
     print(f"  any stream busy {1e-3 * busy:.2f} ms; idle {1e-3 * (t1 - t0 - busy):.2f} ms")
     for at, g in sorted(gaps, key=lambda x: -x[1])[:12]:
-        print(f"    gap {g:8.1f} us at {1e-3 * at:8.2f} ms")
+        print(f"    gap {g:8.1f} us at {1e-3 * (at - t0):8.2f} ms")
     # first solver kernel, and the GPU time by kernel name before it
     solver = [e for e in kernels if "points_kernel" in e["name"]]
     if solver:

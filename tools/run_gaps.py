@@ -21,29 +21,18 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
 
-
-def busy_and_gaps(events: list) -> tuple[float, float, list]:
-    """(span, busy) in microseconds of the GPU's work, and its idle gaps [(length, start)]."""
-    gpu = sorted((e for e in events if e.get("cat") in ("kernel", "gpu_memcpy", "gpu_memset")), key=lambda e: e["ts"])
-    if not gpu:
-        return 0.0, 0.0, []
-    end, busy, gaps = gpu[0]["ts"], 0.0, []
-    for e in gpu:
-        if e["ts"] > end:
-            gaps.append((e["ts"] - end, end))
-        busy += max(0.0, e["ts"] + e["dur"] - max(end, e["ts"]))
-        end = max(end, e["ts"] + e["dur"])
-    return end - gpu[0]["ts"], busy, gaps
+from _traces import busy_and_gaps, gpu_events  # noqa: E402  (tools/, this script's folder)
 
 
 def attribute(events: list, gaps: list, min_gap: float, depth: int = 3) -> collections.Counter:
-    """Idle microseconds per innermost ``depth`` Python frames of the launching thread."""
+    """Idle microseconds per innermost ``depth`` Python frames of the launching thread; ``gaps``:
+    [(start, length)] (``_traces.busy_and_gaps``)."""
     launches = collections.Counter(e["tid"] for e in events if e.get("cat") == "cuda_runtime")
     main = launches.most_common(1)[0][0]
     frames = sorted((e for e in events if e.get("cat") == "python_function" and e["tid"] == main),
                     key=lambda e: e["ts"])
     out: collections.Counter = collections.Counter()
-    for length, start in gaps:
+    for start, length in gaps:
         if length < min_gap:
             continue
         mid = start + length / 2
@@ -78,8 +67,11 @@ def main() -> None:
     trace = args.trace or str(tmp / "trace.json")
     prof.export_chrome_trace(trace)
     events = [e for e in json.load(open(trace))["traceEvents"] if e.get("ph") == "X"]
-    span, busy, gaps = busy_and_gaps(events)
-    print(f"{args.frames} frames ({args.run_args}): GPU span {span / 1e3:.1f} ms, busy {busy / 1e3:.1f} ms")
+    gpu = gpu_events(events)
+    if not gpu:
+        sys.exit("run_gaps.py: the trace has no GPU events")
+    t0, t1, busy, gaps = busy_and_gaps(gpu)
+    print(f"{args.frames} frames ({args.run_args}): GPU span {(t1 - t0) / 1e3:.1f} ms, busy {busy / 1e3:.1f} ms")
     idle = attribute(events, gaps, args.min_gap_us)
     print(f"idle gaps >= {args.min_gap_us:g} us: {sum(idle.values()) / 1e3:.1f} ms, by the optimiser thread's "
           "innermost Python frames:")
