@@ -50,7 +50,7 @@ def test_top_level_help_loads_neither_torch_nor_numpy():
     assert _loaded_after(_help(["--version"])) == {"torch": False, "numpy": False}
 
 
-@pytest.mark.parametrize("command", ["run", "eval", "simulate", "demo", "show", "accumulate"])
+@pytest.mark.parametrize("command", ["run", "eval", "simulate", "demo", "show", "accumulate", "export"])
 def test_subcommand_help_loads_no_torch(command):
     assert not _loaded_after(_help([command, "--help"]))["torch"]
 

@@ -28,7 +28,8 @@ __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 # The order is the order of ``floxels --help``.
 SUBCOMMAND_MODULES: list[str] = ["floxels_ext.evaluation.simulate_cli", "floxels_ext.evaluation.eval_cli",
                                  "floxels_ext.evaluation.demo", "floxels_ext.lidar.run",
-                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show"]
+                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show",
+                                 "floxels_ext.lidar.export.command"]
 _EXTRA: list[Callable] = []
 
 
