@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import shutil
 import zipfile
 from pathlib import Path
@@ -25,21 +24,9 @@ feather = pytest.importorskip("pyarrow.feather")
 LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 
 
-def _pair_path() -> Path | None:
-    here = Path(__file__).resolve().parents[2]
-    for p in (os.environ.get("FLOXELS_AV2_PAIR"), here.parent / "shared/data/av2_pair/av2_7fab2350_pair.npz",
-              "/work/shared/data/av2_pair/av2_7fab2350_pair.npz"):
-        if p and Path(p).is_file():
-            return Path(p)
-    return None
-
-
 @pytest.fixture(scope="module")
-def pair():
-    path = _pair_path()
-    if path is None:
-        pytest.skip("the shared Argoverse 2 pair (shared/data/av2_pair) is not available")
-    return dict(np.load(path))
+def pair(av2_pair_path):
+    return dict(np.load(av2_pair_path))
 
 
 @pytest.fixture(scope="module")
