@@ -61,7 +61,7 @@ class Segment:
     ``[g, g + hi - lo)``; ``segment`` is the method's view of it."""
 
     def __init__(self, job, lo: int, hi: int, g: int, targets: list[int], num_scans: int) -> None:
-        from floxels_ext.estimator.stream import Segment
+        from floxels_ext.estimator.windows import Segment
 
         self.job, self.lo, self.hi, self.g, self.targets = job, lo, hi, g, targets
         times = None if job.times_s is None else job.times_s[lo:hi]

@@ -47,7 +47,8 @@ def run_sequence(args) -> int:
             report(msg)
 
     ctx = run_context(args, report, shared_pools=False)
-    job = open_sequence(_sequence_task(args), ctx, say=info)
+    task = _sequence_task(args)
+    job = open_sequence(task, ctx, say=info)
     try:
         bar = Progress(len(job.todo), verbosity=verbosity)
         t0 = time.perf_counter()
@@ -108,7 +109,7 @@ def _sequence_task(args):
                         Path(args.calib) if args.calib else None)
     return Task(spec, out, start, stop, [f.name for f in seq.frames[start:stop]],
                 frame_paths=[str(f.path) for f in seq.frames[start:stop]],
-                summary=Path(args.summary) if args.summary else None, found=seq)
+                summary=Path(args.summary) if args.summary else None, selection=(start, stop), found=seq)
 
 
 def run_dataset(tasks, args, n_sequences: int) -> int:

@@ -105,8 +105,9 @@ def run_input(args) -> int:
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 
-    if not args.input or not args.out:
-        return run_sequence(args)  # its argument check names what is missing
+    from floxels_ext.lidar.pipeline.run_args import require_input_and_out
+
+    require_input_and_out(args)
     specs = discover_dataset(args.input, args.out, args.sequences)
     _check_options(args, specs is not None)
     if specs is None:

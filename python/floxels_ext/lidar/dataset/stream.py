@@ -4,7 +4,7 @@
 Every run is a stream of tasks (``tasks.Task``: a sequence's frames, opened by
 ``sequence.open_sequence`` as a :class:`SeqJob`); ``floxels run SEQ`` is a stream of one. One
 set of reader threads, transform threads and writers serves every sequence, and the method gets
-one stream of targets (:func:`floxels_ext.estimator.stream.estimate_stream`): the segments
+one stream of targets (:func:`floxels_ext.estimator.windows.estimate_stream`): the segments
 of successive sequences laid end to end in one index space. Running a dataset as one run per
 sequence had started and drained everything per sequence: reader and writer threads, the
 read-ahead (the device waited for the first frames), the method's own pipeline (its first batch
