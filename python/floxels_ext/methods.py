@@ -23,7 +23,7 @@ A method is a :class:`Method`: a name, a one-line description, and
 
 ``estimate_stream(scans, targets, device, options, callback)`` (optional): the same for many
 sequences laid end to end in one index space (``floxels run DATASET``): ``targets`` yields
-``(index, segment)`` pairs (``floxels_ext.estimator.stream.Segment``: the scans ``[lo, hi)``
+``(index, segment)`` pairs (``floxels_ext.estimator.windows.Segment``: the scans ``[lo, hi)``
 the window of ``index`` stays in, and their times), possibly waiting for the next sequence;
 one call serves them all, so the method's own pipeline neither restarts nor drains between
 sequences. Without it, ``floxels run`` calls ``estimate_sequence`` once per segment.
@@ -126,7 +126,7 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None, sens
 
 def _floxels_stream(scans, targets, device, options, callback, sensors=None, ground=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
-    from floxels_ext.estimator.stream import estimate_stream
+    from floxels_ext.estimator.windows import estimate_stream
 
     try:
         cfg = FloxelsConfig(**dict(options or {}))

@@ -1,4 +1,4 @@
-"""``floxels run DATASET``: every sequence through one pipeline (``dataset_stream``).
+"""``floxels run DATASET``: every sequence through one pipeline (``lidar/dataset/stream.py``).
 
 One call of the method serves the whole dataset; windows never leave their sequence (results equal
 the plain run's, also for Floxels itself, whose batches cross sequence ends); the next sequence is
@@ -6,6 +6,7 @@ opened and read while the current one is estimated; an error of the method fails
 held, the rest are written and a re-run writes only those; one progress bar counts frames and
 sequences; -q prints only the final summary."""
 
+import json
 import time
 from pathlib import Path
 
@@ -97,7 +98,11 @@ def test_one_call_for_the_dataset_equals_plain_runs(data, tmp_path, spy, capsys)
         plain = tmp_path / f"plain{k}"
         assert cli.main(["run", str(data / f"s{k}"), "--out", str(plain), "--method", "spy", *FLAGS]) == 0
         _same(out / f"s{k}", plain)
-        assert (out / f"s{k}" / "run_summary.json").is_file()
+        # one summary writer: the same keys, point classes and outliers as the plain run's
+        ds_sum, plain_sum = (json.loads((d / "run_summary.json").read_text()) for d in (out / f"s{k}", plain))
+        assert sorted(ds_sum) == sorted(plain_sum) and ds_sum["point_classes"]
+        for key in ("point_classes", "outliers", "written", "failed", "selected", "settings"):
+            assert ds_sum[key] == plain_sum[key], key
     err = capsys.readouterr().err
     assert "15/15 frames (100%)" in err and "frames/s" in err and "ETA" in err and "0 skipped, 0 failed" in err
     assert "dataset done: 3 sequences (3 done, 0 skipped, 0 failed), 15 frame(s) written" in err
@@ -137,7 +142,7 @@ def test_floxels_stream_equals_per_sequence():
     """estimate_stream over segments laid end to end, in batches that cross segment ends, equals
     estimate_sequence over each segment alone."""
     from floxels_ext import FloxelsConfig, estimate_sequence
-    from floxels_ext.estimator.stream import Segment, estimate_stream
+    from floxels_ext.estimator.windows import Segment, estimate_stream
     from floxels_ext.evaluation.sim import simulate_sequence
 
     cfg = FloxelsConfig(num_scans=3, max_iters=8)
@@ -153,3 +158,29 @@ def test_floxels_stream_equals_per_sequence():
     assert sorted(got) == list(range(7))
     for g in range(7):
         np.testing.assert_allclose(got[g], ref[g], atol=1e-6)
+
+
+def test_unreadable_neighbour_outside_frames_fails_the_run(data, tmp_path, monkeypatch, capsys):
+    """A support scan outside --frames that cannot be read fails the run (exit 1, named once in
+    the summary), as one sequence and as a dataset's task alike; its neighbours are written."""
+    import shutil
+
+    from floxels_ext import methods
+
+    def windows(scans, frames, device, options, callback):  # reads each target's window of 3
+        for f in frames:
+            _ = scans[max(0, f - 1):f + 2]
+            callback(f, np.asarray(scans[f], np.float32) * 0.01)
+
+    monkeypatch.setitem(methods._REGISTRY, "windows", methods.Method("windows", "test double", windows))
+    root = tmp_path / "root"
+    shutil.copytree(data / "s0", root / "s0")
+    (root / "s0" / "000001.npz").write_bytes(b"not a zip")
+    args = ["--method", "windows", *FLAGS, "--frames", "2:4"]
+    for inp, out in ((root / "s0", tmp_path / "plain"), (root, tmp_path / "ds")):
+        assert cli.main(["run", str(inp), "--out", str(out), *args]) == 1
+        summary_dir = out if inp.name == "s0" else out / "s0"
+        summary = json.loads((summary_dir / "run_summary.json").read_text())
+        assert [f["frame"] for f in summary["failures"]] == ["000001"] and summary["written"] == 2, summary
+        assert sorted(p.name for p in summary_dir.glob("*.npz")) == ["000002.npz", "000003.npz"]
+    assert "000001.npz" in capsys.readouterr().err

@@ -164,7 +164,7 @@ def test_staging_buffers_are_reused_by_size():
     # uploads larger than the smallest staging buffer, of slowly growing sizes (ground returns),
     # reuse buffers once their copies have run: no new page-locked memory per upload; a small
     # upload takes the smallest free buffer, leaving the large one to the next large upload
-    from floxels_ext.estimator import scans as S
+    from floxels_ext.estimator import schedule as S
 
     dev = torch.device("cuda")
     stager = S._STAGER

@@ -21,12 +21,12 @@ import numpy as np
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.distance import DistanceTransform, DtStreams
+from floxels_ext.estimator.distance import DistanceTransform, EarlyDts
 from floxels_ext.estimator.group import fit_group
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import check_ground, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
-from floxels_ext.estimator.stream import RAMP_START, Window, solve_windows, window_for
-from floxels_ext.estimator.streams import serial_stages
+from floxels_ext.estimator.schedule import serial_stages
+from floxels_ext.estimator.windows import RAMP_START, Window, solve_windows, window_for
 from floxels_ext.ops.solver import MAX_PROBLEMS
 from floxels_ext.switches import flag
 
@@ -56,11 +56,11 @@ class Floxels:
         ``times``/``frame_period``/``sensor_origins``/``ground_points``: see :func:`estimate_flow`.
         """
         cache = dt_cache if dt_cache is not None else {}
-        early = DtStreams(self.config, cache)
+        early = EarlyDts(self.config, cache)
         warn_if_no_sensors(self.config, sensor_origins)
         prep = prepare_scans(scans, target, self.device, on_ready=early, times=times, period=frame_period,
                              sensors=sensor_origins, grounds=ground_points)
-        return fit_group(self.config, [(prep, cache)], early)[0]
+        return fit_group(self.config, [(prep, cache)], early.streams)[0]
 
     def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
         """Estimate several target frames in one optimisation: ``windows`` is a list of

@@ -51,6 +51,13 @@ class Task:
     names: list[str]
     todo: list[str] = field(default_factory=list)
     frame_paths: list[str] = field(default_factory=list)   # input files, for failure reports
+    summary: Path | None = None  # where its run_summary.json goes (--summary); None: in out_dir
+    # the frames [start, stop) the run selects of this sequence (--frames), of which the task is
+    # a part; None: all of them
+    selection: tuple[int, int] | None = None
+    # the sequence as ``discover_input`` listed it when the task was made here (``floxels run
+    # SEQ``), so that opening it does not list it again; None: opened from ``seq``
+    found: object = field(default=None, repr=False, compare=False)
 
     @property
     def label(self) -> str:
@@ -227,5 +234,5 @@ def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, 
         cuts = [*range(start, stop, step), stop]
         for a, b in zip(cuts[:-1], cuts[1:]):
             tasks.append(Task(s, out_dir, a, b, [f.name for f in seq.frames[a:b]],
-                              frame_paths=[str(f.path) for f in seq.frames[a:b]]))
+                              frame_paths=[str(f.path) for f in seq.frames[a:b]], selection=(start, stop)))
     return tasks, problems

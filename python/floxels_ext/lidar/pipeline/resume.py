@@ -1,5 +1,6 @@
 """What each frame's output was computed from, so that a resumed ``floxels run`` recomputes the
-frames whose inputs changed (issue 30, item 4).
+frames whose inputs changed (issue 30, item 4), and which frames of a sequence are still to do
+(:func:`resume_plan`, :func:`check_resume`).
 
 A frame's flow depends on the scans of its window (the method's window around it, and the
 next scan, whose pose gives ``ego_motion``), their poses and their times. Each output records
@@ -28,7 +29,7 @@ import os
 
 import numpy as np
 
-__all__ = ["window_frames", "input_records", "inputs_diff"]
+__all__ = ["window_frames", "input_records", "inputs_diff", "resume_plan", "check_resume"]
 
 
 def window_frames(i: int, n: int, num_scans: int) -> range:
@@ -89,3 +90,82 @@ def inputs_diff(recorded: dict, current: dict) -> str | None:
                 return f"{what} {'now given' if a is None else 'no longer given'}"
             return f"the {what} of {', '.join(nm for nm in b if a.get(nm) != b[nm])[:60]} changed"
     return "its inputs changed"
+
+
+def resume_plan(seq, selected: list[int], out, args, options: dict, settings, pose_mode: str, poses, report,
+                resume_report=None) -> dict:
+    """What a sequence's run writes and what is already done, the same for ``floxels run SEQ``
+    and each sequence of a dataset: the run's settings, each selected frame's output path, the
+    frames' timestamps and times (s), what each output depends on (its window's files, poses,
+    times: :func:`input_records`) and the frames still to do (:func:`check_resume`, which
+    reports to ``resume_report``, default ``report``). Keys: settings, out_path, stamps,
+    times_s, times_source, inputs, todo."""
+    from floxels_ext.lidar.pipeline.run_inputs import frame_times, run_settings
+
+    settings_ = run_settings(args, options, settings, pose_mode, seq)
+    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
+    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
+    # pipeline passes them to methods whose estimate_sequence takes ``times``
+    stamps = [f.timestamp_ns for f in seq.frames]
+    times_s, times_source = frame_times(seq, stamps, report)
+    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
+    todo = check_resume(out_path, selected, settings_, args.force, inputs=inputs, report=resume_report or report)
+    return {"settings": settings_, "out_path": out_path, "stamps": stamps, "times_s": times_s,
+            "times_source": times_source, "inputs": inputs, "todo": todo}
+
+
+def check_resume(out_path: dict, selected: list[int], settings: dict, force: bool, inputs: dict | None = None,
+                 report=None) -> list[int]:
+    """Frames to estimate: those without an output, those whose output cannot be read
+    (truncated by a crash, not an output), those whose inputs changed since they were written
+    (``inputs``: ``{frame: JSON record}`` of :func:`input_records`), and
+    (with --force) all. An output written with other settings (method, options, preprocessing,
+    poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
+    carry no input record: they count as done, and ``report`` says so."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.io.outputs import read_resume_record, settings_mismatch
+
+    if force:
+        return list(selected)
+    todo, clash = [], None
+    unreadable, changed, legacy = [], [], []
+    for i in selected:
+        if not out_path[i].is_file():
+            todo.append(i)
+            continue
+        rec = read_resume_record(out_path[i])
+        if rec is None:  # unreadable (e.g. truncated by a crash of the machine): recompute it
+            todo.append(i)
+            unreadable.append(i)
+            continue
+        diff = settings_mismatch(rec["settings"], settings)
+        if diff and clash is None:
+            clash = (out_path[i], diff)
+        if inputs is None or i not in inputs:
+            continue
+        if rec["inputs"] is None:
+            legacy.append(i)
+            continue
+        why = inputs_diff(rec["inputs"], json.loads(inputs[i]))
+        if why is not None:
+            todo.append(i)
+            changed.append((i, why))
+    if clash is not None:
+        raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
+                       f"use --force to recompute, or another --out")
+    if report is not None:
+        def names(frames):
+            return ", ".join(out_path[i].name for i in frames[:3]) + (" ..." if len(frames) > 3 else "")
+
+        if unreadable:
+            report(f"recomputing {len(unreadable)} output(s) that cannot be read (truncated or not an output of "
+                   f"floxels run): {names(unreadable)}")
+        if changed:
+            i, why = changed[0]
+            report(f"recomputing {len(changed)} frame(s) whose inputs changed since they were written (their "
+                   f"window's scans, poses or times), e.g. {out_path[i].name}: {why}")
+        if legacy:
+            report(f"floxels: warning: {len(legacy)} output(s) were written by an earlier version without a record "
+                   f"of their inputs ({names(legacy)}): kept as done; a change of their scans, poses or times "
+                   f"since then is not detected (--force recomputes them)")
+    return sorted(todo)
