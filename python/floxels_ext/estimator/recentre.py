@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from floxels_ext.ops._small import device_values
+
 __all__ = ["RECENTRE_GRID", "RECENTRE_ABOVE", "FLOAT32_WARN_RESOLUTION", "Recentring"]
 
 RECENTRE_GRID = 60.0
@@ -106,7 +108,7 @@ class Recentring:
         non-finite); ``t`` itself when there is no shift."""
         if not self.active or t.shape[0] == 0:
             return t
-        s = torch.as_tensor(self.shift, dtype=torch.float64, device=t.device)
+        s = device_values(self.shift.tolist(), torch.float64, t.device)
         return (t.to(torch.float64) - s).to(torch.float32)
 
     def restore(self, origin: list[float] | None) -> list[float] | None:
