@@ -36,7 +36,7 @@ def _finite_bounds(t: torch.Tensor) -> tuple[np.ndarray, np.ndarray] | None:
     ``SAMPLE_ROWS`` rows: enough to place the shift, and cheap on every call), or None."""
     if t.shape[0] == 0:
         return None
-    t = t[::max(1, t.shape[0] // SAMPLE_ROWS)]
+    t = t.detach()[::max(1, t.shape[0] // SAMPLE_ROWS)]
     keep = torch.isfinite(t).all(dim=1)
     if not bool(keep.all()):
         t = t[keep]
@@ -88,7 +88,10 @@ class Recentring:
 
     def apply(self, t: torch.Tensor) -> torch.Tensor:
         """``t`` minus the shift, computed in float64, returned as float32 (NaN/inf rows stay
-        non-finite); ``t`` itself when there is no shift."""
+        non-finite); ``t`` itself when there is no shift. Detached either way: the estimator
+        returns no gradient, and a tensor that requires one (``requires_grad=True``) is read
+        as data (numpy() refuses it)."""
+        t = t.detach()
         if not self.active or t.shape[0] == 0:
             return t
         s = torch.as_tensor(self.shift, dtype=torch.float64, device=t.device)
