@@ -1,0 +1,112 @@
+"""Issue 45 through ``cli.main`` (the ``floxels`` entry point), what a run reads: KISS-ICP
+poses computed from other scans (item 1), ``.bin`` column counts (item 2). A fake method
+(instant) stands in for Floxels and a fake KISS-ICP (kiss-icp is optional) answers each
+scan's true pose."""
+
+import zlib
+
+import numpy as np
+import pytest
+
+from floxels_ext import cli, methods
+from floxels_ext.lidar.io.outputs import read_flow_output
+from floxels_ext.lidar.preprocess import transform_points
+
+N = 6
+
+
+@pytest.fixture(scope="module")
+def seq():
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    return simulate_sequence("crossing", N, 1, beams=16, azimuth_steps=360)
+
+
+@pytest.fixture
+def fake(monkeypatch):
+    def est(scans, frames, device, options, callback, times=None):
+        for f in frames:
+            callback(f, np.tile(np.float32([0.4, 0, 0]), (len(scans[f]), 1)))
+
+    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
+
+
+def _rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    return T
+
+
+class FakeKissIcp:
+    """Answers each scan's true sensor-to-world pose, found by the scan's content."""
+
+    def __init__(self):
+        self.truth, self.calls = {}, 0
+
+    def add(self, points, pose):
+        self.truth[zlib.crc32(np.ascontiguousarray(points[:, :3], np.float32))] = pose
+
+    def __call__(self, scans, progress=None, **settings):
+        self.calls += 1
+        out = []
+        for i, s in enumerate(scans):
+            out.append(self.truth[zlib.crc32(np.ascontiguousarray(s, np.float32))])
+            if progress:
+                progress(i)
+        return np.stack(out)
+
+
+@pytest.fixture
+def kiss(monkeypatch):
+    from floxels_ext.lidar.preprocess import odometry
+
+    k = FakeKissIcp()
+    monkeypatch.setattr(odometry, "kiss_icp_poses", k)
+    return k
+
+
+def _export(seq, d, kiss, mount=np.eye(4)):
+    """Sweeps as KITTI .bin in a sensor frame mounted by ``mount`` (a re-export after a
+    mounting fix rotates every sweep)."""
+    d.mkdir(parents=True, exist_ok=True)
+    for i, fr in enumerate(seq.frames):
+        pose = fr.pose @ np.linalg.inv(mount)  # the new sensor frame's pose
+        p = transform_points(fr.points, np.linalg.inv(pose)).astype(np.float32)
+        np.c_[p, np.full(len(p), 0.5)].astype(np.float32).tofile(d / f"{i:06d}.bin")
+        kiss.add(p, pose)
+    return d
+
+
+def _run(args, capsys):
+    rc = cli.main(["run", *map(str, args), "--device", "cpu"])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return rc, cap
+
+
+def test_odometry_poses_follow_the_scans_they_were_computed_from(seq, fake, kiss, tmp_path, capsys):
+    d, out = _export(seq, tmp_path / "velodyne", kiss), tmp_path / "o"
+    args = [d, "--out", out, "--method", "fake", "--odometry", "kiss-icp", "--frames", "2:5"]
+    rc, cap = _run(args, capsys)
+    assert rc == 0 and kiss.calls == 1, cap.err
+    np.testing.assert_allclose(read_flow_output(out / "000003.npz", points=False)["pose"], seq.frames[3].pose,
+                               atol=1e-9)
+    rc, cap = _run(args, capsys)  # nothing changed: the cached poses, nothing recomputed
+    assert rc == 0 and kiss.calls == 1 and "reusing odometry poses" in cap.err and "0 to estimate" in cap.err
+    # the example of the issue: the sweeps re-exported rotated by 0.3 rad (a mounting fix)
+    mount = _rot_z(0.3)
+    _export(seq, d, kiss, mount)
+    rc, cap = _run(args, capsys)
+    assert rc == 0 and kiss.calls == 2, cap.err
+    assert "recomputing the odometry poses" in cap.err and "frame file(s) changed" in cap.err
+    assert "3 to estimate" in cap.err  # the resume sees the new poses: every frame again
+    for i in (2, 3, 4):
+        np.testing.assert_allclose(read_flow_output(out / f"{i:06d}.npz", points=False)["pose"],
+                                   seq.frames[i].pose @ np.linalg.inv(mount), atol=1e-9)
+    rc, cap = _run([*args, "--force"], capsys)  # --force recomputes the poses too
+    assert rc == 0 and kiss.calls == 3 and "recomputing the odometry poses" in cap.err and "--force" in cap.err
+    (out / "poses_kiss_icp.json").unlink()  # a cache without its record (an earlier version's)
+    rc, cap = _run(args, capsys)
+    assert rc == 0 and kiss.calls == 4 and "no poses_kiss_icp.json" in cap.err
+    assert "0 to estimate" in cap.err  # the same poses again: the outputs stay
