@@ -110,3 +110,45 @@ def test_odometry_poses_follow_the_scans_they_were_computed_from(seq, fake, kiss
     rc, cap = _run(args, capsys)
     assert rc == 0 and kiss.calls == 4 and "no poses_kiss_icp.json" in cap.err
     assert "0 to estimate" in cap.err  # the same poses again: the outputs stay
+
+
+def _xyz_bins(seq, d, shuffle=False):
+    """x y z-only float32 .bin frames (sensor frame), sizes cut to a multiple of 4 rows so that
+    4 columns also fit (what the issue met); ``shuffle``: rows out of scan order."""
+    d.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for i, fr in enumerate(seq.frames):
+        p = transform_points(fr.points, np.linalg.inv(fr.pose)).astype(np.float32)
+        p = p[np.isfinite(p).all(1)]
+        p = p[rng.permutation(len(p))] if shuffle else p
+        p[:len(p) // 4 * 4].tofile(d / f"{i:06d}.bin")
+    np.savetxt(d.parent / "poses.txt", np.stack([f.pose[:3] for f in seq.frames]).reshape(-1, 12))
+    return d
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_xyz_only_bin_is_refused_not_read_as_xyz_intensity(seq, fake, tmp_path, capsys, shuffle):
+    d = _xyz_bins(seq, tmp_path / "velodyne", shuffle)
+    args = [d, "--out", tmp_path / "o", "--method", "fake", "--poses", tmp_path / "poses.txt"]
+    rc, cap = _run(args, capsys)
+    assert rc == 1 and f"{N} failed" in cap.err and not list((tmp_path / "o").glob("*.npz")), cap.err
+    assert "000002.bin: its size reads as 4 float32 columns" in cap.err and "pass --bin-columns 3" in cap.err
+    assert ("rows look like 3 columns" if not shuffle else "4th column is negative") in cap.err
+    rc, cap = _run([*args, "--bin-columns", "3"], capsys)  # what the message says: every frame read right
+    assert rc == 0 and f"{N} frame(s) written" in cap.err, cap.err
+
+
+def test_a_reading_option_that_changes_the_points_makes_the_outputs_stale(seq, fake, tmp_path, capsys):
+    # rows out of scan order: --bin-columns 4 cannot be told wrong from them, so the outputs of
+    # a misread run exist; rerun with the right count, they must be recomputed, not "already done"
+    d = _xyz_bins(seq, tmp_path / "velodyne", shuffle=True)
+    args = [d, "--out", tmp_path / "o", "--method", "fake", "--poses", tmp_path / "poses.txt"]
+    rc, cap = _run([*args, "--bin-columns", "4"], capsys)
+    assert rc == 0, cap.err
+    n4 = len(read_flow_output(tmp_path / "o" / "000002.npz", points=False)["flow"])
+    rc, cap = _run([*args, "--bin-columns", "3"], capsys)
+    assert rc == 0 and f"{N} to estimate" in cap.err and "read with --bin-columns 3 now (--bin-columns 4 then)" in cap.err
+    n3 = len(read_flow_output(tmp_path / "o" / "000002.npz", points=False)["flow"])
+    assert n3 == n4 * 4 // 3  # every stored point, read as x y z
+    rc, cap = _run([*args, "--bin-columns", "3"], capsys)
+    assert rc == 0 and "0 to estimate" in cap.err
