@@ -10,7 +10,8 @@ whose message starts with the file's path.
 extension           format
 ==================  ===========================================================================
 ``.bin``            raw float32 rows x, y, z, intensity[, ring] (KITTI: 4 columns, nuScenes: 5);
-                    the column count comes from the file size, or ``bin_columns``
+                    the column count comes from the file size (checked: rows in scan
+                    order, a 4th column >= 0), or ``bin_columns``
 ``.npy``            (N, >=3) numeric array, or a structured array with fields x, y, z
 ``.npz``            key ``points`` (else the first (N, >=3) array); optional ``pose`` (4, 4)
 ``.pcd``            PCL point cloud, DATA ascii / binary / binary_compressed (LZF), fields
