@@ -83,7 +83,8 @@ def add_parser(sub) -> None:
                                    "coloured by direction, legend wheel top right), sized by --extent/--resolution "
                                    "and with arrows scaled by --flow-scale.")
     p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
-    p.add_argument("--frame", default="0", help="with a RUN_DIR: frame index (sorted order) or name (default 0)")
+    p.add_argument("--frame", default=None, help="with a RUN_DIR: the frame's name (e.g. 000042) or its index among "
+                   "the run's input frames, as floxels run --frames counts them (default: the first output)")
     p.add_argument("--png", metavar="FILE", help="output PNG (default <frame name>.png in the current directory)")
     from floxels_ext.cli_types import positive_float
 
@@ -100,24 +101,19 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _resolve(target: str, frame: str) -> Path:
-    from floxels_ext.lidar.viz.accumulate import _run_frames
+def _resolve(target: str, frame: str | None) -> Path:
     from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.viz.run_frames import RunFrames
 
     t = Path(target)
     if t.is_file():
+        if frame is not None:
+            raise CLIError(f"--frame picks a frame of a RUN_DIR; {t} is one output file")
         return t
     if not t.is_dir():
         raise CLIError(f"{t} does not exist")
-    files = _run_frames(t)
-    names = [p.stem for p in files]
-    if frame in names:
-        return files[names.index(frame)]
-    try:
-        k = int(frame)
-        return files[k]
-    except (ValueError, IndexError):
-        raise CLIError(f"{t}: no frame {frame!r} ({len(files)} outputs: {names[0]} .. {names[-1]})") from None
+    run = RunFrames(t)
+    return run.path(run.pick(frame))
 
 
 def write_rerun(path: Path, data: dict, name: str) -> None:
@@ -203,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
                            flow_scale=1.0 if args.flow_scale is None else args.flow_scale)
         write_png(png, img)
         size = f"{img.shape[1]}x{img.shape[0]}"
-    print(f"wrote {png} ({size}, {len(data['points'])} points, {n_mov} moving)")
+    print(f"wrote {png} (frame {path.stem}, {size}, {len(data['points'])} points, {n_mov} moving)")
     if args.rerun:
         try:
             write_rerun(Path(args.rerun), data, path.stem)
