@@ -34,7 +34,7 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("datasets and clusters", textwrap.fill(
         "INPUT may also be a dataset: a directory holding sequences at any depth (an Argoverse 2 split "
         "of log folders, KITTI odometry with sequences/NN/velodyne and poses/NN.txt, a directory of "
-        "'floxels simulate' sequences) or a text file listing sequence directories (one a line, "
+        "'floxels simulate' sequences; frame files beside sequences are refused) or a text file listing sequence directories (one a line, "
         "optionally 'PATH --poses FILE --calib FILE'). OUT then mirrors the input tree. Without --ray "
         "the sequences run here, one after another through one pipeline (the next one read while the "
         "current one is estimated); with --ray, one worker per GPU does the same with the sequences it "
