@@ -118,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into e.g. `head`, which exited: not an error of ours
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as e:  # the place, not the program: a read-only file system, a full disk, ...
+        print(f"floxels: error: {e}", file=sys.stderr)
+        return 2
     return 0 if rc is None else int(rc)
 
 

@@ -123,6 +123,9 @@ def maybe_run_dataset(args) -> int | None:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out {out} exists and is not a directory")
+    from floxels_ext.output_paths import check_writable_dir
+
+    check_writable_dir(out, "--out")  # before any sequence is opened (a read-only place)
     task_frames = args.task_frames if args.ray is not None else 0
     tasks, problems = plan_tasks(specs, out, args, task_frames=task_frames, align=args.chunk or 64)  # 64: half the run's default chunk
     if problems:

@@ -1,0 +1,120 @@
+"""Issue 45 through ``cli.main``: read-only places (item 8), empty names (item 9), output
+hygiene (item 10). A fake method (instant) stands in for Floxels."""
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from floxels_ext import cli, methods
+
+N = 4
+
+
+@pytest.fixture(scope="module")
+def seq():
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    return simulate_sequence("crossing", N, 5, beams=16, azimuth_steps=360)
+
+
+@pytest.fixture
+def fake(monkeypatch):
+    calls = []
+
+    def est(scans, frames, device, options, callback, times=None):
+        calls.append(list(frames))
+        for f in frames:
+            callback(f, np.tile(np.float32([0.4, 0, 0]), (len(scans[f]), 1)))
+
+    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
+    return calls
+
+
+def _npy_dir(seq, d):
+    d.mkdir(parents=True, exist_ok=True)
+    for i, fr in enumerate(seq.frames):
+        np.save(d / f"{i:06d}.npy", fr.points.astype(np.float32))
+    return d
+
+
+def _main(argv, capsys):
+    rc = cli.main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return rc, cap
+
+
+@pytest.fixture
+def read_only(monkeypatch, tmp_path):
+    """``tmp_path/ro`` behaves as a read-only file system (errno 30, EROFS: not a
+    PermissionError, which was the only kind caught): creating anything under it fails."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    (ro / "existing").mkdir()
+    real_open, real_mkdir = os.open, os.mkdir
+
+    def refuse(path):
+        return str(os.path.abspath(path)).startswith(str(ro))
+
+    def ro_open(path, flags, *a, **k):
+        if flags & (os.O_CREAT | os.O_WRONLY | os.O_RDWR) and refuse(path):
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *a, **k)
+
+    def ro_mkdir(path, *a, **k):
+        if refuse(path):
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_mkdir(path, *a, **k)
+
+    monkeypatch.setattr(os, "open", ro_open)
+    monkeypatch.setattr(os, "mkdir", ro_mkdir)
+    return ro
+
+
+@pytest.mark.parametrize("where", ["new/sub", "existing"])
+def test_out_in_a_read_only_place_is_refused_before_any_frame(seq, fake, tmp_path, capsys, read_only, where):
+    d = _npy_dir(seq, tmp_path / "in")
+    rc, cap = _main(["run", d, "--out", read_only / where, "--method", "fake", "--no-ego-motion", "--device", "cpu"],
+                    capsys)
+    assert rc == 2 and cap.err.startswith(f"floxels: error: --out {read_only / where}: cannot write"), cap.err
+    assert "Read-only file system" in cap.err and fake == []  # found before computing, not after
+    # a dataset's OUT root too
+    _npy_dir(seq, tmp_path / "data" / "a")
+    _npy_dir(seq, tmp_path / "data" / "b")
+    rc, cap = _main(["run", tmp_path / "data", "--out", read_only / where, "--method", "fake", "--no-ego-motion",
+                     "--device", "cpu"], capsys)
+    assert rc == 2 and "Read-only file system" in cap.err and fake == []
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only directories")
+def test_out_in_a_directory_without_write_permission(seq, fake, tmp_path, capsys):
+    d = _npy_dir(seq, tmp_path / "in")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        rc, cap = _main(["run", d, "--out", locked / "o", "--method", "fake", "--no-ego-motion", "--device", "cpu"],
+                        capsys)
+        assert rc == 2 and "cannot write" in cap.err and fake == []
+    finally:
+        locked.chmod(0o755)
+
+
+def test_simulate_into_a_read_only_place_or_an_empty_name(tmp_path, capsys, read_only, monkeypatch):
+    rc, cap = _main(["simulate", read_only / "s", "--small", "--frames", "1"], capsys)
+    assert rc == 2 and f"OUT_DIR {read_only / 's'}: cannot write in {read_only}" in cap.err, cap.err
+    monkeypatch.chdir(tmp_path)
+    rc, cap = _main(["simulate", "", "--small", "--frames", "1"], capsys)  # wrote into the current directory
+    assert rc == 2 and "OUT_DIR is empty" in cap.err and not list(tmp_path.glob("*.npz"))
+
+
+def test_an_empty_preset_is_refused_like_the_api(seq, fake, tmp_path, capsys):
+    from floxels_ext import FloxelsConfig
+
+    with pytest.raises(ValueError):
+        FloxelsConfig.preset("")
+    d = _npy_dir(seq, tmp_path / "in")
+    rc, cap = _main(["run", d, "--out", tmp_path / "o", "--preset", "", "--no-ego-motion", "--device", "cpu"], capsys)
+    assert rc == 2 and "unknown --preset ''" in cap.err and not (tmp_path / "o").exists()
