@@ -19,6 +19,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 from typing import Callable
 
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
@@ -100,6 +101,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning met while a command runs (the estimator's, numpy's, ...), printed as the
+    commands print theirs: ``floxels: warning: ...``, without the source line it was raised at
+    (for a command's user that line is inside the package, not theirs)."""
+    print(f"floxels: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
     from floxels_ext.evaluation.seqio import SequenceFormatError
@@ -107,7 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage
     try:
-        rc = args.func(args)
+        with warnings.catch_warnings():  # restores the display on the way out
+            warnings.showwarning = _show_warning
+            rc = args.func(args)
     except (CLIError, SequenceFormatError, LidarFormatError, MissingDependencyError, FileNotFoundError,
             NotADirectoryError, PermissionError) as e:
         print(f"floxels: error: {e}", file=sys.stderr)
