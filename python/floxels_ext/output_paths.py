@@ -24,7 +24,7 @@ def check_output_file(path, option: str, example: str = "out") -> Path:
     p = Path(path)
     if p.is_dir():
         raise CLIError(f"{option} {p} is an existing directory; give a file name, e.g. {p / example}")
-    parent = p.parent
+    parent = Path(os.path.realpath(p)).parent if p.is_symlink() else p.parent  # a link is written through
     if not parent.is_dir():
         raise CLIError(f"{option} {p}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
@@ -72,7 +72,13 @@ def _write_test(d: Path) -> str | None:
 
 
 def replace_atomically(tmp: Path, path: Path, write) -> Path:
-    """``write(tmp)``, then rename ``tmp`` to ``path``; ``tmp`` is removed if either fails."""
+    """``write(tmp)``, then rename ``tmp`` to ``path``; ``tmp`` is removed if either fails. A
+    ``path`` that is a symbolic link is written through (its target replaced, in the target's
+    directory), not replaced by a file."""
+    path, tmp = Path(path), Path(tmp)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
+        tmp = path.with_name(tmp.name)
     try:
         write(tmp)
         os.replace(tmp, path)

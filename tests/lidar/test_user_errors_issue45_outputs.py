@@ -118,3 +118,61 @@ def test_an_empty_preset_is_refused_like_the_api(seq, fake, tmp_path, capsys):
     d = _npy_dir(seq, tmp_path / "in")
     rc, cap = _main(["run", d, "--out", tmp_path / "o", "--preset", "", "--no-ego-motion", "--device", "cpu"], capsys)
     assert rc == 2 and "unknown --preset ''" in cap.err and not (tmp_path / "o").exists()
+
+
+def _run(args, capsys):
+    return _main(["run", *args, "--device", "cpu", "--method", "fake"], capsys)
+
+
+def test_force_on_a_subset_with_other_settings_and_eval_of_the_mix(seq, fake, tmp_path, capsys):
+    from floxels_ext.evaluation.seqio import save_sequence
+
+    save_sequence(tmp_path / "sim", seq)
+    out = tmp_path / "o"
+    rc, cap = _run([tmp_path / "sim", "--out", out, "--scans", "3"], capsys)
+    assert rc == 0, cap.err
+    rc, cap = _main(["eval", out, tmp_path / "sim"], capsys)
+    assert rc == 0, cap.err
+    rc, cap = _run([tmp_path / "sim", "--out", out, "--scans", "3", "--force", "--frames", "1:2",
+                    "--dynamic-threshold", "0.2"], capsys)
+    assert rc == 0 and "floxels: warning: --force recomputes --frames 1:2 only; 3 other output(s)" in cap.err
+    assert "dynamic_threshold" in cap.err
+    rc, cap = _main(["eval", out, tmp_path / "sim"], capsys)  # scored the mix without a word before
+    assert rc == 2 and "mixes outputs written with 2 different settings: 000000, 000002..000003 and 000001" \
+        in cap.err and "dynamic_threshold: 0.05 vs 0.2" in cap.err, cap.err
+    rc, cap = _main(["eval", out, tmp_path / "sim", "--frames", "2:4"], capsys)  # one part: fine
+    assert rc == 0, cap.err
+
+
+def test_outputs_of_deleted_frames_are_set_aside(seq, fake, tmp_path, capsys):
+    d = _npy_dir(seq, tmp_path / "in")
+    out = tmp_path / "o"
+    rc, cap = _run([d, "--out", out, "--no-ego-motion", "--scans", "3"], capsys)
+    assert rc == 0
+    (d / "000003.npy").unlink()  # a bad sweep deleted from the input
+    rc, cap = _run([d, "--out", out, "--no-ego-motion", "--scans", "3"], capsys)
+    assert rc == 0 and "moved 1 output(s) of frames no longer in the input" in cap.err and "000003.npz" in cap.err
+    assert sorted(p.name for p in out.glob("*.npz")) == ["000000.npz", "000001.npz", "000002.npz"]
+    assert (out / "orphaned" / "000003.npz").is_file()  # kept, out of the run's outputs
+    assert "recomputing 1 frame(s) whose inputs changed" in cap.err  # 000002, whose window lost 000003
+
+
+def test_a_broken_symlink_frame_fails_by_name_and_is_no_dropped_frame(seq, fake, tmp_path, capsys):
+    d = _npy_dir(seq, tmp_path / "in")
+    (d / "000002.npy").unlink()
+    (d / "000002.npy").symlink_to(tmp_path / "gone.npy")
+    rc, cap = _run([d, "--out", tmp_path / "o", "--no-ego-motion", "--scans", "3"], capsys)
+    assert rc == 1 and "000002.npy: broken symbolic link" in cap.err and "1 failed" in cap.err, cap.err
+    assert "gaps in the frame numbers" not in cap.err  # was taken for a dropped frame (offsets of 2)
+
+
+def test_summary_through_a_symlink_is_written_through(seq, fake, tmp_path, capsys):
+    d = _npy_dir(seq, tmp_path / "in")
+    (tmp_path / "reports").mkdir()
+    target = tmp_path / "reports" / "summary.json"
+    target.write_text("{}")
+    link = tmp_path / "summary.json"
+    link.symlink_to(target)
+    rc, cap = _run([d, "--out", tmp_path / "o", "--no-ego-motion", "--scans", "3", "--summary", link], capsys)
+    assert rc == 0, cap.err
+    assert link.is_symlink() and '"written": 4' in target.read_text()

@@ -103,7 +103,7 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool) -
         pose_mode, poses = resolve_poses(seq, args_seq, out, report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report)
+    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, sweep=sweep)
     return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses, **plan}
 
 

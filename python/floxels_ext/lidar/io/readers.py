@@ -249,6 +249,8 @@ def read_points(path, *, bin_columns: int | None = None) -> LidarScan:
     if suffix not in READERS:
         raise LidarFormatError(f"{p}: unknown lidar file extension {p.suffix!r}; supported: {', '.join(SUFFIXES)}")
     if not p.is_file():
+        if p.is_symlink() and not p.exists():
+            raise LidarFormatError(f"{p}: broken symbolic link (to {os.readlink(p)}, which does not exist)")
         raise LidarFormatError(f"{p}: no such file" if not p.exists() else f"{p}: not a regular file")
     try:
         return read_bin(p, bin_columns) if suffix == ".bin" else READERS[suffix](p)

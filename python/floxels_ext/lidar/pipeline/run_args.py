@@ -194,16 +194,20 @@ def check_out_dir(out: Path, seq) -> None:
 
 
 def resume_plan(seq, selected: list[int], out, args, options: dict, settings, pose_mode: str, poses, report,
-                resume_report=None) -> dict:
+                resume_report=None, sweep: bool = True) -> dict:
     """What a sequence's run writes and what is already done, the same for ``floxels run SEQ``
     and each sequence of a dataset: the run's settings, each selected frame's output path, the
     frames' timestamps and times (s), what each output depends on (its window's files, poses,
     times: lidar/pipeline/resume.py) and the frames still to do (:func:`check_resume`, which
-    reports to ``resume_report``, default ``report``). Keys: settings, out_path, stamps,
-    times_s, times_source, inputs, todo."""
+    reports to ``resume_report``, default ``report``). ``sweep``: first set aside the outputs of
+    frames no longer in the input (``out_dir.py``). Keys: settings, out_path, stamps, times_s,
+    times_source, inputs, todo."""
+    from floxels_ext.lidar.pipeline.out_dir import set_aside_orphans, warn_mixed_settings
     from floxels_ext.lidar.pipeline.resume import input_records
     from floxels_ext.lidar.pipeline.run_inputs import frame_times, run_settings
 
+    if sweep:
+        set_aside_orphans(seq, Path(out), report)
     settings_ = run_settings(args, options, settings, pose_mode, seq)
     out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
     # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
@@ -212,6 +216,8 @@ def resume_plan(seq, selected: list[int], out, args, options: dict, settings, po
     times_s, times_source = frame_times(seq, stamps, report)
     inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
     todo = check_resume(out_path, selected, settings_, args.force, inputs=inputs, report=resume_report or report)
+    if args.force and args.frames:
+        warn_mixed_settings(seq, Path(out), range(*parse_frame_range(args.frames, len(seq))), settings_, report)
     return {"settings": settings_, "out_path": out_path, "stamps": stamps, "times_s": times_s,
             "times_source": times_source, "inputs": inputs, "todo": todo}
 
