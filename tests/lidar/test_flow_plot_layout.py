@@ -58,3 +58,15 @@ def test_wheel_outside_the_scene_and_labels_apart(with_truth):
         assert ("(true " in key_text) == with_truth
     finally:
         plt.close(fig)
+
+
+def test_plain_raster_wheel_in_a_strip_beside_the_view():
+    from floxels_ext.lidar.viz.show import render_frame
+
+    pts, flow = _crowded_scene()
+    data = {"points": pts, "flow": flow, "mask": np.ones(len(pts), bool)}
+    bare = render_frame(data, legend=False)
+    img = render_frame(data)
+    assert img.shape[1] == bare.shape[1] + 72
+    np.testing.assert_array_equal(img[:, :bare.shape[1]], bare)  # the view untouched by the wheel
+    assert (img[:, bare.shape[1]:] != img[0, -1]).any()  # the wheel is drawn in the strip

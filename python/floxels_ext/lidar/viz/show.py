@@ -3,10 +3,11 @@ recording (``pip install 'floxels_ext[viz]'``).
 
 With matplotlib (extra ``viz``) the picture is :func:`floxels_ext.lidar.viz.flow_plot.plot_flow_bev`:
 metres on the axes, a scale bar, moving points coloured by direction and speed (colour
-wheel), moving objects boxed with their speeds, zoom panels on them. Without matplotlib a
-plain raster (:func:`render_frame`) is written instead: optimised points coloured by height,
-the others dim grey, flow arrows whose hue is the heading (wheel top right) and brightness
-the speed.
+wheel beside the scene), moving objects boxed and numbered (their speeds in a key under the
+wheel), zoom panels on them. Without matplotlib a plain raster (:func:`render_frame`) is
+written instead: optimised points coloured by height, the others dim grey, flow arrows whose
+hue is the heading (wheel in a strip right of the view, outside the data) and brightness the
+speed.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.nd
 
 def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, center=None,
                  flow_scale: float = 1.0, legend: bool = True) -> np.ndarray:
-    """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask)."""
+    """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask); with ``legend`` the
+    heading wheel is in a strip of 72 columns right of the view."""
     from floxels_ext.lidar.viz.bev_png import BACKGROUND, bev_image
 
     pts = np.asarray(data["points"], np.float64)
@@ -56,7 +58,12 @@ def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, c
     rest = bev_image(pts[ok & ~mask], color_by="grey", **kw)
     empty = np.all(img == BACKGROUND, axis=2) & ~np.all(rest == BACKGROUND, axis=2)
     img[empty] = (0.45 * rest[empty] + 0.55 * np.array(BACKGROUND)).astype(np.uint8)
-    return direction_wheel(img) if legend else img
+    if not legend:
+        return img
+    # the wheel in a strip of its own right of the view, not over its top right corner
+    strip = np.empty((img.shape[0], 2 * 28 + 2 * 8, 3), np.uint8)
+    strip[:] = BACKGROUND
+    return direction_wheel(np.concatenate([img, strip], axis=1))
 
 
 def _default_center(points) -> tuple[float, float]:
@@ -77,10 +84,10 @@ def add_parser(sub) -> None:
                        description="Render one output of 'floxels run' (a .npz file, or RUN_DIR with --frame) as a "
                                    "bird's-eye-view PNG. With matplotlib (pip install 'floxels_ext[viz]'): metres on "
                                    "the axes and a scale bar, moving points coloured by direction (hue) and speed "
-                                   "(saturation; colour wheel), each moving object boxed and labelled with its median "
-                                   "speed, zoom panels with flow arrows on the largest ones, ground and cropped points "
+                                   "(saturation; colour wheel beside the scene), each moving object boxed and numbered "
+                                   "(median speeds in a key under the wheel), zoom panels with flow arrows on the largest ones, ground and cropped points "
                                    "grey. Without matplotlib: a plain raster (points coloured by height, flow arrows "
-                                   "coloured by direction, legend wheel top right), sized by --extent/--resolution "
+                                   "coloured by direction, legend wheel in a strip on the right), sized by --extent/--resolution "
                                    "and with arrows scaled by --flow-scale.")
     p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
     p.add_argument("--frame", default=None, help="with a RUN_DIR: the frame's name (e.g. 000042) or its index among "
