@@ -1,42 +1,22 @@
 """Issue 45 item 7 through ``cli.main``: a dataset's sequences are found at any depth, stray
 frame files never hide the sequences below them, and earlier outputs are not inputs."""
 
-import numpy as np
 import pytest
-
-from floxels_ext import cli, methods
+from cli_doubles import main as _main
+from cli_doubles import npy_frames as _frames
+from cli_doubles import register_fake, simulated
 
 FAST = ["--device", "cpu", "--scans", "3", "--method", "fake", "--no-ego-motion"]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def seq():
-    from floxels_ext.evaluation.sim import simulate_sequence
-
-    return simulate_sequence("crossing", 3, 4, beams=16, azimuth_steps=360)
+    return simulated(3, 4)
 
 
 @pytest.fixture(autouse=True)
 def fake(monkeypatch):
-    def est(scans, frames, device, options, callback):
-        for f in frames:
-            callback(f, np.asarray(scans[f], np.float32) * 0.01)
-
-    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
-
-
-def _frames(seq, d, n=None):
-    d.mkdir(parents=True, exist_ok=True)
-    for i, fr in enumerate(seq.frames[:n]):
-        np.save(d / f"{i:06d}.npy", fr.points.astype(np.float32))
-    return d
-
-
-def _main(argv, capsys):
-    rc = cli.main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    assert "Traceback" not in cap.err
-    return rc, cap
+    return register_fake(monkeypatch)
 
 
 def test_sequences_at_any_depth(seq, tmp_path, capsys):

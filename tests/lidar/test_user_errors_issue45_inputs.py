@@ -7,28 +7,22 @@ import zlib
 
 import numpy as np
 import pytest
+from cli_doubles import main, register_fake, simulated
 
-from floxels_ext import cli, methods
 from floxels_ext.lidar.io.outputs import read_flow_output
 from floxels_ext.lidar.preprocess import transform_points
 
 N = 6
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def seq():
-    from floxels_ext.evaluation.sim import simulate_sequence
-
-    return simulate_sequence("crossing", N, 1, beams=16, azimuth_steps=360)
+    return simulated(N, 1)
 
 
 @pytest.fixture
 def fake(monkeypatch):
-    def est(scans, frames, device, options, callback, times=None):
-        for f in frames:
-            callback(f, np.tile(np.float32([0.4, 0, 0]), (len(scans[f]), 1)))
-
-    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
+    return register_fake(monkeypatch)
 
 
 def _rot_z(a):
@@ -79,10 +73,7 @@ def _export(seq, d, kiss, mount=np.eye(4)):
 
 
 def _run(args, capsys):
-    rc = cli.main(["run", *map(str, args), "--device", "cpu"])
-    cap = capsys.readouterr()
-    assert "Traceback" not in cap.err
-    return rc, cap
+    return main(["run", *args, "--device", "cpu"], capsys)
 
 
 def test_odometry_poses_follow_the_scans_they_were_computed_from(seq, fake, kiss, tmp_path, capsys):

@@ -4,46 +4,22 @@ hygiene (item 10). A fake method (instant) stands in for Floxels."""
 import errno
 import os
 
-import numpy as np
 import pytest
-
-from floxels_ext import cli, methods
+from cli_doubles import main as _main
+from cli_doubles import npy_frames as _npy_dir
+from cli_doubles import register_fake, simulated
 
 N = 4
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def seq():
-    from floxels_ext.evaluation.sim import simulate_sequence
-
-    return simulate_sequence("crossing", N, 5, beams=16, azimuth_steps=360)
+    return simulated(N, 5)
 
 
 @pytest.fixture
 def fake(monkeypatch):
-    calls = []
-
-    def est(scans, frames, device, options, callback, times=None):
-        calls.append(list(frames))
-        for f in frames:
-            callback(f, np.tile(np.float32([0.4, 0, 0]), (len(scans[f]), 1)))
-
-    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
-    return calls
-
-
-def _npy_dir(seq, d):
-    d.mkdir(parents=True, exist_ok=True)
-    for i, fr in enumerate(seq.frames):
-        np.save(d / f"{i:06d}.npy", fr.points.astype(np.float32))
-    return d
-
-
-def _main(argv, capsys):
-    rc = cli.main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    assert "Traceback" not in cap.err
-    return rc, cap
+    return register_fake(monkeypatch)
 
 
 @pytest.fixture

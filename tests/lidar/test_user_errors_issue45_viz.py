@@ -2,45 +2,27 @@
 pick the frame they are told, by name or by its index among the run's input frames, and a
 frame without output is an error that says so (it used to draw the next output)."""
 
-import numpy as np
 import pytest
-
-from floxels_ext import cli, methods
+from cli_doubles import main as _main
+from cli_doubles import npy_frames, register_fake, simulated
 
 N = 6
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def seq():
-    from floxels_ext.evaluation.sim import simulate_sequence
-
-    return simulate_sequence("crossing", N, 3, beams=16, azimuth_steps=360)
+    return simulated(N, 3)
 
 
 @pytest.fixture
 def fake(monkeypatch):
-    def est(scans, frames, device, options, callback, times=None):
-        for f in frames:
-            callback(f, np.tile(np.float32([0.4, 0, 0]), (len(scans[f]), 1)))
-
-    monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
-
-
-def _main(argv, capsys):
-    rc = cli.main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    assert "Traceback" not in cap.err
-    return rc, cap
+    return register_fake(monkeypatch)
 
 
 def _npy_dir(seq, d, name="{i:06d}", broken=()):
-    d.mkdir(parents=True, exist_ok=True)
-    for i, fr in enumerate(seq.frames):
-        path = d / f"{name.format(i=i)}.npy"
-        if i in broken:
-            path.write_bytes(b"not a numpy file")
-        else:
-            np.save(path, fr.points.astype(np.float32))
+    npy_frames(seq, d, name=name)
+    for i in broken:
+        (d / f"{name.format(i=i)}.npy").write_bytes(b"not a numpy file")
     return d
 
 
