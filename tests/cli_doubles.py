@@ -18,9 +18,10 @@ def simulated(n: int, seed: int):
     return _SEQS[n, seed]
 
 
-def register_fake(monkeypatch, flow=(0.4, 0.0, 0.0), name: str = "fake") -> list:
-    """Registers method ``name`` answering ``flow`` for every point (instant, exact); returns
-    the list of the frame lists it was asked for."""
+def register_fake(monkeypatch, flow=(0.4, 0.0, 0.0), name: str = "fake", support_frames=None) -> list:
+    """Registers method ``name`` answering ``flow`` for every point (instant, exact; reading
+    the scans of ``support_frames(i, n, options)`` besides its own, when given); returns the
+    list of the frame lists it was asked for."""
     calls = []
 
     def est(scans, frames, device, options, callback, times=None):
@@ -28,7 +29,8 @@ def register_fake(monkeypatch, flow=(0.4, 0.0, 0.0), name: str = "fake") -> list
         for f in frames:
             callback(f, np.tile(np.float32(flow), (len(scans[f]), 1)))
 
-    monkeypatch.setitem(methods._REGISTRY, name, methods.Method(name, "test double", est))
+    monkeypatch.setitem(methods._REGISTRY, name, methods.Method(name, "test double", est,
+                                                                support_frames=support_frames))
     return calls
 
 

@@ -180,11 +180,16 @@ def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
               file=sys.stderr, flush=True)
     run = [t for t in tasks if t.todo]
     bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
+
+    def report(msg: str) -> None:  # with -q a frame's or task's error is said once, in the final list
+        if verbosity >= 0 or not msg.startswith("floxels: error:"):
+            bar.message(msg)
+
     for _ in range(len(tasks) - len(run)):
         bar.sequence("skipped")
     t0 = time.perf_counter()
     try:
-        res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
+        res = run_tasks(run, args, report=report, on_frame=lambda job, i: bar.frames(1),
                         on_sequence=lambda task, outcome, job, lines: bar.sequence(outcome))
     finally:
         bar.close()

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from floxels_ext.lidar.pipeline.frame_checks import frame_failure
 from floxels_ext.lidar.pipeline.frame_loader import ChunkScans, FrameLoader, GroundView, SensorView
 from floxels_ext.lidar.pipeline.frame_writer import WriterPool
 from floxels_ext.methods import accepts
@@ -133,8 +134,9 @@ def run_pipeline(*, loader: FrameLoader, writer: WriterPool, method, todo: list[
                 now = time.perf_counter()
                 dt, t_last[0] = now - t_last[0], now
                 p = loader.get(i)
-                if p is None:
-                    failed[i] = loader.errors.get(i, "unreadable")
+                why = None if p is None else frame_failure(method, options, loader, i, n, fields)
+                if p is None or why is not None:
+                    failed[i] = why or loader.errors.get(i, "unreadable")
                 else:
                     elapsed.append(dt)
                     flow_kept = np.asarray(flow_kept, np.float32).reshape(-1, 3)

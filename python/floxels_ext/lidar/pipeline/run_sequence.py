@@ -112,7 +112,8 @@ def run_sequence(args) -> int:
     stages = Stages()
     writer = WriterPool(write_one, stages, workers=writers, kind=kind, drain=min(DRAIN_WRITERS, host_cores(args)))
     try:
-        loader = FrameLoader(seq, settings, poses, pose_mode, report, workers=workers, kind=kind, pre_device=pre_dev,
+        # a frame's error as it happens; with -q the final list is the one place that names it
+        loader = FrameLoader(seq, settings, poses, pose_mode, info, workers=workers, kind=kind, pre_device=pre_dev,
                              keep_points=args.self_contained, stages=stages,
                              keep_ground=get_method(args.method).wants_ground(options),
                              warn=lambda m: report(f"floxels: warning: {m}"))
