@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from floxels_ext.lidar.pipeline.estimate_loop import READ_AHEAD, plan_chunks, snap_anchor
+from floxels_ext.lidar.pipeline.estimate_loop import READ_AHEAD, chunk_anchor, plan_chunks
 from floxels_ext.lidar.preprocess.transform import transform_points
 
 __all__ = ["Layout", "StreamScans", "Targets", "TRANSFORM_AHEAD"]
@@ -46,7 +46,7 @@ class Segment:
                 for i in range(self.lo, self.hi):
                     p = self.job.loader.get(i)
                     if p is not None:
-                        a = snap_anchor(p.to_world[:3, 3])
+                        a = chunk_anchor(p)
                         break
                 self._anchor.append(a)
             return self._anchor[0]
