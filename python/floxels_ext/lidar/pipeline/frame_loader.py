@@ -96,7 +96,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
         return out
     pts = scan.points if scan.points.dtype == np.float32 else scan.points.astype(np.float32)
     # float64 files: the points kept, the ground and the sensor-frame points come from the
-    # float64 rows, so map-scale coordinates keep their precision until ChunkScans re-centres
+    # float64 rows, so map-scale coordinates keep their precision until the engine re-centres
     # them (issue 45); float32 files far out have lost it already: said once
     exact = scan.exact if scan.exact is not None else pts
     if exact is pts:
