@@ -3,6 +3,7 @@ in for Floxels, frames written as .npy files, and ``cli.main`` run with its stde
 tracebacks."""
 
 import numpy as np
+import pytest
 
 from floxels_ext import cli, methods
 
@@ -32,6 +33,12 @@ def register_fake(monkeypatch, flow=(0.4, 0.0, 0.0), name: str = "fake", support
     monkeypatch.setitem(methods._REGISTRY, name, methods.Method(name, "test double", est,
                                                                 support_frames=support_frames))
     return calls
+
+
+@pytest.fixture
+def fake(monkeypatch):
+    """The instant method as ``--method fake`` (import this fixture into a test module)."""
+    return register_fake(monkeypatch)
 
 
 def npy_frames(seq, d, n=None, name="{i:06d}"):

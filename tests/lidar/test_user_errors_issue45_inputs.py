@@ -7,7 +7,7 @@ import zlib
 
 import numpy as np
 import pytest
-from cli_doubles import main, register_fake, simulated
+from cli_doubles import fake, main, simulated  # noqa: F401  (fake: the --method fake fixture)
 
 from floxels_ext.lidar.io.outputs import read_flow_output
 from floxels_ext.lidar.preprocess import transform_points
@@ -18,11 +18,6 @@ N = 6
 @pytest.fixture
 def seq():
     return simulated(N, 1)
-
-
-@pytest.fixture
-def fake(monkeypatch):
-    return register_fake(monkeypatch)
 
 
 def _rot_z(a):

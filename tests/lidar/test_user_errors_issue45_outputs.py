@@ -7,7 +7,7 @@ import os
 import pytest
 from cli_doubles import main as _main
 from cli_doubles import npy_frames as _npy_dir
-from cli_doubles import register_fake, simulated
+from cli_doubles import fake, simulated  # noqa: F401  (fake: the --method fake fixture)
 
 N = 4
 
@@ -15,11 +15,6 @@ N = 4
 @pytest.fixture
 def seq():
     return simulated(N, 5)
-
-
-@pytest.fixture
-def fake(monkeypatch):
-    return register_fake(monkeypatch)
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@ frame without output is an error that says so (it used to draw the next output).
 
 import pytest
 from cli_doubles import main as _main
-from cli_doubles import npy_frames, register_fake, simulated
+from cli_doubles import fake, npy_frames, simulated  # noqa: F401  (fake: the --method fake fixture)
 
 N = 6
 
@@ -12,11 +12,6 @@ N = 6
 @pytest.fixture
 def seq():
     return simulated(N, 3)
-
-
-@pytest.fixture
-def fake(monkeypatch):
-    return register_fake(monkeypatch)
 
 
 def _npy_dir(seq, d, name="{i:06d}", broken=()):
