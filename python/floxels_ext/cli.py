@@ -20,6 +20,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 from typing import Callable
 
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
@@ -122,6 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning met while a command runs (the estimator's, numpy's, ...), printed as the
+    commands print theirs: ``floxels: warning: ...``, without the source line it was raised at
+    (for a command's user that line is inside the package, not theirs)."""
+    print(f"floxels: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage (and --help exits 0)
@@ -130,7 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     from floxels_ext.evaluation.seqio import SequenceFormatError
 
     try:
-        rc = args.func(args)
+        with warnings.catch_warnings():  # restores the display on the way out
+            warnings.showwarning = _show_warning
+            rc = args.func(args)
     except (CLIError, SequenceFormatError, LidarFormatError, MissingDependencyError, FileNotFoundError,
             NotADirectoryError, PermissionError) as e:
         print(f"floxels: error: {e}", file=sys.stderr)
@@ -141,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into e.g. `head`, which exited: not an error of ours
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as e:  # the place, not the program: a read-only file system, a full disk, ...
+        print(f"floxels: error: {e}", file=sys.stderr)
+        return 2
     return 0 if rc is None else int(rc)
 
 

@@ -105,7 +105,10 @@ class Recentring:
 
     def apply(self, t: torch.Tensor) -> torch.Tensor:
         """``t`` minus the shift, computed in float64, returned as float32 (NaN/inf rows stay
-        non-finite); ``t`` itself when there is no shift."""
+        non-finite); ``t`` itself when there is no shift. Detached either way: the estimator
+        returns no gradient, and a tensor that requires one (``requires_grad=True``) is read
+        as data (numpy() refuses it)."""
+        t = t.detach()
         if not self.active or t.shape[0] == 0:
             return t
         s = device_values(self.shift.tolist(), torch.float64, t.device)

@@ -159,6 +159,31 @@ def _read_pred(pp: Path, gp: Path, n: int, all_points: bool = True):
     return np.asarray(flow, dtype=np.float64), mask
 
 
+def _check_one_run(pred_dir, paths: dict[int, Path]) -> None:
+    """Refuse predictions written with different settings (``floxels run --force --frames``
+    with other options over part of an OUT_DIR left it mixed, and the mix was scored as one
+    method). Outputs without a ``settings`` record (other writers) are not compared."""
+    from floxels_ext.numpy_files import open_npz
+
+    groups: dict[str, list[int]] = {}
+    for i, p in paths.items():
+        try:
+            with open_npz(p) as z:
+                key = json.dumps(json.loads(str(z["settings"])), sort_keys=True) if "settings" in z.files else None
+        except Exception:  # unreadable: reported by the full read
+            continue
+        if key is not None:
+            groups.setdefault(key, []).append(i)
+    if len(groups) > 1:
+        (ka, fa), (kb, fb) = sorted(groups.items(), key=lambda kv: kv[1][0])[:2]
+        a, b = json.loads(ka), json.loads(kb)
+        diff = [f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        raise CLIError(f"{pred_dir} mixes outputs written with {len(groups)} different settings: {_frame_list(fa)} "
+                       f"and {_frame_list(fb)} differ in {'; '.join(diff)[:300] or 'their settings'}; scores of the "
+                       f"mix would be no one run's. Recompute the odd ones with the same options (floxels run "
+                       f"--force), or score one part with --frames")
+
+
 def _numbered(d) -> dict[int, Path]:
     """Frame files NNNNNN.npz of a prediction directory by number (any subset: a partial run)."""
     from floxels_ext.evaluation.seqio import _FRAME_RE
@@ -210,6 +235,7 @@ def load_eval_pair(pred_dir, gt_dir, raw_classes: bool = False, frames: str | No
                            f"in {pred_dir} (first: {seqio.frame_path(pred_dir, missing[0]).name})")
     else:
         chosen = sorted(pred_paths)
+    _check_one_run(pred_dir, {i: pred_paths[i] for i in chosen})
     out_frames, preds = [], []
     total = left_out = 0
     for i in chosen:

@@ -73,6 +73,8 @@ def _run_simulate(args) -> int:
 
     if args.frames < 1:
         raise CLIError("--frames must be >= 1")
+    if not args.out_dir.strip():  # Path('') is the current directory: never meant
+        raise CLIError("OUT_DIR is empty; give the directory to write the sequence to")
     out = Path(args.out_dir)
     if out.exists() and not out.is_dir():
         raise CLIError(f"{out} exists and is not a directory")
@@ -97,6 +99,9 @@ def _run_simulate(args) -> int:
     if getattr(args, "verbosity", 0) > 0 or secs > 60:
         print(f"simulating {args.frames} frame(s) of {beams} x {steps} rays: estimated {mem / 1e9:.1f} GB peak memory, "
               f"~{secs:.0f} s on one core", flush=True)
+    from floxels_ext.output_paths import check_writable_dir
+
+    check_writable_dir(out, "OUT_DIR")  # a read-only place before the work, not a traceback after it
     t0 = time.perf_counter()
     try:
         seq = simulate_sequence(args.scene, args.frames, args.seed, small=args.small,

@@ -100,7 +100,7 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool, s
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
     from floxels_ext.lidar.pipeline.resume import resume_plan
-    from floxels_ext.lidar.pipeline.run_args import check_out_dir
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, parse_frame_range
     from floxels_ext.lidar.pipeline.run_inputs import resolve_poses
 
     spec = task.seq
@@ -121,8 +121,12 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool, s
         pose_mode, poses = resolve_poses(seq, args_seq, out, report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, resume_report=say)
-    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses, **plan}
+    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, resume_report=say,
+                       sweep=sweep)
+    # the frames the run selects (--frames) of which this task is a part (a Ray task's range)
+    run_range = parse_frame_range(getattr(args, "frames", None), len(seq))
+    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses,
+            "run_range": run_range, **plan}
 
 
 def _with(args, **changes):

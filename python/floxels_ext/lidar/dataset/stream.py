@@ -39,6 +39,7 @@ import numpy as np
 
 from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
 from floxels_ext.lidar.dataset.scan_views import GroundView, SegmentView, SensorView
+from floxels_ext.lidar.pipeline.frame_checks import frame_failure
 from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
 from floxels_ext.methods import accepts
 
@@ -168,8 +169,9 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
         job = seg.job
         delivered.add(g)
         p = job.loader.get(i)
-        if p is None:
-            resolve(job, i, job.loader.errors.get(i, "unreadable"))
+        why = None if p is None else frame_failure(method, options, job.loader, i, len(job.seq), fields)
+        if p is None or why is not None:
+            resolve(job, i, why or job.loader.errors.get(i, "unreadable"))
         else:
             if not job.times:  # its wall time starts when the stream starts working on it
                 job.t_start = now - dt

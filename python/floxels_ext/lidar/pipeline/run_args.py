@@ -72,7 +72,8 @@ def resolve_preset(args) -> dict:
     from floxels_ext.cli import CLIError
     from floxels_ext.estimator.config import PRESETS, FloxelsConfig
 
-    name = getattr(args, "preset", None) or "paper"
+    name = getattr(args, "preset", None)
+    name = "paper" if name is None else name  # '' is refused like any unknown name (as the API does)
     if name not in PRESETS:
         raise CLIError(f"unknown --preset {name!r}; choose from {', '.join(PRESETS)}")
     if name != "paper" and getattr(args, "method", "floxels") != "floxels":
@@ -178,7 +179,10 @@ def apply_cpu_default(args, device: str, report=None) -> None:
 
 
 def check_out_dir(out: Path, seq) -> None:
+    """``--out`` not the input, and a place that takes files (tried with a write: a read-only
+    place is refused here, before any frame is read). Raises CLIError."""
     from floxels_ext.cli import CLIError
+    from floxels_ext.output_paths import check_writable_dir
 
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out {out} exists and is not a directory")
@@ -188,6 +192,7 @@ def check_out_dir(out: Path, seq) -> None:
         if o == d:
             raise CLIError(f"--out {out} is {what}: the outputs would be taken for input frames by the next run; "
                            f"choose another directory")
+    check_writable_dir(out, "--out")
 
 
 def host_cores(args) -> int:
