@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections.abc
 import math
+import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -23,7 +24,7 @@ import torch
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DistanceTransform, EarlyDts
 from floxels_ext.estimator.group import fit_group
-from floxels_ext.estimator.result import FloxelsResult
+from floxels_ext.estimator.result import HOST_PARTS, FloxelsResult
 from floxels_ext.estimator.scans import check_ground, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
 from floxels_ext.estimator.schedule import serial_stages
 from floxels_ext.estimator.windows import RAMP_START, Window, solve_windows, window_for
@@ -60,6 +61,7 @@ class Floxels:
         callers optimising several targets over the same scans build each DT once.
         ``times``/``frame_period``/``sensor_origins``/``ground_points``: see :func:`estimate_flow`.
         """
+        t0 = time.perf_counter()
         cache = dt_cache if dt_cache is not None else {}
         early = EarlyDts(self.config, cache)
         warn_if_no_sensors(self.config, sensor_origins)
@@ -67,6 +69,11 @@ class Floxels:
                              sensors=sensor_origins, grounds=ground_points)
         res = fit_group(self.config, [(prep, cache)], early.streams)[0]
         warn_diverged(self.config, [("the target", res)])
+        res.timings.update(prep.timings)
+        whole = time.perf_counter() - t0
+        # the host's time of the whole call, and what no named part holds (HOST_PARTS)
+        res.timings["whole"] = whole
+        res.timings["other"] = whole - sum(res.timings.get(k, 0.0) for k in HOST_PARTS)
         return res
 
     def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:

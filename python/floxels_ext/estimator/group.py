@@ -23,7 +23,7 @@ from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
 from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.solver_run import SolverRun
-from floxels_ext.estimator.schedule import EdtStreams, PrepareSchedule, receive
+from floxels_ext.estimator.schedule import EdtStreams, GpuMarks, PrepareSchedule, receive
 from floxels_ext.ops.grid import grid_from_bounds, point_bounds
 from floxels_ext.ops.setup import problem_setup_many
 from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
@@ -95,7 +95,7 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
                 sights.append(d.sight)
         # sights where some support scan has one (a scan without counts everywhere)
         supports.append((dts, origins, offsets, weights, sights if any(s is not None for s in sights) else None))
-    timings["dt"] = time.perf_counter() - t0  # serial: wall time; else replaced by GPU time (dt_events)
+    timings["dt"] = timings["dt_host"] = time.perf_counter() - t0  # "dt": replaced by GPU time (dt_events)
     with sched.targets():
         labels, problems, orders, grids = _targets(cfg, items, supports, target_bounds, timings, poll)
     sched.hand_over(items, problems, orders, labels)
@@ -108,12 +108,15 @@ def solve_group(cfg: FloxelsConfig, prepared: Prepared, wait_for=None) -> Solvin
     t0 = time.perf_counter()
     packs = prepared.packs if prepared.packs is not None else pack(cfg, prepared)
     receive(prepared, packs, wait_for)
+    marks = GpuMarks(prepared.items[0][0].points[0].device)
+    marks.mark("solver")
     runs = []
     for group, packed in packs:
         run = SolverRun(packed)
         run.poll()
         runs.append((group, packed, run))
-    return Solving(cfg, prepared, runs, t0)
+    prepared.timings["pack"] = time.perf_counter() - t0
+    return Solving(cfg, prepared, runs, t0, marks)
 
 
 def pack(cfg: FloxelsConfig, prepared: Prepared) -> list:
@@ -198,8 +201,10 @@ class Solving:
     """Optimisations under way for one prepared group: ``poll()`` keeps them queued,
     ``finish()`` waits for them and builds the results."""
 
-    def __init__(self, cfg: FloxelsConfig, prepared: Prepared, runs: list, t0: float) -> None:
+    def __init__(self, cfg: FloxelsConfig, prepared: Prepared, runs: list, t0: float,
+                 marks: GpuMarks | None = None) -> None:
         self.cfg, self.prepared, self.runs, self.t0 = cfg, prepared, runs, t0
+        self.marks = marks
 
     def poll(self) -> None:
         for _, _, run in self.runs:
@@ -207,11 +212,15 @@ class Solving:
 
     def finish(self) -> list[FloxelsResult]:
         pr, cfg = self.prepared, self.cfg
+        t_solve = time.perf_counter()
         solved: dict[int, tuple] = {}
         hosts = []
         for group, packed, run in self.runs:
             run.finish(wait=False)  # the read-backs below queue behind the last iterations
             hosts.append(packed.summaries_start())
+        if self.marks is not None:
+            self.marks.mark("results")
+        t_results = time.perf_counter()
         for group, packed, run in self.runs:
             for b, k in enumerate(group):
                 solved[k] = packed.best_params(b).clone()
@@ -247,9 +256,13 @@ class Solving:
             flows.append(flow)
         # every frame's output in one transfer (numpy outputs of CUDA flows), then the one
         # synchronisation of the read-backs
+        if self.marks is not None:
+            self.marks.mark("end")
+        t_readback = time.perf_counter()
         outs, ev_outs = restore_outputs(flows, [prep for prep, _ in pr.items], evidence)
         for _, packed, run in self.runs:
             run.wait()
+        t_finish = time.perf_counter()
         summaries: dict[int, tuple] = {}
         for (group, packed, _), host in zip(self.runs, hosts):
             for k, summary in zip(group, packed.summaries(host)):
@@ -257,6 +270,15 @@ class Solving:
         timings = dict(pr.timings)
         if pr.dt_events is not None:  # the EDTs overlapped other work: their GPU time
             timings["dt"] = 1e-3 * pr.dt_events[0].elapsed_time(pr.dt_events[1])
+        # host time, in order (bench_speed names every part of a frame): the result kernels'
+        # launches; the read-back, which waits for the solver's and those kernels' GPU work;
+        # the summaries and results built after it
+        timings["solve"] = t_results - t_solve  # CPU: the optimisation; CUDA: its last launches
+        timings["results"] = t_readback - t_results
+        timings["readback"] = t_finish - t_readback
+        timings["finish"] = time.perf_counter() - t_finish
+        if self.marks is not None:  # GPU time from the solver's enqueue on (no synchronisation)
+            timings.update(self.marks.spans())
         timings["optimise"] = time.perf_counter() - self.t0
         timings["total"] = time.perf_counter() - pr.t_start
         if len(pr.items) > 1:

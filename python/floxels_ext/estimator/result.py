@@ -8,7 +8,19 @@ import torch
 
 from floxels_ext.ops.corners import CompactCorners
 
-__all__ = ["FloxelsResult", "DivergedWarning"]
+__all__ = ["FloxelsResult", "DivergedWarning", "HOST_PARTS"]
+
+#: The parts of a frame's host time, in the order they run (``FloxelsResult.timings``, seconds;
+#: ``Floxels.fit`` adds "whole", the call's time, and "other", what none of them holds):
+#: checks (validation, conversion), recentre (the float64 shift), stage (staging, uploads, the
+#: early EDT launches), dt_host (the other EDT launches), dbscan, setup (the problems' tables,
+#: one synchronisation), pack (packing, the solver's first launches), solve (on the CPU the
+#: optimisation itself, on CUDA its last launches), results (gathering the flow,
+#: evidence test and refinement launches), readback (the one transfer: it waits for the
+#: solver's and the result kernels' GPU work), finish (summaries, results). GPU spans from the
+#: solver's enqueue: "solver_gpu", "results_gpu"; "dt" is the EDTs' GPU time on CUDA.
+HOST_PARTS = ("checks", "recentre", "stage", "dt_host", "dbscan", "setup", "pack", "solve", "results", "readback",
+              "finish")
 
 
 class DivergedWarning(UserWarning):

@@ -15,6 +15,7 @@ Policy for bad input (documented in the README):
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -47,6 +48,9 @@ class PreparedScans:
     # each scan's removed ground returns (checked (m, 3) tensors, not re-centred),
     # when given: only the range images of ``visibility`` read them
     grounds: list[torch.Tensor | None] | None = None
+    # host seconds of this window's preparation: "checks" (validation and conversion), "recentre"
+    # (choosing the float64 shift), "stage" (staging, uploads, the early EDT launches)
+    timings: dict | None = None
 
     def sensor(self, i: int) -> np.ndarray | None:
         """Sensor position of scan ``i`` of the window, or None when not given."""
@@ -170,6 +174,7 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     window); scans far from the origin are moved near it in float64 first. ``sensors``: each
     scan's sensor position (xyz, in the scans' frame; checked, see :func:`check_sensors`).
     ``grounds``: each scan's removed ground returns (see :func:`check_ground`)."""
+    t_start = time.perf_counter()
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
     scans = list(scans)
@@ -214,7 +219,9 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     todo.sort(key=lambda i: i == target)  # support scans first (their EDTs are the longest work)
     if recentring is None:
         recentring = Recentring()
+    t_checked = time.perf_counter()
     recentring.decide(tensors)
+    t_recentred = time.perf_counter()
     if sensors is not None:
         sensors = [None if s is None else s - recentring.shift for s in sensors]
     ready = None if on_ready is None else (
@@ -241,7 +248,9 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
                          offsets=offsets, supports=supports,
                          was_numpy=isinstance(scans[0], np.ndarray), in_dtype=scans[0].dtype,
                          in_device=tensors[0].device, num_target_points=tensors[target].shape[0], bounds=bounds,
-                         recentring=recentring, sensors=sensors, grounds=grounds)
+                         recentring=recentring, sensors=sensors, grounds=grounds,
+                         timings={"checks": t_checked - t_start, "recentre": t_recentred - t_checked,
+                                  "stage": time.perf_counter() - t_recentred})
 
 
 def check_sensors(sensors, n: int, first_index: int = 0) -> list[np.ndarray | None]:

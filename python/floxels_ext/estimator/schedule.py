@@ -35,7 +35,7 @@ from floxels_ext.ops.setup import stage_points
 from floxels_ext.switches import flag
 
 __all__ = ["serial_stages", "sync_device", "side_stream", "EdtStreams", "PrepareSchedule", "receive", "Pipeline",
-           "staged_uploads", "upload", "host_float32"]
+           "staged_uploads", "upload", "host_float32", "GpuMarks"]
 
 _SIDE_STREAMS: dict = {}
 
@@ -204,6 +204,25 @@ class Pipeline:
     def preparing(self):
         """The context in which a batch is prepared."""
         return torch.cuda.stream(self.side) if self.side is not None else contextlib.nullcontext()
+
+
+class GpuMarks:
+    """Timing events recorded on the current stream at named points of a group's solve
+    (``mark``), read once the stream has passed them (``spans``: seconds from each mark to
+    the next, keyed ``<name>_gpu``); nothing on the CPU. No synchronisation of their own."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.on = device.type == "cuda"
+        self.events: list = []
+
+    def mark(self, name: str) -> None:
+        if self.on:
+            ev = _timing_event()
+            ev.record()
+            self.events.append((name, ev))
+
+    def spans(self) -> dict[str, float]:
+        return {f"{a}_gpu": 1e-3 * ea.elapsed_time(eb) for (a, ea), (_, eb) in zip(self.events, self.events[1:])}
 
 
 # ----------------------------------------------------------------------------- staging
