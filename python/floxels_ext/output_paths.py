@@ -15,7 +15,7 @@ def check_output_file(path, option: str, example: str = "out") -> Path:
     """``path`` as a Path if a file can be written there: not an existing directory, in an
     existing directory. Raises ``CLIError`` naming ``option`` otherwise. ``example``: a file
     name suggested inside a directory given by mistake."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     p = Path(path)
     if p.is_dir():

@@ -116,7 +116,7 @@ def _walk(root: Path, exclude: Path | None) -> list[Path]:
 
 
 def _read_list(list_file: Path) -> list[SequenceSpec]:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     specs = []
     base = list_file.parent
@@ -161,7 +161,7 @@ def discover_dataset(input_path, out=None, patterns: list[str] | None = None) ->
     """The sequences of a dataset root or list file, sorted by output path; None when INPUT is
     one sequence (the plain ``floxels run`` reads it). ``patterns`` (shell globs on the output
     sub-path, e.g. ``sequences/0[0-5]/*``) select sequences. Raises CLIError when INPUT holds none."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     root = Path(input_path)
     if not root.exists():

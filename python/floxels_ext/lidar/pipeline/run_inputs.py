@@ -14,7 +14,7 @@ __all__ = ["resolve_poses", "odometry_poses", "frame_times", "run_settings", "ou
 
 def resolve_poses(seq, args, out: Path, report):
     """(pose_mode, poses) for the sequence; raises CLIError when ego-motion cannot be resolved."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if args.no_ego_motion and (args.poses or args.odometry):
         raise CLIError("--no-ego-motion contradicts --poses/--odometry")

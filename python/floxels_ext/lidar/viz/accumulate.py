@@ -95,7 +95,7 @@ def _run_frames(run_dir: Path) -> list[Path]:
 def load_run_frame(path: Path) -> dict:
     """One ``floxels run`` output (:func:`floxels_ext.lidar.io.outputs.read_flow_output`, points included:
     stored or read back from the source file); errors name the file."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
 
     try:
@@ -110,7 +110,7 @@ def accumulate_run(run_dir, frame: int | str, *, neighbours: int = 2, mode: str 
     output directory with its ``neighbours`` outputs on each side (``use_flow=False``: ego-motion
     compensation only, the 'before' picture). Returns (points (M,3) in the
     reference frame's coordinates, time offset (M,) int32, frame names used)."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     files = _run_frames(Path(run_dir))
     names = [p.stem for p in files]
@@ -162,7 +162,7 @@ _OFFSET_COLOURS = np.array([[255, 255, 255], [240, 80, 60], [60, 160, 250], [250
 
 
 def run(args: argparse.Namespace) -> int:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.writers import write_ply
 
     if args.neighbours < 1:
