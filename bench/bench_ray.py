@@ -64,14 +64,16 @@ def run_job(argv: list[str], out: Path) -> dict:
     err = StringIO()
     watch = FirstOutput(out)
     watch.start()
-    t0 = time.perf_counter()
+    t0, t0_wall = time.perf_counter(), time.time()
     with redirect_stderr(err):
         rc = cli.main([argv[0], argv[1], "--out", str(out), *argv[2:]])
     wall = time.perf_counter() - t0
     watch.stop = True
     watch.join()
     frames = sum(1 for _ in out.rglob("*.npz"))
-    row = dict(rc=rc, wall_s=wall, frames=frames, fps=frames / wall, first_output_s=watch.first)
+    # t0/t1 (time.time()): the row's span, for tools/host_sampler.py's per-row summary
+    row = dict(rc=rc, wall_s=wall, frames=frames, fps=frames / wall, first_output_s=watch.first,
+               t0=t0_wall, t1=t0_wall + wall)
     if watch.first is not None and wall > watch.first:
         row["fps_after_first"] = frames / (wall - watch.first)
     if rc != 0:

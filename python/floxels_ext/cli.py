@@ -8,9 +8,11 @@ file's logic: list the module in ``SUBCOMMAND_MODULES`` (or call ``register``). 
 module exposes ``add_parser(subparsers)``, which creates its parser with
 ``subparsers.add_parser(name, help=...)`` and sets ``func`` via ``set_defaults(func=run)``;
 ``run(args)`` returns an exit code (or None for 0). Keep such modules' top-level imports light
-and import heavy things inside ``run``. User mistakes (missing files, bad arguments, malformed
-data) should raise ``CLIError`` (``floxels_ext.errors``) or ``seqio.SequenceFormatError``: ``main`` prints
-``floxels: error: <message>`` to stderr and exits with status 2, without a traceback.
+and import heavy things inside ``run``: ``floxels --help`` imports every one of them and loads
+neither torch nor numpy (tests/test_cli_startup.py). User mistakes (missing files, bad
+arguments, malformed data) should raise ``CLIError`` (``floxels_ext.errors``) or
+``seqio.SequenceFormatError``: ``main`` prints ``floxels: error: <message>`` to stderr and
+exits with status 2, without a traceback.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 # The order is the order of ``floxels --help``.
 SUBCOMMAND_MODULES: list[str] = ["floxels_ext.evaluation.simulate_cli", "floxels_ext.evaluation.eval_cli",
                                  "floxels_ext.evaluation.demo", "floxels_ext.lidar.run",
-                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show"]
+                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show",
+                                 "floxels_ext.lidar.export.command"]
 _EXTRA: list[Callable] = []
 
 
@@ -70,6 +73,13 @@ class _Parser(argparse.ArgumentParser):
         self.print_usage(sys.stderr)
         self.exit(2, f"floxels: error: {message}\n")
 
+    def format_help(self) -> str:
+        # a subcommand's description may be a function: text that needs heavy imports (numpy)
+        # is built only when this help is printed, so that `floxels --help` stays fast
+        if callable(self.description):
+            self.description = self.description()
+        return super().format_help()
+
 
 def _version() -> str:
     try:
@@ -82,12 +92,25 @@ def _version() -> str:
         return __version__
 
 
+class _PrintVersion(argparse.Action):
+    """``--version``: the version is looked up when asked for (importlib.metadata costs ~40 ms of
+    every ``floxels`` start otherwise)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default,
+                         help=help or "show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"floxels_ext {_version()}")  # to stdout, as argparse's own version action does
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The top-level parser. Global options: ``--version``; ``-q/--quiet`` and ``-v/--verbose``
     (also after the subcommand), stored as ``args.verbosity`` = -1, 0 or 1, which
     subcommands read with ``getattr(args, "verbosity", 0)``."""
     parser = _Parser(prog="floxels", description="Floxels scene flow tools.")
-    parser.add_argument("--version", action="version", version=f"floxels_ext {_version()}")
+    parser.add_argument("--version", action=_PrintVersion)
     _add_verbosity(parser, 0)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
     sub.add_parser = _with_verbosity(sub.add_parser)
@@ -99,11 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage (and --help exits 0)
+    # imported after parsing: they load numpy, which `floxels --help` does not need
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
     from floxels_ext.evaluation.seqio import SequenceFormatError
 
-    parser = build_parser()
-    args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage
     try:
         rc = args.func(args)
     except (CLIError, SequenceFormatError, LidarFormatError, MissingDependencyError, FileNotFoundError,

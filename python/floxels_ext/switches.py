@@ -55,7 +55,7 @@ SWITCHES: tuple[Switch, ...] = (
     Switch("FLOXELS_RAMP", "1", "estimate_sequence, every call",
            "0 = full-size first batches instead of 4, 8, ... frames"),
     # tests and CI
-    Switch("FLOXELS_AV2_PAIR", "unset", "tests/evaluation/test_metrics_av2.py",
+    Switch("FLOXELS_AV2_PAIR", "unset", "tests/conftest.py (the tests on the Argoverse 2 pair)",
            "path of the shared Argoverse 2 pair (.npz) when it is not under ../shared/data"),
     Switch("FLOXELS_CI_VENV", "/tmp/floxels-ci-venv", ".ci/run", "the virtual environment CI creates"),
 )

@@ -27,6 +27,7 @@ stream (with a synchronisation after the EDTs, so stage timings are wall times).
 from __future__ import annotations
 
 import contextlib
+import sys
 
 import torch
 
@@ -273,19 +274,51 @@ def upload(t: torch.Tensor, dev: torch.device) -> torch.Tensor:
     return out
 
 
+class _ReadBack:
+    """Page-locked host buffers for read-backs, reused once every array handed out from one is
+    gone. The arrays are views of one numpy array per buffer (``arr``), so ``arr``'s reference
+    count says whether any is still held (a writer thread, a caller's list); a fresh
+    page-locked allocation per group cost ~1 ms a frame of idle GPU in ``floxels run``
+    (tools/run_gaps.py: ``torch.empty`` under ``host_float32``, bench/RESULTS.md). At most
+    ``KEEP`` buffers are kept; beyond them (a caller keeping every result) new ones are not
+    pooled and go with their arrays."""
+
+    KEEP = 4
+
+    def __init__(self) -> None:
+        self.pool: list = []  # [(page-locked tensor, its numpy view)]
+
+    def take(self, numel: int):
+        """(tensor, numpy view) of at least ``numel`` floats that nothing else holds."""
+        best = None
+        for k, (t, arr) in enumerate(self.pool):
+            # 3 = this list's tuple, the loop's name, getrefcount's argument
+            if t.numel() >= numel and sys.getrefcount(arr) <= 3 and (best is None or t.numel() < self.pool[best][0].numel()):
+                best = k
+        if best is not None:
+            return self.pool[best]
+        t = torch.empty(max(1 << 20, 1 << max(numel - 1, 0).bit_length()), dtype=torch.float32, pin_memory=True)
+        entry = (t, t.numpy())
+        if len(self.pool) < self.KEEP:
+            self.pool.append(entry)
+        return entry
+
+
+_READBACK = _ReadBack()
+
+
 def host_float32(tensors: list[torch.Tensor]):
     """float32 numpy copies of (N_i, k) tensors; CUDA ones in one page-locked transfer and one
-    synchronisation (the arrays are views of one buffer; per-tensor copies from pageable memory
-    cost a synchronisation and ~0.3 ms per 100k points each)."""
+    synchronisation (the arrays are views of one reused buffer, :class:`_ReadBack`; per-tensor
+    copies from pageable memory cost a synchronisation and ~0.3 ms per 100k points each)."""
     import numpy as np
 
     if not tensors or not any(t.is_cuda for t in tensors):
         return [t.cpu().numpy().astype(np.float32, copy=False) for t in tensors]
     flat = torch.cat([t.reshape(-1).to(torch.float32) for t in tensors])
-    host = torch.empty(flat.shape, dtype=torch.float32, pin_memory=True)
-    host.copy_(flat, non_blocking=True)
+    host, arr = _READBACK.take(flat.numel())
+    host[:flat.numel()].copy_(flat, non_blocking=True)
     torch.cuda.current_stream(flat.device).synchronize()
-    arr = host.numpy()  # keeps `host` alive
     out, at = [], 0
     for t in tensors:
         n = t.numel()

@@ -24,7 +24,6 @@ import os
 from pathlib import Path
 
 from floxels_ext.errors import CLIError
-from floxels_ext.numpy_files import open_npz
 
 __all__ = ["add_parser", "run", "load_eval_pair", "format_metrics"]
 
@@ -64,6 +63,8 @@ def add_parser(sub) -> None:
 
 # ----------------------------------------------------------------------------- loading
 def _keys(path: Path) -> set[str]:
+    from floxels_ext.numpy_files import open_npz  # (numpy: not at the top, for a fast `floxels --help`)
+
     try:
         with open_npz(path) as z:
             return set(z.files)
@@ -106,6 +107,8 @@ def _read_pred(pp: Path, gp: Path, n: int, all_points: bool = True):
     truth's point count. The mask is the prediction's ``mask`` (the points its run optimised)
     unless ``all_points`` or the file has none (then every point)."""
     import numpy as np
+
+    from floxels_ext.numpy_files import open_npz
 
     if not pp.is_file():
         raise CLIError(f"missing predicted frame {pp} (ground truth {gp} exists)")

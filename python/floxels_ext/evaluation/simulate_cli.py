@@ -36,14 +36,17 @@ def default_memory_limit() -> float:
     return 8e9
 
 
-def add_parser(sub) -> None:
-    from floxels_ext.evaluation.sim.scenes import SCENES  # light: numpy only
+# The names of sim.scenes.SCENES, spelt out: importing the simulator (numpy and all) for the
+# parser would slow down every `floxels --help`; tests/test_cli_startup.py checks they agree.
+SCENE_NAMES = ("crossing", "highway", "parking", "urban")
 
+
+def add_parser(sub) -> None:
     p = sub.add_parser("simulate", help="write a synthetic lidar sequence with ground-truth flow",
                        description="Simulate a spinning lidar in a synthetic scene and write one .npz per frame "
                                    "(points, pose, flow, classes, instance, ground, dynamic).")
     p.add_argument("out_dir", metavar="OUT_DIR", help="output sequence directory")
-    p.add_argument("--scene", choices=sorted(SCENES), default="urban")
+    p.add_argument("--scene", choices=SCENE_NAMES, default="urban")
     from floxels_ext.cli_types import finite_float, nonnegative_float, nonnegative_int, positive_float, positive_int
 
     p.add_argument("--seed", type=nonnegative_int, default=0)

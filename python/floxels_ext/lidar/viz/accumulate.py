@@ -22,13 +22,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
+# numpy is imported inside the functions: `floxels --help` loads this module for its parser and
+# must stay fast (cli.py: subcommand modules keep their top-level imports light)
 
 __all__ = ["accumulate", "accumulate_run", "add_parser", "run"]
 
 
 def _nearest_flow(src_pts: np.ndarray, src_flow: np.ndarray, query: np.ndarray, radius: float,
                   fallback: np.ndarray) -> np.ndarray:
+    import numpy as np
     from scipy.spatial import cKDTree
 
     if len(src_pts) == 0:
@@ -47,6 +49,8 @@ def accumulate(points: list, flows: list, reference: int, *, mode: str = "consta
     ``points[k]``, ``flows[k]``: (N_k, 3) in one common frame (``flows[k]`` may be None for the
     reference scan, which is not moved). Non-finite rows are dropped. Returns (M, 3) float32
     points and (M,) int32 index of the scan each came from."""
+    import numpy as np
+
     if mode not in ("constant-velocity", "chain"):
         raise ValueError(f"mode must be 'constant-velocity' or 'chain', got {mode!r}")
     if len(points) != len(flows):
@@ -110,6 +114,8 @@ def accumulate_run(run_dir, frame: int | str, *, neighbours: int = 2, mode: str 
     output directory with its ``neighbours`` outputs on each side (``use_flow=False``: ego-motion
     compensation only, the 'before' picture). Returns (points (M,3) in the
     reference frame's coordinates, time offset (M,) int32, frame names used)."""
+    import numpy as np
+
     from floxels_ext.errors import CLIError
 
     files = _run_frames(Path(run_dir))
@@ -157,11 +163,14 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-_OFFSET_COLOURS = np.array([[255, 255, 255], [240, 80, 60], [60, 160, 250], [250, 190, 40], [90, 210, 120],
-                            [200, 100, 230], [120, 220, 220]], np.uint8)
+# colour of each time offset: 0, +1, -1, +2, -2, ... (more distant ones share the last)
+_OFFSET_COLOURS = ((255, 255, 255), (240, 80, 60), (60, 160, 250), (250, 190, 40), (90, 210, 120),
+                   (200, 100, 230), (120, 220, 220))
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.writers import write_ply
 
@@ -172,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output_file(args.out, "--out", "dense.ply")
     pts, off, names = accumulate_run(args.run_dir, args.frame, neighbours=args.neighbours, mode=args.mode,
                                      mask_only=args.mask_only, radius=args.radius, use_flow=not args.no_flow)
-    rgb = _OFFSET_COLOURS[np.minimum(np.abs(off) * 2 - (off < 0), len(_OFFSET_COLOURS) - 1)]
+    rgb = np.array(_OFFSET_COLOURS, np.uint8)[np.minimum(np.abs(off) * 2 - (off < 0), len(_OFFSET_COLOURS) - 1)]
     write_ply(out, pts, time_offset=off.astype(np.int8), red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
     print(f"wrote {out}: {len(pts)} points from frames {names[0]}..{names[-1]} "
           f"({'no motion' if args.no_flow else args.mode})")

@@ -15,13 +15,16 @@ import argparse
 import math
 from pathlib import Path
 
-import numpy as np
+# numpy is imported inside the functions: `floxels --help` loads this module for its parser and
+# must stay fast (cli.py: subcommand modules keep their top-level imports light)
 
 __all__ = ["add_parser", "run", "render_frame", "direction_wheel"]
 
 
 def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.ndarray:
     """Draw the heading colour legend (same mapping as ``viz.bev_image``) in the top-right corner."""
+    import numpy as np
+
     from floxels_ext.lidar.viz.bev_png import hsv_to_rgb
 
     h, w, _ = img.shape
@@ -42,6 +45,8 @@ def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.nd
 def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, center=None,
                  flow_scale: float = 1.0, legend: bool = True) -> np.ndarray:
     """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask)."""
+    import numpy as np
+
     from floxels_ext.lidar.viz.bev_png import BACKGROUND, bev_image
 
     pts = np.asarray(data["points"], np.float64)
@@ -61,6 +66,8 @@ def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, c
 
 def _default_center(points) -> tuple[float, float]:
     """The sensor (origin) when the points surround it, else the points' median."""
+    import numpy as np
+
     pts = np.asarray(points, np.float64)
     ok = np.isfinite(pts).all(1)
     if not ok.any():
@@ -121,6 +128,8 @@ def _resolve(target: str, frame: str) -> Path:
 
 
 def write_rerun(path: Path, data: dict, name: str) -> None:
+    import numpy as np
+
     from floxels_ext.lidar.io._optional import require
 
     rr = require("rerun", "viz", "rerun-sdk", "writing rerun recordings (--rerun)")

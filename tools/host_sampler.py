@@ -1,0 +1,206 @@
+"""What a host's cores, GPUs and page cache do while a job runs (issue 44: why 4 GPUs collapse).
+
+Runs beside a job and samples every ``--interval`` seconds, until ``--stop-file`` appears or
+``--duration`` passes:
+
+* the whole host: CPU busy share (/proc/stat), load average, page cache dirty/writeback (MB);
+* every process whose command line matches ``--match`` (regex; default: Ray's floxels workers
+  and the python driver): its CPU (cores), its thread count, how many of its threads used more
+  than 0.2 / 0.8 of a core, its main thread's share (the thread that feeds the GPU);
+* every GPU: utilisation (%) and memory, from ``nvidia-smi --query-gpu`` (when present).
+
+Writes every sample as JSON lines to ``OUT/samples.jsonl`` and, with ``--windows FILE`` (a
+JSON list of {"name", "t0", "t1"} in time.time() seconds, e.g. the rows bench_ray.py records),
+a per-window summary to ``OUT/summary.json`` and stdout. Measurement only: nothing of the
+package imports it.
+
+    python tools/host_sampler.py --out OUT --stop-file OUT/stop &   # then run the job
+    touch OUT/stop; python tools/host_sampler.py --summarise OUT --windows rows.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+HZ = os.sysconf("SC_CLK_TCK")
+DEFAULT_MATCH = r"FloxelsWorker|floxels|bench_ray|bench_run|ray::IDLE|raylet|gcs_server"
+
+
+def _cpu_total() -> tuple[int, int]:
+    with open("/proc/stat") as f:
+        vals = [int(v) for v in f.readline().split()[1:]]
+    idle = vals[3] + vals[4]
+    return sum(vals), idle
+
+
+def _meminfo() -> dict:
+    out = {}
+    with open("/proc/meminfo") as f:
+        for line in f:
+            k, v = line.split(":", 1)
+            if k in ("Dirty", "Writeback", "Cached", "Shmem", "MemAvailable"):
+                out[k] = int(v.split()[0]) / 1024.0  # MB
+    return out
+
+
+def _threads(pid: int) -> dict[int, int]:
+    """tid -> utime + stime (clock ticks)."""
+    out = {}
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            try:
+                with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+                out[int(tid)] = int(fields[11]) + int(fields[12])
+            except (OSError, IndexError, ValueError):
+                pass
+    except OSError:
+        pass
+    return out
+
+
+def _matching(pattern: re.Pattern) -> dict[int, str]:
+    out = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:
+            continue
+        if cmd and pattern.search(cmd) and int(d) != os.getpid():
+            out[int(d)] = cmd[:120]
+    return out
+
+
+def sample(out: Path, interval: float, stop_file: Path | None, duration: float, match: str) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    pattern = re.compile(match)
+    smi = None
+    if shutil.which("nvidia-smi"):
+        smi = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu,memory.used",
+                                "--format=csv,noheader,nounits", f"-lms={int(interval * 1000)}"],
+                               stdout=open(out / "gpu.csv", "w"), stderr=subprocess.DEVNULL)
+    t_end = time.time() + duration
+    prev_cpu = _cpu_total()
+    prev_threads: dict[int, dict[int, int]] = {}
+    names: dict[int, str] = {}
+    ncpu = os.cpu_count() or 1
+    with open(out / "samples.jsonl", "w") as log:
+        while time.time() < t_end and not (stop_file and stop_file.exists()):
+            time.sleep(interval)
+            now = time.time()
+            tot, idle = _cpu_total()
+            dt_tot, dt_idle = tot - prev_cpu[0], idle - prev_cpu[1]
+            prev_cpu = (tot, idle)
+            procs = _matching(pattern)
+            names.update(procs)
+            rows = {}
+            for pid in procs:
+                cur = _threads(pid)
+                before = prev_threads.get(pid)
+                prev_threads[pid] = cur
+                if before is None:
+                    continue
+                d = {tid: (cur[tid] - before.get(tid, cur[tid])) / HZ / interval for tid in cur}
+                rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), threads=len(cur),
+                                      busy02=sum(v > 0.2 for v in d.values()), busy08=sum(v > 0.8 for v in d.values()),
+                                      main=d.get(pid, 0.0), top=sorted(d.values(), reverse=True)[:6])
+            try:
+                load = os.getloadavg()[0]
+            except OSError:
+                load = None
+            log.write(json.dumps(dict(t=now, host_busy=1.0 - dt_idle / max(dt_tot, 1), cores=ncpu, load=load,
+                                      mem=_meminfo(), procs=rows)) + "\n")
+            log.flush()
+    if smi is not None:
+        smi.terminate()
+
+
+def summarise(out: Path, windows: list[dict]) -> list[dict]:
+    samples = [json.loads(line) for line in open(out / "samples.jsonl")]
+    gpu = []
+    if (out / "gpu.csv").exists():
+        # nvidia-smi prints one line per GPU per period, without a timestamp: spread them over the
+        # samples' span in order (periods are equal)
+        lines = [ln.split(",") for ln in open(out / "gpu.csv") if ln.count(",") == 2]
+        gpu = [(int(a), float(b), float(c)) for a, b, c in lines]
+    res = []
+    t_first = samples[0]["t"] if samples else 0.0
+    t_last = samples[-1]["t"] if samples else 0.0
+    n_gpu = len({g[0] for g in gpu}) or 1
+    periods = len(gpu) // n_gpu
+    for w in windows:
+        ss = [s for s in samples if w["t0"] <= s["t"] <= w["t1"]]
+        if not ss:
+            continue
+        row = dict(name=w["name"], seconds=w["t1"] - w["t0"], samples=len(ss),
+                   host_busy=sum(s["host_busy"] for s in ss) / len(ss), cores=ss[0]["cores"],
+                   load_max=max((s["load"] or 0) for s in ss),
+                   dirty_mb_max=max(s["mem"].get("Dirty", 0) for s in ss),
+                   writeback_mb_max=max(s["mem"].get("Writeback", 0) for s in ss))
+        procs: dict[str, list] = {}
+        for s in ss:
+            for pid, p in s["procs"].items():
+                procs.setdefault(pid, []).append(p)
+        prow = []
+        for pid, ps in procs.items():
+            cores = sum(p["cores"] for p in ps) / len(ps)
+            if cores < 0.05:
+                continue
+            prow.append(dict(pid=pid, cmd=ps[0]["cmd"][:60], cores=round(cores, 2),
+                             threads=max(p["threads"] for p in ps),
+                             busy02=round(sum(p["busy02"] for p in ps) / len(ps), 1),
+                             busy08=round(sum(p["busy08"] for p in ps) / len(ps), 1),
+                             main=round(sum(p["main"] for p in ps) / len(ps), 2)))
+        row["procs"] = sorted(prow, key=lambda r: -r["cores"])
+        if gpu and periods and t_last > t_first:
+            per = (t_last - t_first) / periods
+            k0 = max(0, int((w["t0"] - t_first) / per))
+            k1 = min(periods, int((w["t1"] - t_first) / per) + 1)
+            util: dict[int, list] = {}
+            for k in range(k0, k1):
+                for g in gpu[k * n_gpu:(k + 1) * n_gpu]:
+                    util.setdefault(g[0], []).append(g[1])
+            row["gpu_util"] = {i: round(sum(v) / len(v), 1) for i, v in sorted(util.items()) if v}
+        res.append(row)
+    (out / "summary.json").write_text(json.dumps(res, indent=1) + "\n")
+    for r in res:
+        print(f"\n== {r['name']}: {r['seconds']:.1f} s, host busy {100 * r['host_busy']:.0f} % of {r['cores']} cores, "
+              f"load max {r['load_max']:.0f}, dirty max {r['dirty_mb_max']:.0f} MB, writeback max "
+              f"{r['writeback_mb_max']:.0f} MB, GPU util {r.get('gpu_util')}")
+        for p in r["procs"][:12]:
+            print(f"   {p['pid']:>7} {p['cores']:6.2f} cores  {p['threads']:4d} threads  {p['busy02']:5.1f} >0.2  "
+                  f"{p['busy08']:5.1f} >0.8  main {p['main']:.2f}  {p['cmd']}")
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--interval", type=float, default=0.5)
+    ap.add_argument("--stop-file", type=Path)
+    ap.add_argument("--duration", type=float, default=3600.0)
+    ap.add_argument("--match", default=DEFAULT_MATCH)
+    ap.add_argument("--summarise", type=Path, help="summarise an earlier sampling folder")
+    ap.add_argument("--windows", type=Path, help="JSON list of {name, t0, t1}")
+    args = ap.parse_args()
+    if args.summarise:
+        windows = json.loads(args.windows.read_text()) if args.windows else []
+        if windows and isinstance(windows, dict):  # a bench JSON with rows holding t0/t1
+            windows = [dict(name=r["mode"], t0=r["t0"], t1=r["t1"]) for r in windows.get("rows", []) if "t0" in r]
+        summarise(args.summarise, windows)
+    else:
+        sample(args.out, args.interval, args.stop_file, args.duration, args.match)
+
+
+if __name__ == "__main__":
+    main()
