@@ -10,7 +10,7 @@
 //  * origin lists are [x0, y0, z0];
 //  * non-finite points (a NaN/inf coordinate) give NaN gather rows and NaN losses, are ignored
 //    by scatters and occupancy, and are refused by dbscan and problem_setup (README "Op
-//    reference", tests/test_ops_nonfinite.py); bad host scalars are refused (common/check.h).
+//    reference", tests/ops/test_ops_nonfinite.py); bad host scalars are refused (common/check.h).
 #include <Python.h>
 #include <torch/library.h>
 
@@ -176,7 +176,7 @@ TORCH_LIBRARY(floxels, m) {
   // with a window_cells-wide square window, capped at a trimmed least-squares plane +
   // ground_max_rise (None: no cap); more than max_cells grid cells is an error. Before the
   // opening, points more than outlier_below under the block reference height
-  // (floxels_ext/lidar/ground_outliers.py) or above outlier_above (z) are outliers: they build
+  // (floxels_ext/lidar/preprocess/ground_outliers.py) or above outlier_above (z) are outliers: they build
   // no cell and are never kept (None: no such test). Equal to
   // floxels_ext.lidar.preprocess.preprocess_mask_numpy (the reference). Non-finite rows: False.
   m.def("lidar_keep_mask(Tensor points, float? min_range, float? max_range, float? max_height, bool remove_ground, "

@@ -1,6 +1,6 @@
 // Argument checks of the trilinear, cluster, corner and dbscan ops, shared by their CPU
 // implementations and CUDA bindings so both devices accept the same inputs and give the
-// same messages. (dt_loss has its own: csrc/cpu/dt_loss_args.h.)
+// same messages. (dt_loss has its own: csrc/common/dt_loss_args.h.)
 #pragma once
 #include "common/check.h"
 

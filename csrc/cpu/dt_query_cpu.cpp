@@ -18,7 +18,7 @@
 #include <tuple>
 #include <vector>
 
-#include "cpu/dt_loss_args.h"
+#include "common/dt_loss_args.h"
 #include "cpu/dt_scans.h"
 #include "kernels/dt_loss.h"
 #include "kernels/finite.h"

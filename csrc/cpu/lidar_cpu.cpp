@@ -1,6 +1,6 @@
 // CPU ops of the lidar pipeline, the per-frame host work of `floxels run`:
 //  * lidar_keep_mask / lidar_point_classes: cropping, outliers and ground removal,
-//    floxels_ext/lidar/preprocess.py's numpy reference step for step (float64, same grid, same
+//    floxels_ext/lidar/preprocess/masks.py's numpy reference step for step (float64, same grid, same
 //    block references, same filters, same trimmed plane);
 //  * rigid_transform: a 4x4 transform of (N, 3) points in float64;
 //  * lidar_select: the kept rows as an (M, 3) array and the rows with NaN/inf coordinates;
@@ -36,7 +36,7 @@ namespace {
 constexpr double kInf = std::numeric_limits<double>::infinity();
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-// Class codes of lidar_point_classes (preprocess.py's CROPPED, KEPT, GROUND, OUTLIER).
+// Class codes of lidar_point_classes (preprocess/settings.py's CROPPED, KEPT, GROUND, OUTLIER).
 enum : uint8_t { kCropped = 0, kKept = 1, kGround = 2, kOutlier = 3 };
 
 struct GroundGrid {
@@ -50,8 +50,8 @@ struct OutlierRule {
   double below, above;  // NaN: no such test
 };
 
-// Step 0 of preprocess.py's module docstring: flag the grid's outliers against the block
-// references of ground_outliers.py, then rebuild the lowest-point map without them.
+// Step 0 of preprocess/masks.py's module docstring: flag the grid's outliers against the block
+// references of preprocess/ground_outliers.py, then rebuild the lowest-point map without them.
 template <typename T>
 void drop_outliers(const lidar::Rows<T>& p, int64_t N, const OutlierRule& o, const double lo_c[2], double cell_size,
                    int64_t window_cells, GroundGrid& g, std::vector<double>& grid) {
@@ -80,7 +80,7 @@ void drop_outliers(const lidar::Rows<T>& p, int64_t N, const OutlierRule& o, con
     if (g.cell[i] >= 0 && !g.outlier[i]) grid[g.cell[i]] = std::min(grid[g.cell[i]], p.z(i));
 }
 
-// Steps 0-3 of preprocess.py's module docstring: lowest z per cell, outliers, opening, plane cap.
+// Steps 0-3 of preprocess/masks.py's module docstring: lowest z per cell, outliers, opening, plane cap.
 template <typename T>
 void build_ground(const lidar::Rows<T>& p, int64_t N, double cell_size, int64_t window_cells, double max_rise,
                   double grid_distance, int64_t max_cells, const OutlierRule& orule, GroundGrid& g) {

@@ -1,4 +1,4 @@
-// Step 0 of the ground surface (floxels_ext/lidar/ground_outliers.py, the reference): the robust
+// Step 0 of the ground surface (floxels_ext/lidar/preprocess/ground_outliers.py, the reference): the robust
 // reference height of every block of the lowest-point map, against which points far below the
 // ground (multipath) are outliers. Exact order statistics (nth_element picks the value the
 // reference's sort puts at the same index) and the reference's arithmetic, so both flag the
@@ -12,7 +12,7 @@
 
 namespace floxels {
 
-// ground_outliers.py's constants (tests/lidar/test_ground_outliers.py reads them there)
+// preprocess/ground_outliers.py's constants (tests/lidar/test_ground_outliers.py reads them there)
 constexpr int64_t kRefRadiusBlocks = 3;
 constexpr double kRefMaxSlope = 0.2;
 constexpr double kRefConeMargin = 1.0;

@@ -1,4 +1,4 @@
-// Step 3 of the ground surface (floxels_ext/lidar/preprocess.py, _plane_cap/_trimmed_plane):
+// Step 3 of the ground surface (floxels_ext/lidar/preprocess/ground_plane.py, _plane_cap/_trimmed_plane):
 // a plane z = a x + b y + c fitted by trimmed least squares to the cells of the opened map
 // (cells more than 0.2 m above the fit dropped, refitted, at most 6 fits), and the map capped
 // at that plane + max_rise. numpy solves each fit with lstsq (an SVD); here the centred normal

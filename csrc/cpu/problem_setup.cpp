@@ -1,7 +1,7 @@
 // floxels::problem_setup (and problem_setup_many, K targets with one synchronisation): the per-target preparation of the optimiser in one op with one
 // host synchronisation (it used to be ~60 Python-level torch calls with three: DBSCAN's
 // cluster count, torch.unique and torch.nonzero). Written with ATen calls, so the one
-// implementation serves every device; python/floxels_ext/reference.py
+// implementation serves every device; python/floxels_ext/reference/ops.py
 // (reference_problem_setup) is the same computation in Python, op for op, and the tests
 // compare the two exactly.
 //

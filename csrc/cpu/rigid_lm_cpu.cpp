@@ -13,7 +13,7 @@
 #include <vector>
 
 #include "cpu/dt_scans.h"
-#include "cpu/rigid_lm_args.h"
+#include "common/rigid_lm_args.h"
 #include "kernels/rigid_lm.h"
 
 namespace floxels {

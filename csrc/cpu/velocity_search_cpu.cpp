@@ -14,7 +14,7 @@
 #include <vector>
 
 #include "cpu/dt_scans.h"
-#include "cpu/velocity_search_args.h"
+#include "common/velocity_search_args.h"
 #include "kernels/rigid_lm.h"
 #include "kernels/velocity_search.h"
 

@@ -2,7 +2,7 @@
 // order (cluster_sums) and launches the per-point kernels on the current stream. No host
 // synchronisation: labels outside [-1, num_clusters) are not detected here (the Python
 // wrappers check them) and count as noise. Deterministic: the same input gives the same bytes
-// (tests/ops/test_determinism_cuda.py).
+// (tests/ops/test_determinism_solver_ops.py).
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>

@@ -14,7 +14,7 @@
 #include <tuple>
 #include <vector>
 
-#include "cpu/dt_loss_args.h"
+#include "common/dt_loss_args.h"
 #include "cuda/dt_inputs.h"
 #include "cuda/dt_loss_launch.h"
 #include "kernels/dt_loss.h"

@@ -17,7 +17,7 @@
 #include <tuple>
 #include <vector>
 
-#include "cpu/dt_loss_args.h"
+#include "common/dt_loss_args.h"
 #include "cuda/dt_inputs.h"
 #include "cuda/dt_query_launch.h"
 #include "kernels/dt_loss.h"

@@ -12,7 +12,7 @@
 #include <limits>
 #include <tuple>
 
-#include "cpu/rigid_lm_args.h"
+#include "common/rigid_lm_args.h"
 #include "cuda/dt_inputs.h"
 #include "cuda/rigid_lm_launch.h"
 

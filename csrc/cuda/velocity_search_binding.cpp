@@ -14,7 +14,7 @@
 #include <optional>
 #include <tuple>
 
-#include "cpu/velocity_search_args.h"
+#include "common/velocity_search_args.h"
 #include "cuda/dt_inputs.h"
 #include "cuda/velocity_search_launch.h"
 

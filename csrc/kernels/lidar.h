@@ -1,5 +1,5 @@
 // Per-point rules of the lidar pipeline ops (cpu/lidar_cpu.cpp): the cropping and ground tests
-// of floxels_ext/lidar/preprocess.py, the rigid transform, and the min/max running filters of
+// of floxels_ext/lidar/preprocess/masks.py, the rigid transform, and the min/max running filters of
 // the ground surface's morphological opening. Every comparison is written as the numpy
 // reference writes it, in float64, so the op's masks equal the reference's (NaN heights fail
 // every test, as there).
@@ -52,7 +52,7 @@ FLX_HD int compare_range(double x, double y, double limit) {
   return r < limit ? -1 : (r > limit ? 1 : 0);
 }
 
-// Class of one finite point at (x, y, z) (preprocess.py's CROPPED 0, KEPT 1, GROUND 2, OUTLIER 3,
+// Class of one finite point at (x, y, z) (preprocess/settings.py's CROPPED 0, KEPT 1, GROUND 2, OUTLIER 3,
 // in its precedence): height above the ground surface h (NaN where the point has no surface), or
 // z itself when no surface is built (need_surface false); outlier: step 0 flagged it.
 FLX_HD int point_class(const CropRule& c, double x, double y, double z, double h, bool need_surface, bool outlier) {

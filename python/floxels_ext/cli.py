@@ -10,8 +10,9 @@ module exposes ``add_parser(subparsers)``, which creates its parser with
 ``run(args)`` returns an exit code (or None for 0). Keep such modules' top-level imports light
 and import heavy things inside ``run``: ``floxels --help`` imports every one of them and loads
 neither torch nor numpy (tests/test_cli_startup.py). User mistakes (missing files, bad
-arguments, malformed data) should raise ``CLIError`` or ``seqio.SequenceFormatError``: ``main``
-prints ``floxels: error: <message>`` to stderr and exits with status 2, without a traceback.
+arguments, malformed data) should raise ``CLIError`` (``floxels_ext.errors``) or
+``seqio.SequenceFormatError``: ``main`` prints ``floxels: error: <message>`` to stderr and
+exits with status 2, without a traceback.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ import sys
 import warnings
 from typing import Callable
 
+from floxels_ext.errors import CLIError
+
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 
 # Modules with an ``add_parser(subparsers)`` function, added after the built-in commands.
@@ -32,10 +35,6 @@ SUBCOMMAND_MODULES: list[str] = ["floxels_ext.evaluation.simulate_cli", "floxels
                                  "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show",
                                  "floxels_ext.lidar.export.command"]
 _EXTRA: list[Callable] = []
-
-
-class CLIError(Exception):
-    """A user error: reported as ``floxels: error: ...`` with exit status 2."""
 
 
 def register(add_parser: Callable | str) -> None:
@@ -157,8 +156,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if rc is None else int(rc)
 
 
-if __name__ == "__main__":  # python -m floxels_ext.cli: run the imported module's main, so that its
-    # CLIError is the class the subcommands raise (this file as __main__ would define a second one)
-    from floxels_ext.cli import main as _main
-
-    sys.exit(_main())
+if __name__ == "__main__":
+    sys.exit(main())

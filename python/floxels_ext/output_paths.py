@@ -17,7 +17,7 @@ def check_output_file(path, option: str, example: str = "out") -> Path:
     """``path`` as a Path if a file can be written there: not an existing directory, in an
     existing directory. Raises ``CLIError`` naming ``option`` otherwise. ``example``: a file
     name suggested inside a directory given by mistake."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if not str(path).strip():
         raise CLIError(f"{option} is empty; give a file name, e.g. {example}")
@@ -38,7 +38,7 @@ def check_writable_dir(path, option: str) -> Path:
     permissions and ACLs alike); else its nearest existing parent is tried the same way (it
     must take the new directory; nothing is created here). Raises ``CLIError`` naming
     ``option`` otherwise."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if not str(path).strip():
         raise CLIError(f"{option} is empty; give a directory")

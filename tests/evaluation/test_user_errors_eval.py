@@ -116,3 +116,23 @@ def test_bad_categories_and_box_options(tmp_path, capsys):
     assert e.value.code == 2 and "argument --eval-box: must be a finite number > 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: the two box options exclude each other
         cli.main(["eval", str(pred), str(gt), "--eval-box", "10", "--no-eval-box"])
+
+
+def test_dataset_category_ids_go_through_the_sequence_reader(tmp_path, capsys):
+    """With --categories the ground truth's classes are dataset ids, read by ``seqio.read_frame``
+    like every frame (any integers kept); classes that are not integers are refused naming the file."""
+    gt, pred = tmp_path / "gt", tmp_path / "pred"
+    _pred(pred, [np.zeros((6, 3))] * 2)
+    gt.mkdir()
+    cmap = tmp_path / "map.json"
+    cmap.write_text('{"0": "background", "17": null}')
+    for classes in (np.array([17, 17, 0, 0, 0, 0]), np.full(6, 17.0)):
+        for i in range(2):
+            np.savez_compressed(frame_path(gt, i), points=np.arange(18, dtype=np.float32).reshape(6, 3),
+                                flow=np.zeros((6, 3), np.float32), classes=classes)
+        if classes.dtype.kind == "i":
+            assert cli.main(["eval", str(pred), str(gt), "--categories", str(cmap)]) == 0
+            capsys.readouterr()
+        else:
+            err = _err(capsys, ["eval", str(pred), str(gt), "--categories", str(cmap)])
+            assert "000000.npz: 'classes' must be (6,) integers" in err

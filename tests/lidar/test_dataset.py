@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from floxels_ext import cli
-from floxels_ext.cli import CLIError
+from floxels_ext.errors import CLIError
 from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 from floxels_ext.lidar.pipeline.run_args import parse_frame_range
 from floxels_ext.evaluation.seqio import save_sequence

@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.api import Floxels
     from floxels_ext.evaluation.metrics import flow_metrics

@@ -23,7 +23,7 @@ import math
 import os
 from pathlib import Path
 
-from floxels_ext.cli import CLIError
+from floxels_ext.errors import CLIError
 
 __all__ = ["add_parser", "run", "load_eval_pair", "format_metrics"]
 
@@ -89,38 +89,17 @@ def _check_not_swapped(pred_dir, gt_dir, pred_first: Path, gt_first: Path) -> No
 
 
 def _read_gt(path: Path, raw_classes: bool):
-    """A ground-truth frame; with ``raw_classes`` its classes are kept as stored (dataset ids)."""
-    import numpy as np
-
+    """A ground-truth frame (``seqio.read_frame``); with ``raw_classes`` its classes are kept as
+    stored (dataset ids)."""
     from floxels_ext.evaluation import seqio
-    from floxels_ext.numpy_files import open_npz
 
-    if not raw_classes:
-        try:
-            return seqio.read_frame(path, require=("points", "flow"))
-        except seqio.SequenceFormatError as e:
-            if "'classes'" in str(e):
-                raise CLIError(f"{e}; if these are dataset categories, pass --categories av2 "
-                               f"or --categories MAP.json") from None
-            raise
-    if not path.is_file():
-        raise CLIError(f"missing frame file {path}")
     try:
-        with open_npz(path) as z:
-            arrays = {k: z[k] for k in z.files}
-    except Exception as e:  # zip/npy errors come in many types
-        raise CLIError(f"{path}: cannot read as .npz ({e})") from None
-    missing = [k for k in ("points", "flow") if k not in arrays]
-    if missing:
-        raise CLIError(f"{path}: missing key(s) {missing} (present: {sorted(arrays)})")
-    classes = arrays.pop("classes", None)
-    frame = seqio.Frame(**seqio._validate(arrays, str(path)))
-    if classes is not None:
-        classes = np.asarray(classes)
-        if classes.shape != (len(frame),) or not np.issubdtype(classes.dtype, np.integer):
-            raise CLIError(f"{path}: 'classes' must be ({len(frame)},) integers, got {classes.shape} {classes.dtype}")
-        frame.classes = classes.astype(np.int64)
-    return frame
+        return seqio.read_frame(path, require=("points", "flow"), raw_classes=raw_classes)
+    except seqio.SequenceFormatError as e:
+        if not raw_classes and "'classes'" in str(e):
+            raise CLIError(f"{e}; if these are dataset categories, pass --categories av2 "
+                           f"or --categories MAP.json") from None
+        raise
 
 
 def _read_pred(pp: Path, gp: Path, n: int, all_points: bool = True):

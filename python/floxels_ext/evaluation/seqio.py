@@ -138,8 +138,10 @@ def list_frames(directory: str | os.PathLike) -> list[Path]:
     return [p for _, p in numbered]
 
 
-def _validate(arrays: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
-    """Check shapes/values and convert to the in-memory dtypes; errors name ``where``."""
+def _validate(arrays: dict[str, np.ndarray], where: str, raw_classes: bool = False) -> dict[str, np.ndarray]:
+    """Check shapes/values and convert to the in-memory dtypes; errors name ``where``.
+    ``raw_classes``: ``classes`` are a dataset's category ids (any integers, kept as int64)
+    instead of the meta-class ids 0..4."""
     out: dict[str, np.ndarray] = {}
     n = None
     for key in ("points", "flow", "classes", "instance", "ground", "dynamic"):
@@ -161,6 +163,11 @@ def _validate(arrays: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray
         elif key == "pose":
             if a.shape != (4, 4):
                 raise SequenceFormatError(f"{where}: 'pose' must have shape (4, 4), got {a.shape}")
+        elif key == "classes" and raw_classes:
+            if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
+                raise SequenceFormatError(f"{where}: 'classes' must be ({n},) integers, got {a.shape} {a.dtype}")
+            out[key] = a.astype(np.int64)
+            continue
         else:
             if a.ndim != 1:
                 raise SequenceFormatError(f"{where}: '{key}' must have shape (N,), got {a.shape}")
@@ -194,8 +201,11 @@ def write_frame(path: str | os.PathLike, frame: Frame | None = None, **arrays: n
     return path
 
 
-def read_frame(path: str | os.PathLike, require: Iterable[str] = ("points",)) -> Frame | dict:
-    """Read one frame file; ``require`` lists keys that must be present.
+def read_frame(path: str | os.PathLike, require: Iterable[str] = ("points",), raw_classes: bool = False
+               ) -> Frame | dict:
+    """Read one frame file; ``require`` lists keys that must be present. ``raw_classes``: its
+    ``classes`` are a dataset's category ids (int64, any integers; ``floxels eval --categories``)
+    instead of the meta-class ids 0..4.
 
     Returns a ``Frame`` when ``points`` is present, otherwise a dict of arrays
     (prediction files may hold only ``flow``).
@@ -211,7 +221,7 @@ def read_frame(path: str | os.PathLike, require: Iterable[str] = ("points",)) ->
     missing = [k for k in require if k not in arrays]
     if missing:
         raise SequenceFormatError(f"{path}: missing key(s) {missing} (present: {sorted(arrays)})")
-    arrays = _validate(arrays, str(path))
+    arrays = _validate(arrays, str(path), raw_classes)
     if "points" in arrays:
         return Frame(**arrays)
     return arrays

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from floxels_ext.cli import CLIError
+from floxels_ext.errors import CLIError
 
 # Cost model of the simulator, measured with bench-free runs on the 2-core CPU machine (urban
 # scene, 64-512 beams x 2048 azimuth steps): one frame's ray casting peaks at ~260 bytes per

@@ -88,7 +88,7 @@ def _sequence_task(args):
     """The task of ``floxels run SEQ``: the sequence's frames that ``--frames`` selects, with
     the checks made before any frame is read (the sequence found, at least 2 frames, --out and
     --summary usable). Raises CLIError."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, Task
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.poses import PoseFormatError

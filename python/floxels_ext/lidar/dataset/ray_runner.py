@@ -38,7 +38,7 @@ def _ray():
 
 def connect(address: str):
     """ray.init for ``--ray auto|ADDRESS`` unless this process is already connected."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     ray = _ray()
     if not ray.is_initialized():
@@ -67,7 +67,7 @@ def task_slots(nodes: list[dict], gpus: float, cpus: float) -> int:
 
 def _resources(ray, args) -> tuple[float, float, str]:
     """(GPUs, CPUs) per worker and the workers' --device; CLIError when no node can hold one."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     nodes = _alive_nodes(ray)
     has_gpu = any(r.get("GPU", 0) > 0 for r in nodes)
@@ -249,7 +249,7 @@ class FloxelsWorker:
 
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
     from floxels_ext.lidar.pipeline.progress import DatasetProgress
 

@@ -72,7 +72,7 @@ def common_options(args) -> dict:
 
 
 def _check_options(args, dataset: bool) -> None:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if args.ray is None:
         used = [f for f, v, default in (("--gpus-per-task", args.gpus_per_task, None),
@@ -101,7 +101,7 @@ def _check_options(args, dataset: bool) -> None:
 
 def run_input(args) -> int:
     """Runs INPUT: one sequence (here, or through Ray with ``--ray``) or a dataset."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 
@@ -154,7 +154,7 @@ def _check_written_tasks(tasks, args) -> None:
     unreadable poses) goes to the workers, whose ``open_sequence`` fails it with the reason."""
     if not tasks:
         return
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.evaluation.seqio import SequenceFormatError
     from floxels_ext.lidar.dataset.sequence import resume_todo
     from floxels_ext.lidar.io import MissingDependencyError

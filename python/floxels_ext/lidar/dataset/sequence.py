@@ -94,7 +94,7 @@ def resume_todo(task, args, options: dict, settings) -> list[str]:
 def _resume_state(task, args, options: dict, settings, report, *, sweep: bool, say=None) -> dict:
     """The sequence of ``task`` opened (frames, output directory, poses, times, settings) and
     the frames left to do; ``sweep``: remove this task's own temporaries first."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.outputs import cleanup_temps
     from floxels_ext.lidar.io.poses import PoseFormatError

@@ -155,7 +155,7 @@ def _walk(root: Path, exclude: Path | None) -> tuple[list[Path], list[tuple[Path
 
 
 def _mixed_error(d: Path, below: list[Path], root: Path):
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     files = _frame_files(d)
     rel = [str(q.relative_to(root)) if root in q.parents else str(q) for q in below]
@@ -167,7 +167,7 @@ def _mixed_error(d: Path, below: list[Path], root: Path):
 
 
 def _read_list(list_file: Path) -> list[SequenceSpec]:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     specs = []
     base = list_file.parent
@@ -212,7 +212,7 @@ def discover_dataset(input_path, out=None, patterns: list[str] | None = None) ->
     """The sequences of a dataset root or list file, sorted by output path; None when INPUT is
     one sequence (the plain ``floxels run`` reads it). ``patterns`` (shell globs on the output
     sub-path, e.g. ``sequences/0[0-5]/*``) select sequences. Raises CLIError when INPUT holds none."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     root = Path(input_path)
     if not root.exists():

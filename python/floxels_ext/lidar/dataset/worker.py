@@ -25,7 +25,7 @@ def run_context(args, report: Callable[[str], None], *, shared_pools: bool = Tru
     Raises CLIError."""
     import torch
 
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.sequence import DatasetContext
     from floxels_ext.lidar.pipeline.frame_loader import LoaderPools
     from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS
@@ -55,7 +55,7 @@ def run_jobs(jobs: Iterable, ctx, *, on_frame: Callable[[object, int], None],
     and ``on_finish(job)`` as ``stream.run_stream`` calls them. ``write_one``: the one job's
     output writer, held by writer processes from their start (a run of one sequence). Closes
     the shared pools at the end. Raises CLIError for a method that rejects its input."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.stream import EstimationError, run_stream
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.pipeline.frame_loader import single_threaded_blas
@@ -91,7 +91,7 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
     job, lines)``: a task ended, ``outcome`` "done", "failed" (``job`` None when it could not be
     opened; ``lines`` name the failures) or "skipped" (nothing to do); each ended task but a
     skipped one has written its ``run_summary.json``. Both may run on the pipeline's threads."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.evaluation.seqio import SequenceFormatError
     from floxels_ext.lidar.dataset.sequence import failure_lines, open_sequence, write_sequence_summary
     from floxels_ext.lidar.io import MissingDependencyError

@@ -152,7 +152,7 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
     (with --force) all. An output written with other settings (method, options, preprocessing,
     poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
     carry no input record: they count as done, and ``report`` says so."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import read_resume_record, settings_mismatch
 
     if force:

@@ -18,7 +18,7 @@ def parse_options(items: list[str], max_iters: int | None, config: type | None) 
     """``--option KEY=VALUE`` items as typed values: parsed for the field's type of the method's
     ``config`` dataclass (bools from true/false/yes/no/on/off/1/0, tuples from a,b); JSON for
     a method without one."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.estimator.config_fields import parse_option_value
 
     opts: dict = {}
@@ -46,7 +46,7 @@ def parse_options(items: list[str], max_iters: int | None, config: type | None) 
 
 def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
     """``--frames`` (A:B, A:, :B or A; Python slice semantics) as a [start, stop) range of n frames."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if not text:
         return 0, n
@@ -69,7 +69,7 @@ def resolve_preset(args) -> dict:
     """``--preset``'s Floxels fields (besides the window) and ``args.scans`` set to the
     preset's window when ``--scans`` was not given. Raises CLIError for a preset with
     another method."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.estimator.config import PRESETS, FloxelsConfig
 
     name = getattr(args, "preset", None)
@@ -87,7 +87,7 @@ def resolve_preset(args) -> dict:
 
 def require_input_and_out(args) -> None:
     """CLIError unless INPUT and --out are given."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if not args.input or not args.out:
         raise CLIError("floxels run needs INPUT and --out OUT_DIR")
@@ -95,7 +95,7 @@ def require_input_and_out(args) -> None:
 
 def check_args(args, torch):
     """Validate the plain arguments; returns (device, options). Raises CLIError."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.methods import available_methods
 
     resolve_preset(args)
@@ -128,7 +128,7 @@ def method_options(args) -> dict:
     """The method's options as the outputs record them (``--option``, ``--max-iters``, the
     preset, the window, the motion evidence), checked; no device needed, so the dataset driver
     compares resumes with them too. Raises CLIError."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.methods import available_methods, get_method
 
     preset_fields = resolve_preset(args)
@@ -156,7 +156,7 @@ def method_options(args) -> dict:
 def preprocess_settings(args):
     """The per-scan preprocessing (``Preprocess``) of the run's options; CLIError when they
     contradict each other. One definition for one sequence and a dataset."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.preprocess.settings import Preprocess
 
     try:
@@ -181,7 +181,7 @@ def apply_cpu_default(args, device: str, report=None) -> None:
 def check_out_dir(out: Path, seq) -> None:
     """``--out`` not the input, and a place that takes files (tried with a write: a read-only
     place is refused here, before any frame is read). Raises CLIError."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.output_paths import check_writable_dir
 
     if out.exists() and not out.is_dir():

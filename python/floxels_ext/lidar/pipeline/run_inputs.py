@@ -13,7 +13,7 @@ __all__ = ["resolve_poses", "frame_times", "run_settings", "output_meta", "next_
 
 def resolve_poses(seq, args, out: Path, report):
     """(pose_mode, poses) for the sequence; raises CLIError when ego-motion cannot be resolved."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
 
     if args.no_ego_motion and (args.poses or args.odometry):
         raise CLIError("--no-ego-motion contradicts --poses/--odometry")

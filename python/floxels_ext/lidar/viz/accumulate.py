@@ -93,7 +93,7 @@ def accumulate(points: list, flows: list, reference: int, *, mode: str = "consta
 def load_run_frame(path: Path) -> dict:
     """One ``floxels run`` output (:func:`floxels_ext.lidar.io.outputs.read_flow_output`, points included:
     stored or read back from the source file); errors name the file."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
 
     try:
@@ -168,7 +168,7 @@ _OFFSET_COLOURS = ((255, 255, 255), (240, 80, 60), (60, 160, 250), (250, 190, 40
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.writers import write_ply
 
     if args.neighbours < 1:

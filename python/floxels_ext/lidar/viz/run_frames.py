@@ -23,7 +23,7 @@ class RunFrames:
     """The outputs of ``run_dir`` (natural order) and the frames of the input they came from."""
 
     def __init__(self, run_dir) -> None:
-        from floxels_ext.cli import CLIError
+        from floxels_ext.errors import CLIError
         from floxels_ext.lidar.io.outputs import run_outputs
 
         self.dir = Path(run_dir)
@@ -77,7 +77,7 @@ class RunFrames:
         """The output name ``frame`` means (None: the first output). CLIError when it names no
         frame or a frame without output; ``note(msg)`` where a name also reads as an index of
         another frame (the name wins)."""
-        from floxels_ext.cli import CLIError
+        from floxels_ext.errors import CLIError
 
         if frame is None:
             return self.names[0]

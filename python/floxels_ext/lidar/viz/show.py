@@ -116,7 +116,7 @@ def add_parser(sub) -> None:
 
 
 def _resolve(target: str, frame: str | None) -> Path:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.viz.run_frames import RunFrames
 
     t = Path(target)
@@ -159,7 +159,7 @@ def load_flow_output(path: Path) -> dict:
     """One ``floxels run`` output (:func:`floxels_ext.lidar.io.outputs.read_flow_output`: ``points``,
     ``flow``, ``mask``, ``dynamic``, ...); anything else is a CLIError saying the file is not a
     floxels flow output and why."""
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
 
     path = Path(path)
@@ -177,7 +177,7 @@ def load_flow_output(path: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from floxels_ext.cli import CLIError
+    from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.viz.bev_png import write_png
     from floxels_ext.output_paths import check_output_file

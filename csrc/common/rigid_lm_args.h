@@ -6,7 +6,7 @@
 #include <string_view>
 
 #include "common/check.h"
-#include "cpu/dt_loss_args.h"
+#include "common/dt_loss_args.h"
 
 namespace floxels {
 

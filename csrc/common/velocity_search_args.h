@@ -6,7 +6,7 @@
 #include <optional>
 
 #include "common/check.h"
-#include "cpu/dt_loss_args.h"
+#include "common/dt_loss_args.h"
 #include "kernels/velocity_search.h"
 
 namespace floxels {
