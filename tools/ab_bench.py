@@ -93,8 +93,9 @@ def run(args) -> int:
     names = json.loads((AB / "order.json").read_text())
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with ThreadPoolExecutor(len(names)) as ex:
-        for name, rc, s in ex.map(lambda n: _build(n, out, args.device == "cuda"), names):
+    build = [n for n in names if not (args.skip_built and (Path("/tmp/ab") / n / "floxels_ext").is_dir())]
+    with ThreadPoolExecutor(max(1, len(build))) as ex:
+        for name, rc, s in ex.map(lambda n: _build(n, out, args.device == "cuda"), build):
             print(f"build {name}: rc {rc} in {s:.0f} s", flush=True)
             if rc != 0:
                 return 1
@@ -143,7 +144,8 @@ def main() -> None:
     r.add_argument("--out", default=os.environ.get("OUT", "/tmp/ab_out"))
     r.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
                    help="cpu: a smoke test of this script (CPU builds; give small --speed-args/--run-args)")
-    r.add_argument("--rounds", type=int, default=2)
+    r.add_argument("--rounds", type=int, default=2, help="0: only build")
+    r.add_argument("--skip-built", action="store_true", help="keep builds already in /tmp/ab (an earlier run's)")
     r.add_argument("--benches", nargs="+", default=["speed", "run"], choices=["speed", "run"])
     r.add_argument("--speed-args", default="--repeats 7 --seq-repeats 2")
     r.add_argument("--run-args", default="--repeat 1")
