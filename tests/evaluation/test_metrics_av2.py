@@ -15,8 +15,6 @@ the package imports for visualisation only, was replaced by a stub: it needs lib
 
 import json
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +22,7 @@ import pytest
 from floxels_ext import cli
 from floxels_ext.evaluation.metrics import evaluate_sequence
 from floxels_ext.evaluation.protocol import AV2_CATEGORIES, AV2_CATEGORY_MAP, AV2_IGNORED, AV2_META_CLASSES, IGNORE, META_CLASSES
+from shared_data import shared_path
 
 NAN = float("nan")
 # (prediction, box) -> official per meta-class (static EPE, dynamic normalised EPE) and the means
@@ -60,20 +59,11 @@ OFFICIAL = {
 OFFICIAL_NUM_POINTS = 81855  # non-ground points of pc0
 
 
-def _pair_path() -> Path | None:
-    here = Path(__file__).resolve().parents[2]
-    for p in (os.environ.get("FLOXELS_AV2_PAIR"), here / "shared/data/av2_pair/av2_7fab2350_pair.npz",
-              "/work/shared/data/av2_pair/av2_7fab2350_pair.npz"):
-        if p and Path(p).is_file():
-            return Path(p)
-    return None
-
-
 @pytest.fixture(scope="module")
 def av2():
-    path = _pair_path()
-    if path is None:
-        pytest.skip("the shared Argoverse 2 pair (shared/data/av2_pair) is not available")
+    # ../shared beside the checkout (was: the checkout's own shared/, which no machine has, or
+    # /work/shared: skipped in CI); FLOXELS_AV2_PAIR names another copy
+    path = shared_path("data", "av2_pair", "av2_7fab2350_pair.npz", env="FLOXELS_AV2_PAIR")
     d = np.load(path)
     pc0 = d["pc0"].astype(np.float64)
     T = d["ego1_T_ego0"]
