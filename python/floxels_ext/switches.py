@@ -57,6 +57,8 @@ SWITCHES: tuple[Switch, ...] = (
     # tests and CI
     Switch("FLOXELS_AV2_PAIR", "unset", "tests/conftest.py (the tests on the Argoverse 2 pair)",
            "path of the shared Argoverse 2 pair (.npz) when it is not under ../shared/data"),
+    Switch("FLOXELS_REQUIRE_SHARED", "0", "tests (tests/shared_data.py); .ci/run sets 1",
+           "1 = tests that read ../shared (the paper, the real data) fail where it is missing instead of skipping"),
     Switch("FLOXELS_CI_VENV", "/tmp/floxels-ci-venv", ".ci/run", "the virtual environment CI creates"),
 )
 

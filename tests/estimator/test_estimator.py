@@ -56,6 +56,14 @@ def test_end_to_end_accuracy(dense_scene):
     assert dyn_epe <= zero / 3, (dyn_epe, zero)
     assert static_epe < 0.05, static_epe
     assert res.losses[res.best_iter] == min(res.losses)
+    # The paper's settings give this scene's numbers (the CPU solver is deterministic: the same
+    # with 1 or 2 threads; measured 0.1019 / 0.0040 m). A pin, not a bound: 1/|t| time weights,
+    # lr 0.1 or a 1 m voxel are *more* accurate on this scene (dynamic EPE 0.082 / 0.095 / 0.079
+    # m, static 0.0040 / 0.0078 / 0.0037 m), so no upper bound can fail them; a change that moves
+    # these numbers changes the method: measure it on the simulator and the real scans, say why,
+    # then re-pin.
+    assert dyn_epe == pytest.approx(0.1019, abs=0.003), dyn_epe
+    assert static_epe == pytest.approx(0.0040, abs=0.001), static_epe
     assert res.flow.dtype == np.float32 and res.flow.shape == gt.shape
 
 
@@ -82,9 +90,15 @@ def test_tensor_in_tensor_out(scene):
 
 @pytest.mark.parametrize("target", [0, 2])
 def test_target_at_either_end(scene, target):
-    scans, _, _ = scene
+    """A window whose target is its first or last scan (support scans on one side only, time
+    offsets +1, +2 or -2, -1): the flow still follows the scene (measured dynamic EPE 0.15 / 0.26
+    m against 0.39 / 0.41 m for zero flow, static 0.013 / 0.014 m)."""
+    scans, gts, dyns = scene
     out = estimate_flow(scans[:3], target=target, config=FAST)
     assert out.shape == scans[target].shape and np.isfinite(out).all()
+    gt, dyn = gts[target], dyns[target]
+    assert _epe(out, gt, dyn) < 0.7 * _epe(np.zeros_like(gt), gt, dyn)
+    assert _epe(out, gt, ~dyn) < 0.02
 
 
 def test_matches_reference_implementation_first_iterations(scene):

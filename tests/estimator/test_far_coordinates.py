@@ -137,3 +137,69 @@ def test_far_from_origin_on_cuda(scene, kind):
     seq = estimate_sequence(far, CFG, "cuda", frames=[target])[0]
     seq = seq.cpu().numpy() if kind == "tensor" else seq
     assert flow_metrics(seq, gt, dyn)["dynamic_epe"] == pytest.approx(m[0]["dynamic_epe"], rel=0.05)
+
+
+# ---- what travels with the scans: sensors, removed ground, a sequence's windows (issue 46) ----
+# The accurate preset reads each scan's sensor position (range_mask, visibility) and removed
+# ground (visibility's range images); both must be re-centred with the scans, and the windows of
+# one sequence must share one shift (their scans and distance transforms are shared).
+
+def _preset(**change):
+    return FloxelsConfig.preset("accurate", max_iters=150, **change)
+
+
+def test_sensor_positions_far_from_origin():
+    """The street of test_sight.py (walls cropped around each moving sensor): with the sensors
+    re-centred with the scans, the walls are rejected far from the origin as near it (with the
+    sensors left where they were, every scan would see everything: the walls keep the sensor's
+    motion)."""
+    from test_sight import street
+
+    scans, sensors, car = street()
+    flows = []
+    for shift in (np.zeros(3), FAR):
+        flows.append(estimate_flow([s.astype(np.float64) + shift for s in scans], 2, _preset(), "cpu",
+                                   sensor_origins=[s + shift for s in sensors]))
+    for f in flows:
+        speed = np.linalg.norm(f, axis=1)
+        assert np.mean(speed[~car] < 0.05) > 0.95  # the walls: still
+        assert abs(np.median(f[car][:, 0]) + 1.0) < 0.1  # the oncoming car: -1 m/frame
+    assert np.median(np.linalg.norm(flows[1] - flows[0], axis=1)) < 0.01
+
+
+def _crossing(n=7):
+    """A pedestrian crossing 8 m in front of a sensor that stands still, 0.3 m/frame along y,
+    on a road that preprocessing removed (test_ground_sight.py), over ``n`` frames; the scans
+    (float64), sensors and ground."""
+    g = np.random.default_rng(3)
+    body = g.uniform(-1, 1, (400, 3)) * [0.25, 0.25, 0.85] + [0.0, 0.0, 0.85]
+    scans = [body + [8.0, 0.3 * (t - n // 2), 0.0] for t in range(n)]
+    x, y = np.meshgrid(np.arange(-20.0, 20.0, 0.3), np.arange(-3.0, 3.0, 0.3), indexing="ij")
+    road = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    return scans, np.tile([0.0, 0.0, 1.8], (n, 1)), [road] * n
+
+
+def test_removed_ground_and_every_window_of_a_sequence_far_from_origin():
+    """The pedestrian keeps its motion only through the road returns behind it (visibility),
+    so the ground must be re-centred with the scans; and the shift must stay the same for
+    every window of the sequence: the far offset is chosen so that the first window's first
+    scan rounds to one 60 m step and the later windows' first scans to the next (each window
+    choosing its own shift would mix scans and distance transforms of two frames)."""
+    from floxels_ext.estimator.recentre import RECENTRE_GRID
+
+    scans, sensors, ground = _crossing()
+    mids = [0.5 * (s.min(0) + s.max(0)) for s in scans]  # what the shift is chosen from
+    far = FAR.copy()
+    far[1] += RECENTRE_GRID / 2 - np.mod(FAR[1] + 0.5 * (mids[0][1] + mids[1][1]), RECENTRE_GRID)
+    assert np.round((mids[0][1] + far[1]) / RECENTRE_GRID) != np.round((mids[1][1] + far[1]) / RECENTRE_GRID)
+    cfg = _preset(num_scans=5)  # windows starting at scans 0, 1 and 2 of the 7
+    out = []
+    for shift in (np.zeros(3), far):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # float64 far away: nothing to warn about
+            out.append(estimate_sequence([s + shift for s in scans], cfg, "cpu", sensor_origins=sensors + shift,
+                                         ground_points=[r + shift for r in ground]))
+    for near, far_flow in zip(*out):
+        for f in (near, far_flow):
+            np.testing.assert_allclose(np.median(f, axis=0), [0.0, 0.3, 0.0], atol=0.03)
+        assert np.median(np.linalg.norm(far_flow - near, axis=1)) < 0.005

@@ -66,13 +66,10 @@ def test_paper_settings_are_the_defaults():
 
 
 def test_paper_text_states_the_values():
-    """The quotes the test above cites are in the paper (skipped without the shared folder)."""
-    import pathlib
+    """The quotes the test above cites are in the paper (../shared: tests/shared_data.py)."""
+    from shared_data import shared_path
 
-    p = pathlib.Path(__file__).resolve().parents[3] / "shared" / "paper" / "floxels-cvpr2025.tex"
-    if not p.is_file():
-        pytest.skip(f"{PAPER} not present")
-    text = " ".join(p.read_text().split())
+    text = " ".join(shared_path("paper", "floxels-cvpr2025.tex").read_text().split())
     for quote in ("a voxel size of 0.5 meters", "learning rate of 0.05", "maximum of 500 epochs",
                   "patience of 250 epochs", "minimum delta of $0.01$", r"$\lambda(t)=\sfrac{1}{t^2}$",
                   "distance transform values beyond 5~meters", "Unless otherwise stated, we use five scans",

@@ -49,13 +49,15 @@ def test_sided_refinement_gives_a_turning_car_its_yaw(device):
     assert np.abs(out[car.stop:]).max() == 0  # the pole: untouched
 
 
-def test_sided_refinement_refuses_a_motion_that_trades_one_side_for_the_other():
-    # the past scans show the box faster (0.8 m/frame) than the future ones (0.5): the flow
-    # explains the future exactly; a rigid fit of both sides explains the past better and the
-    # future worse, which is no evidence of the object's motion
+@pytest.mark.parametrize("past, future", [(0.8, 0.5), (0.5, 0.8)])
+def test_sided_refinement_refuses_a_motion_that_trades_one_side_for_the_other(past, future):
+    # the past scans show the box at one speed, the future ones at another; the flow explains
+    # the future exactly (past 0.8, future 0.5) or the past (past 0.5, future 0.8); a rigid fit
+    # of both sides explains the other side better and this one worse, which is no evidence of
+    # the object's motion: both sides are checked
     body = box_sides()
     offsets = (-3, -2, -1, 0, 1, 2, 3)
-    scans = [(body + np.array([(0.8 if t < 0 else 0.5) * t, 3.0, 0.0])).astype(np.float32) for t in offsets]
+    scans = [(body + np.array([(past if t < 0 else future) * t, 3.0, 0.0])).astype(np.float32) for t in offsets]
     P = torch.from_numpy(scans[3])
     flow = torch.zeros_like(P)
     flow[:, 0] = 0.5

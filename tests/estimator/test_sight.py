@@ -6,6 +6,7 @@ passing the other way keeps its motion. Also the sights themselves and the argum
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 import torch
 
 from floxels_ext.estimator import FloxelsConfig, estimate_flow, estimate_sequence
-from floxels_ext.estimator.sight import SEEN_MARGIN, observed_bits, scan_sight
+from floxels_ext.estimator.sight import AZ_BIN, EL_BIN, SEEN_MARGIN, observed_bits, scan_sight
 
 EGO = 1.5     # m/frame along x
 CAR = -1.0    # m/frame: oncoming, in the lane at y = -2
@@ -157,6 +158,26 @@ def test_scan_sight_image_sees_through_free_space_not_behind_occluders():
     q = torch.tensor([[6.0, 0.0, 0.0],     # free space before the wall: seen
                       [7.0, 3.5, 0.0],     # behind the post (same direction, farther): occluded
                       [6.0, 9.0, 0.0],     # no return in that direction
-                      [10.0 + SEEN_MARGIN / 2, 0.0, 0.0]])  # just behind the wall's return: still seen
-    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 1]
-    assert observed_bits(q, [None, s]).tolist() == [1 | 2, 1, 1, 1 | 2]  # a scan without sight counts
+                      [10.4, 0.0, 0.0],    # 0.4 m behind the wall's return: within the 0.5 m margin, seen
+                      [10.6, 0.0, 0.0]])   # 0.6 m behind it: hidden by the wall
+    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 1, 0]
+    assert observed_bits(q, [None, s]).tolist() == [1 | 2, 1, 1, 1 | 2, 1]  # a scan without sight counts
+
+
+def test_sight_constants_are_pinned():
+    # estimator/sight.py: range image bins of 0.5 x 0.5 degrees (coarser than a 64-beam lidar's
+    # rays), a return 0.5 m nearer than a point still counts as seeing it
+    assert SEEN_MARGIN == 0.5
+    assert (AZ_BIN, EL_BIN) == (math.radians(0.5), math.radians(0.5))
+
+
+def test_scan_sight_band_is_horizontal_range():
+    """The band is the horizontal range around the sensor (a scan's crop, as floxels run's 3-50
+    m): a point 3 m below the sensor just inside the band's outer edge is inside, one just inside
+    the blind zone is outside, whatever their 3-D range."""
+    ang = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    ring = lambda r: np.stack([r * np.cos(ang), r * np.sin(ang), np.zeros_like(ang)], 1)  # noqa: E731
+    pts = torch.tensor(np.concatenate([ring(3.0), ring(10.0), ring(20.0)]), dtype=torch.float32)
+    s = scan_sight(pts, np.zeros(3), band=True, image=False)
+    q = torch.tensor([[19.9, 0.0, -3.0], [0.0, 3.1, 1.5], [20.1, 0.0, 0.0], [2.9, 0.0, -1.5]])
+    assert observed_bits(q, [s]).tolist() == [1, 1, 0, 0]

@@ -1,27 +1,23 @@
-"""Preprocessing on the shared real sweeps (issue 29; skipped when ../shared is absent): the 13
+"""Preprocessing on the shared real sweeps (issue 29; ../shared, tests/shared_data.py): the 13
 raw KITTI sweeps (multipath returns metres below the road) and the Argoverse 2 pair (the
 label's ground)."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from floxels_ext.lidar.preprocess import (CROPPED, GROUND, KEPT, OUTLIER, Preprocess, preprocess_classes,
                                           preprocess_classes_numpy)
+from shared_data import shared_path
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-KITTI = DATA / "kitti_raw_13f" / "kitti_raw_2011_09_26_13f.npz"
-AV2 = DATA / "av2_pair" / "av2_7fab2350_pair.npz"
+KITTI = ("data", "kitti_raw_13f", "kitti_raw_2011_09_26_13f.npz")
+AV2 = ("data", "av2_pair", "av2_7fab2350_pair.npz")
 
 
 @pytest.fixture(scope="module")
 def kitti():
-    if not KITTI.is_file():
-        pytest.skip(f"{KITTI} absent")
-    d = np.load(KITTI)
+    d = np.load(shared_path(*KITTI))
     o = d["frame_offsets"]
     return [d["points"][o[i]:o[i + 1]] for i in range(len(o) - 1)]
 
@@ -61,9 +57,7 @@ def test_kitti_op_equals_the_numpy_reference(kitti):
 
 
 def test_av2_ground_against_the_label():
-    if not AV2.is_file():
-        pytest.skip(f"{AV2} absent")
-    d = np.load(AV2)
+    d = np.load(shared_path(*AV2))
     p, label = d["pc0"], d["is_ground0"].astype(bool)
     cls = preprocess_classes(p)
     sel = cls != CROPPED  # the range crop (and the height crop: nothing there is ground)

@@ -159,7 +159,7 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     if n == 0 or not dts:
         zeros = torch.zeros(n, dtype=torch.float32, device=dev)
         return MotionEvidence(zeros, torch.zeros(n, dtype=torch.bool, device=dev), zeros, zeros.clone())
-    wsum = float(sum(weights))
+    wsum = max(float(sum(weights)), 1e-12)  # all zero (lambda_d = 0): no residual, nothing explained
     score, explained, rf, rz = F.dt_evidence(
         points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells, list(dts),
         [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],

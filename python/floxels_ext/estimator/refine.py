@@ -295,7 +295,7 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     # scans of vertical faces hardly constrain it, and road users move on the road)
     theta = torch.cat([mean_flow[:, :2], torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 3)
     vz = mean_flow[:, 2]
-    wsum = sum(s.w for s in supports)
+    wsum = max(sum(s.w for s in supports), 1e-12)  # all zero (lambda_d = 0): no cost, nothing accepted
     # Levenberg-Marquardt on every cluster at once (floxels::rigid_lm: one launch on CUDA; the
     # reference is floxels_ext.reference.rigid_lm); the sample rows are grouped by cluster
     dts, origins, spacing, ts, ws = _packed(supports)
