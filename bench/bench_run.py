@@ -89,7 +89,7 @@ def prepared_scans(kitti: Path) -> tuple[list, float, float]:
     pose's position on the pipeline's anchor grid, so the same voxel and DT grids and the same
     work); and the serial read and preprocessing seconds."""
     from floxels_ext.lidar.io import read_points, read_poses
-    from floxels_ext.lidar.pipeline.estimate_loop import snap_anchor
+    from floxels_ext.lidar.dataset.layout import snap_anchor
 
     files = sorted((kitti / "velodyne").glob("*.bin"))
     poses = read_poses(kitti / "poses.txt")
@@ -172,16 +172,16 @@ def main() -> None:
                          "run of each (hosts vary by ~10%% from run to run)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gil-switch-interval", type=float, default=None, metavar="S",
-                    help="floxels_ext.lidar.pipeline.estimate_loop.GIL_SWITCH_INTERVAL for the runs "
+                    help="floxels_ext.lidar.dataset.stream.GIL_SWITCH_INTERVAL for the runs "
                          "(0 = Python's default, "
                          "to compare with the pipeline's setting)")
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
     args = ap.parse_args()
 
     if args.gil_switch_interval is not None:
-        import floxels_ext.lidar.pipeline.estimate_loop as pipeline
+        import floxels_ext.lidar.dataset.stream as engine
 
-        pipeline.GIL_SWITCH_INTERVAL = args.gil_switch_interval or None
+        engine.GIL_SWITCH_INTERVAL = args.gil_switch_interval or None
     tmp = Path(tempfile.mkdtemp(prefix="bench_run_"))
     try:
         t0 = time.perf_counter()

@@ -28,18 +28,22 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_run import build, ceiling, run_cli  # noqa: E402
 
-import floxels_ext.lidar.pipeline.estimate_loop as pipeline  # noqa: E402
-from floxels_ext.lidar.pipeline.frame_loader import ChunkScans  # noqa: E402
+import floxels_ext.lidar.dataset.layout as layout  # noqa: E402
+import floxels_ext.lidar.dataset.stream as engine  # noqa: E402
+from floxels_ext.lidar.dataset.layout import StreamScans  # noqa: E402
 from floxels_ext.lidar.pipeline.frame_writer import WriterPool  # noqa: E402
 
 
-class PrereadScans(ChunkScans):
-    """Reads and transforms the whole chunk before the method sees it."""
+class PrereadScans(StreamScans):
+    """Reads and transforms every scan of the run before the method sees one."""
 
-    TRANSFORM_AHEAD = 1 << 30
-
-    def __init__(self, *a, **kw) -> None:
-        super().__init__(*a, **kw)
+    def __init__(self, lay, stages) -> None:
+        super().__init__(lay, stages)
+        while lay.extend(block=True):
+            pass
+        for g in range(lay.end):
+            self._submit(g)
+        self._next = lay.end
         for fut in list(self._futs.values()):
             fut.result()
 
@@ -52,12 +56,12 @@ def deferred_writes(on: bool) -> None:
         WriterPool.put, WriterPool.close = WriterPool._orig_put, WriterPool._orig_close
         return
 
-    def put(self, *item):
-        self.__dict__.setdefault("_held", []).append(item)
+    def put(self, *item, **kw):
+        self.__dict__.setdefault("_held", []).append((item, kw))
 
     def close(self):
-        for item in self.__dict__.pop("_held", []):
-            WriterPool._orig_put(self, *item)
+        for item, kw in self.__dict__.pop("_held", []):
+            WriterPool._orig_put(self, *item, **kw)
         WriterPool._orig_close(self)
 
     WriterPool.put, WriterPool.close = put, close
@@ -65,8 +69,8 @@ def deferred_writes(on: bool) -> None:
 
 def configure(mode: str) -> None:
     pre = mode.startswith("preread")
-    pipeline.ChunkScans = PrereadScans if pre else ChunkScans
-    pipeline.READ_AHEAD = 1 << 30 if pre else 64
+    engine.StreamScans = PrereadScans if pre else StreamScans
+    layout.READ_AHEAD = 1 << 30 if pre else 64
     deferred_writes(mode.endswith("deferred"))
 
 

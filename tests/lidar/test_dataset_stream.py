@@ -1,4 +1,4 @@
-"""``floxels run DATASET``: every sequence through one pipeline (``dataset_stream``).
+"""``floxels run DATASET``: every sequence through one pipeline (``lidar/dataset/stream.py``).
 
 One call of the method serves the whole dataset; windows never leave their sequence (results equal
 the plain run's, also for Floxels itself, whose batches cross sequence ends); the next sequence is
@@ -6,6 +6,7 @@ opened and read while the current one is estimated; an error of the method fails
 held, the rest are written and a re-run writes only those; one progress bar counts frames and
 sequences; -q prints only the final summary."""
 
+import json
 import time
 from pathlib import Path
 
@@ -97,7 +98,11 @@ def test_one_call_for_the_dataset_equals_plain_runs(data, tmp_path, spy, capsys)
         plain = tmp_path / f"plain{k}"
         assert cli.main(["run", str(data / f"s{k}"), "--out", str(plain), "--method", "spy", *FLAGS]) == 0
         _same(out / f"s{k}", plain)
-        assert (out / f"s{k}" / "run_summary.json").is_file()
+        # one summary writer: the same keys, point classes and outliers as the plain run's
+        ds_sum, plain_sum = (json.loads((d / "run_summary.json").read_text()) for d in (out / f"s{k}", plain))
+        assert sorted(ds_sum) == sorted(plain_sum) and ds_sum["point_classes"]
+        for key in ("point_classes", "outliers", "written", "failed", "selected", "settings"):
+            assert ds_sum[key] == plain_sum[key], key
     err = capsys.readouterr().err
     assert "15/15 frames (100%)" in err and "frames/s" in err and "ETA" in err and "0 skipped, 0 failed" in err
     assert "dataset done: 3 sequences (3 done, 0 skipped, 0 failed), 15 frame(s) written" in err

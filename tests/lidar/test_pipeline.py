@@ -5,7 +5,8 @@ and the flow equals the serial path's whatever the chunks."""
 import numpy as np
 
 from floxels_ext import cli, methods
-from floxels_ext.lidar.pipeline import estimate_loop, frame_loader
+from floxels_ext.lidar.dataset import layout
+from floxels_ext.lidar.pipeline import frame_loader
 from floxels_ext.lidar.io.outputs import read_flow_output
 
 
@@ -36,8 +37,8 @@ def test_frames_held_stay_bounded_over_a_long_chunk(tmp_path, monkeypatch, capsy
         held.append(len(self.done) + len(self.futures))
 
     monkeypatch.setitem(methods._REGISTRY, "fake", methods.Method("fake", "test double", est))
-    monkeypatch.setattr(estimate_loop, "READ_AHEAD", 4)
-    monkeypatch.setattr(frame_loader.ChunkScans, "TRANSFORM_AHEAD", 3)
+    monkeypatch.setattr(layout, "READ_AHEAD", 4)
+    monkeypatch.setattr(layout, "TRANSFORM_AHEAD", 3)
     monkeypatch.setattr(frame_loader.FrameLoader, "prefetch", prefetch)
     rc = cli.main(["run", str(d), "--out", str(tmp_path / "out"), "--method", "fake", "--poses",
                    str(tmp_path / "poses.txt"), "--scans", "3", "--device", "cpu", "--chunk", "64",
@@ -58,7 +59,7 @@ def test_run_flow_equals_estimate_sequence_on_the_reference_preprocessing(tmp_pa
     chunk's origin is on the 10 m anchor grid, so the method's grids stay aligned)."""
     from floxels_ext import FloxelsConfig, estimate_sequence
     from floxels_ext.evaluation.sim import simulate_sequence
-    from floxels_ext.lidar.pipeline.estimate_loop import snap_anchor
+    from floxels_ext.lidar.dataset.layout import snap_anchor
     from floxels_ext.lidar.preprocess import preprocess_mask_numpy, transform_points
 
     seq = simulate_sequence("crossing", 7, 4, beams=16, azimuth_steps=360)
@@ -97,7 +98,7 @@ def test_writers_drain_the_queue_on_more_threads_at_close():
     import threading
     import time
 
-    from floxels_ext.lidar.pipeline.frame_loader import Stages
+    from floxels_ext.lidar.pipeline.stages import Stages
     from floxels_ext.lidar.pipeline.frame_writer import WriterPool
 
     names, lock = {}, threading.Lock()

@@ -216,7 +216,7 @@ def test_process_workers_same_outputs_and_clean_interrupt(seq, tmp_path, capsys,
 
 def test_reader_errors_name_the_file_and_chunk_plan(tmp_path):
     from floxels_ext.lidar.io.outputs import OutputError
-    from floxels_ext.lidar.pipeline.estimate_loop import plan_chunks
+    from floxels_ext.lidar.dataset.layout import plan_chunks
 
     np.savez(tmp_path / "a.npz", flow=np.zeros((3, 3), np.float32))  # no points, no source
     with pytest.raises(OutputError, match="a.npz: no 'points' and no 'source'"):

@@ -1,10 +1,9 @@
 """``floxels run INPUT --out OUT_DIR``: the command's options and where INPUT goes.
 
-A dataset (a directory of sequences or a list file), or any INPUT with ``--ray``, runs through
-:mod:`floxels_ext.lidar.dataset.run`; one sequence through
-:func:`floxels_ext.lidar.pipeline.run_sequence.run_sequence`. Kept apart from both so that the
-packages below it import neither upwards: ``dataset`` builds on ``pipeline``, and this module
-on both.
+Every INPUT (one sequence, a dataset, any INPUT with ``--ray``) goes to
+:func:`floxels_ext.lidar.dataset.run.run_input`, which runs its tasks through the one engine
+(``lidar/dataset/``). Kept apart from it so that the command's options are read without
+loading the engine, and so that the packages below import nothing upwards.
 """
 
 from __future__ import annotations
@@ -112,11 +111,12 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from floxels_ext.lidar.dataset.run import maybe_run_dataset
+    if args.list_methods:
+        from floxels_ext.methods import available_methods, get_method
 
-    rc = maybe_run_dataset(args)
-    if rc is not None:
-        return rc
-    from floxels_ext.lidar.pipeline.run_sequence import run_sequence
+        for name in available_methods():
+            print(f"{name:<12} {get_method(name).description}")
+        return 0
+    from floxels_ext.lidar.dataset.run import run_input
 
-    return run_sequence(args)
+    return run_input(args)

@@ -1,8 +1,10 @@
-"""``floxels run DATASET``: many sequences through one pipeline. ``tasks`` finds the sequences
-and cuts them into tasks; ``run`` holds the dataset options and runs the tasks here (one
-progress bar) or hands them to ``ray_runner`` (one long-lived worker per GPU); ``worker`` runs
-tasks through one pipeline in a process; ``sequence`` opens one task as the plain run opens a
-sequence; ``stream`` and ``layout`` lay the tasks' chunks end to end in one index space.
+"""The engine of ``floxels run``: every run, one sequence or a dataset, here or on Ray, is tasks
+through one pipeline. ``run`` sends INPUT to ``local`` (one sequence, or a dataset with one
+progress bar) or ``ray_runner`` (one long-lived worker per GPU); ``tasks`` finds a dataset's
+sequences and cuts them into tasks; ``worker`` runs tasks through the engine in a process;
+``sequence`` opens a task (checks, resume, reader) and writes its summary; ``stream`` runs
+the method over the tasks' chunks, which ``layout`` lays end to end in one index space
+(``scan_views``: what the method sees of them).
 
 Builds on ``pipeline`` (its checks, loader, writer, resume), ``preprocess`` and ``io``; nothing
 below imports it."""

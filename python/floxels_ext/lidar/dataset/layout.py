@@ -1,10 +1,11 @@
-"""The index space of a dataset stream (``stream``): the chunks of successive sequences
+"""The index space of ``floxels run``'s stream (``stream``): the chunks of successive sequences
 laid end to end as segments (:class:`Layout`), the method's scans over it (:class:`StreamScans`:
 read and transformed ahead, across sequence ends) and its targets (:class:`Targets`).
 
-A segment is one chunk of one sequence exactly as the plain run cuts it (``--chunk`` targets
-and their support scans, in one world frame re-centred on the chunk's first readable frame), so
-every window and anchor equals the plain run's.
+A segment is one chunk of one sequence: ``--chunk`` targets (:func:`plan_chunks`) and their
+support scans, in one world frame re-centred on the chunk's first readable frame
+(:func:`snap_anchor`), so every window and anchor is the same whichever way the frames are
+cut into tasks (a whole sequence, ``--frames``, a resumed run, a Ray task).
 """
 
 from __future__ import annotations
@@ -16,12 +17,43 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from floxels_ext.lidar.pipeline.estimate_loop import READ_AHEAD, plan_chunks, snap_anchor
 from floxels_ext.lidar.preprocess.transform import transform_points
 
-__all__ = ["Layout", "StreamScans", "Targets", "TRANSFORM_AHEAD"]
+__all__ = ["Layout", "StreamScans", "Targets", "DEFAULT_CHUNK", "READ_AHEAD", "TRANSFORM_AHEAD", "ANCHOR_GRID",
+           "snap_anchor", "plan_chunks"]
 
-TRANSFORM_AHEAD = 32  # as ChunkScans: two batches of windows, so the method prepares the next batch early
+# Targets per method call by default. Long calls: each call starts and drains the method's
+# pipeline (estimate_sequence prepares the next batch while the device optimises one), which cost
+# ~3 ms a frame with calls of 8-64 frames on an H100 (bench/RESULTS.md). The bound: each call has
+# one world frame re-centred on its first frame, and 128 frames (12.8 s at 10 Hz, < 400 m at
+# 30 m/s) keep float32 coordinates within ~3e-5 m of exact.
+DEFAULT_CHUNK = 128
+# Frames read (and preprocessed) ahead of the scan the method asks for: memory stays flat
+# whatever the chunk, and the method never waits on a sequence the readers outpace.
+READ_AHEAD = 64
+# Scans moved into their chunk's world frame ahead of the one asked for: two batches of windows,
+# so the method prepares the next batch early.
+TRANSFORM_AHEAD = 32
+
+# Each chunk's world frame is re-centred on a point of this grid (m) near its first frame. Why a
+# grid: Floxels' voxel and distance-transform grids are aligned to the coordinates, so a shift by
+# anything but a multiple of their cells (0.5 m, 0.1 m) changes the estimate (by up to the
+# flow itself after a few iterations), and the flow of a frame would depend on where its chunk
+# started: on --chunk, --frames, a resumed run or a Ray task's split. 10 m is a multiple of
+# every cell size of 0.1, 0.2, 0.25, 0.5, 1, 2, 2.5 or 5 m.
+ANCHOR_GRID = 10.0
+
+
+def snap_anchor(position) -> np.ndarray:
+    """The world-frame origin of a chunk whose first frame is at ``position`` (3,): the nearest
+    multiple of ``ANCHOR_GRID`` (so results do not depend on where chunks start)."""
+    return np.round(np.asarray(position, np.float64) / ANCHOR_GRID) * ANCHOR_GRID
+
+
+def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
+    """Targets per segment: ``chunk`` at a time (None: ``DEFAULT_CHUNK``)."""
+    size = chunk or DEFAULT_CHUNK
+    return [todo[k:k + size] for k in range(0, len(todo), size)]
 
 
 class Segment:
@@ -39,7 +71,7 @@ class Segment:
 
     def anchor(self):
         """The chunk's world-frame origin: its first readable frame's position on the anchor
-        grid (as the plain run), None when no frame of it is readable; waits for the reads."""
+        grid, None when no frame of it is readable; waits for the reads."""
         with self._lock:
             if not self._anchor:
                 a = None
@@ -104,8 +136,8 @@ class StreamScans(Sequence):
     world frame, transformed on the loaders' transform threads ``TRANSFORM_AHEAD`` items ahead
     of the one asked for, with the frames read ``READ_AHEAD`` ahead (into the next sequence)."""
 
-    def __init__(self, layout: Layout, tpool, stages) -> None:
-        self.layout, self.tpool, self.stages = layout, tpool, stages
+    def __init__(self, layout: Layout, stages) -> None:
+        self.layout, self.stages = layout, stages
         self._futs: dict = {}
         self._next = 0
 
@@ -127,8 +159,14 @@ class StreamScans(Sequence):
         stop = min(lay.end, g + TRANSFORM_AHEAD)
         self._next = max(self._next, g)
         while self._next < stop:
-            self._futs[self._next] = self.tpool.submit(self._make, self._next)
+            self._submit(self._next)
             self._next += 1
+
+    def _submit(self, g: int):
+        """Item ``g``'s transform on its loader's transform threads (shared by the jobs of a
+        dataset, a sequence's own otherwise)."""
+        fut = self._futs[g] = self.layout.locate(g)[0].job.loader.tpool.submit(self._make, g)
+        return fut
 
     def _make(self, g: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(the scan, its ground returns or None), both in its chunk's world frame."""
@@ -158,7 +196,7 @@ class StreamScans(Sequence):
         self._advance(g)
         fut = self._futs.get(g)
         if fut is None:  # dropped (asked for again after its window passed): make it again
-            fut = self._futs[g] = self.tpool.submit(self._make, g)
+            fut = self._submit(g)
         if not fut.done():
             t0 = time.perf_counter()
             fut.result()
@@ -189,7 +227,7 @@ class StreamScans(Sequence):
 
 class Targets:
     """The method's targets, ``(stream index, Segment)`` in order, pulling sequences as it goes;
-    a chunk without a readable frame fails its targets here (as the plain run). A new iterator
+    a chunk without a readable frame fails its targets here. A new iterator
     after an error goes on after the targets already issued."""
 
     def __init__(self, layout: Layout, fail: Callable) -> None:

@@ -1,13 +1,15 @@
-"""``floxels run DATASET --out OUT [--ray [auto|ADDRESS]]``: every sequence of a dataset through
-one pipeline here (``worker``) or through one per worker on a Ray cluster (``ray_runner``).
+"""``floxels run INPUT --out OUT [--ray [auto|ADDRESS]]``: where INPUT goes. One sequence runs
+here as one task (``local.run_sequence``); a dataset (a directory of sequences or a list file)
+as one task per sequence through one pipeline here (``local.run_dataset``), or through one per
+worker on a Ray cluster (``ray_runner``), as does any INPUT with ``--ray``. All of them run
+their tasks through the same engine (``worker``, ``stream``).
 
-``floxels_ext.lidar.run`` calls two functions of this module: ``add_dataset_arguments(parser)`` while
-building its parser and ``maybe_run_dataset(args)`` first thing in ``run(args)``; the latter
-returns None when INPUT is one sequence and ``--ray`` is not given (the plain run goes on).
+``floxels_ext.lidar.run`` calls two functions of this module: ``add_dataset_arguments(parser)``
+while building its parser and ``run_input(args)`` to run.
 
 A task is a sequence's frames ``[A, B)`` with the user's other options: its outputs are those
-of ``floxels run SEQ --out OUT/<rel> --frames A:B`` (``sequence`` opens it with the
-plain run's checks, windows and metadata). Output files are written atomically under temporary
+of ``floxels run SEQ --out OUT/<rel> --frames A:B`` (``sequence`` opens every task alike:
+checks, windows, metadata). Output files are written atomically under temporary
 names ``.<frame>.npz.<pid>.tmp``; several tasks of one sequence may share an output directory,
 so a task removes only the temporaries of its own frames (left by an earlier, killed attempt),
 and the Ray driver sweeps the rest before launching and after the last task.
@@ -19,7 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
-__all__ = ["add_dataset_arguments", "maybe_run_dataset", "common_options"]
+__all__ = ["add_dataset_arguments", "run_input", "common_options"]
 
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
@@ -105,30 +107,31 @@ def _check_options(args, dataset: bool) -> None:
         raise CLIError(f"--keep-workers must be >= 0 seconds, got {args.keep_workers}")
 
 
-def maybe_run_dataset(args) -> int | None:
-    """Runs a dataset (or one sequence through Ray); None when the plain run should handle INPUT."""
-    if getattr(args, "list_methods", False) or not args.input or not args.out:
-        return None
-    if args.ray is None:
-        return _run_dataset(args, None)
+def run_input(args) -> int:
+    """Runs INPUT: one sequence (here, or through Ray with ``--ray``) or a dataset."""
+    if args.ray is None or not args.input or not args.out:
+        return _run_input(args, None)
     from floxels_ext.lidar.dataset.ray_runner import early_workers
 
     _check_options(args, dataset=False)
     with early_workers(args) as workers:  # they start while the dataset is listed and planned
-        return _run_dataset(args, workers)
+        return _run_input(args, workers)
 
 
-def _run_dataset(args, workers) -> int | None:
+def _run_input(args, workers) -> int:
     from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 
+    if not args.input or not args.out:
+        return run_sequence(args)  # its argument check names what is missing
     specs = discover_dataset(args.input, args.out, args.sequences)
     _check_options(args, specs is not None)
     if specs is None:
         if args.sequences:
             raise CLIError(f"--sequences selects sequences of a dataset, but {args.input} is one sequence")
         if args.ray is None:
-            return None
+            return run_sequence(args)
         specs = [SequenceSpec(Path(args.input).resolve(), Path("."),
                               Path(args.poses) if args.poses else None, Path(args.calib) if args.calib else None)]
     from floxels_ext.lidar.pipeline.run_args import resolve_preset
@@ -155,7 +158,7 @@ def _run_dataset(args, workers) -> int | None:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
         return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers)
-    return _run_here(tasks, args, common, n_sequences=len(specs))
+    return run_dataset(tasks, args, n_sequences=len(specs))
 
 
 def _check_written_tasks(tasks, args) -> None:
@@ -177,42 +180,3 @@ def _check_written_tasks(tasks, args) -> None:
             t.todo = resume_todo(t, args, options, settings)
         except (CLIError, SequenceFormatError, MissingDependencyError, OSError, ValueError):
             t.todo = list(t.names)
-
-
-def _run_here(tasks, args, common: dict, n_sequences: int) -> int:
-    """Every sequence through one pipeline in this process (``worker.run_tasks``), with
-    one progress bar for the dataset."""
-    import time
-
-    from floxels_ext.lidar.dataset.worker import run_tasks
-    from floxels_ext.lidar.pipeline.progress import DatasetProgress
-
-    verbosity = int(getattr(args, "verbosity", 0) or 0)
-    total = sum(len(t.names) for t in tasks)
-    todo = sum(len(t.todo) for t in tasks)
-    if verbosity >= 0:
-        print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done",
-              file=sys.stderr, flush=True)
-    run = [t for t in tasks if t.todo]
-    bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
-    for _ in range(len(tasks) - len(run)):
-        bar.sequence("skipped")
-    t0 = time.perf_counter()
-    try:
-        res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
-                        on_sequence=lambda task, outcome, job, lines: bar.sequence(outcome))
-    finally:
-        bar.close()
-    wall = time.perf_counter() - t0
-    seqs = dict(res["sequences"])
-    seqs["skipped"] += len(tasks) - len(run)
-    print(f"dataset done: {n_sequences} sequences ({seqs['done']} done, {seqs['skipped']} skipped, {seqs['failed']} "
-          f"failed), {res['written']} frame(s) written in {wall:.1f} s"
-          + (f" ({res['written'] / wall:.2f} frames/s)" if wall > 0 and res["written"] else "")
-          + f", {len(res['failed'])} failure(s); outputs in {args.out}", file=sys.stderr)
-    if res["failed"]:
-        print("failed:", file=sys.stderr)
-        for line in res["failed"]:
-            print(f"  {line}", file=sys.stderr)
-        return 1
-    return 0

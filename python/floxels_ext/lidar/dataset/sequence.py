@@ -1,9 +1,9 @@
-"""One sequence of ``floxels run DATASET`` in the shared pipeline (``stream``): opening
-it as the plain ``floxels run SEQ --frames A:B`` does (frames, poses, resume, output metadata;
-the same checks, the same files) and, once its frames are done, its ``run_summary.json`` and
-failure lines, as the plain run writes them.
+"""One sequence of ``floxels run`` in the engine (``stream``): opening it (frames, poses,
+resume, output metadata, the reader), its failures and, once its frames are done, its
+``run_summary.json``. ``floxels run SEQ`` and every sequence (or frame range of one) of a
+dataset go through these functions, so both check, resume and summarise alike.
 
-:class:`DatasetContext` holds what every sequence of the job shares: the parsed options, the
+:class:`DatasetContext` holds what every sequence of the run shares: the parsed options, the
 method's options, the preprocessing settings, the reader pools and stage times.
 """
 
@@ -17,7 +17,12 @@ from pathlib import Path
 
 from floxels_ext.lidar.dataset.stream import SeqJob
 
-__all__ = ["DatasetContext", "open_sequence", "resume_todo", "write_sequence_summary", "failure_lines"]
+__all__ = ["DatasetContext", "open_sequence", "resume_todo", "settle_failures", "failure_lines",
+           "write_sequence_summary"]
+
+# what the start line says of the ego-motion when no pose file names it
+_EGO_MOTION = {"seqio": "points already in one frame", "identity": "none (--no-ego-motion)",
+               "frame": "per-frame poses", "table": "KISS-ICP odometry"}
 
 
 @dataclass
@@ -26,7 +31,7 @@ class DatasetContext:
     device: str
     options: dict          # the method's options (check_args)
     settings: object       # Preprocess
-    pools: object          # LoaderPools
+    pools: object          # LoaderPools shared by the sequences; None: each loader makes its own
     stages: object         # Stages
     pre_device: str | None
     report: object         # message -> None (errors and warnings)
@@ -36,10 +41,13 @@ class DatasetContext:
     extra: dict = field(default_factory=dict)
 
 
-def open_sequence(task, ctx: DatasetContext) -> SeqJob:
+def open_sequence(task, ctx: DatasetContext, say=None) -> SeqJob:
     """The job of ``task`` (``tasks.Task``: a sequence's frames [start, stop) and its output
     directory). Raises CLIError (or the readers' errors) when the sequence cannot run; only
-    this task's own temporaries are removed (tasks of one sequence may share its directory)."""
+    this task's own temporaries are removed (tasks of one sequence may share its directory).
+    ``say(line)``: the sequence's start lines (temporaries removed, resume notes, what is to
+    do, where frame times come from), as ``floxels run SEQ`` prints them; without it, resume
+    notes go to ``ctx.report`` and the rest is not said."""
     from floxels_ext.lidar.io.sources import absolute_sources
     from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
     from floxels_ext.lidar.pipeline.frame_writer import FrameOutput
@@ -47,64 +55,76 @@ def open_sequence(task, ctx: DatasetContext) -> SeqJob:
     from floxels_ext.methods import get_method
 
     args = ctx.args
-    st = _resume_state(task, args, ctx.options, ctx.settings, ctx.report, sweep=True)
-    seq, todo = st["seq"], st["todo"]
+    st = _resume_state(task, args, ctx.options, ctx.settings, ctx.report, sweep=True, say=say)
+    seq, todo, selected = st["seq"], st["todo"], st["selected"]
+    if say is not None:
+        say(f"{seq.root}: {len(seq)} frames ({seq.kind}), {len(selected)} selected, {len(selected) - len(todo)} "
+            f"already done, {len(todo)} to estimate with {args.method} on {ctx.device} "
+            f"(ego-motion: {seq.pose_source or _EGO_MOTION[st['pose_mode']]})")
+        if st["times_source"] is not None:
+            say(f"frame times from {st['times_source']}: window offsets follow them, flow stays per frame step")
     meta = output_meta(args, ctx.options, st["settings"], seq)
     write_one = FrameOutput(out_path=st["out_path"], sources=absolute_sources(seq, todo), stamps=st["stamps"],
                             meta=meta, dynamic_threshold=args.dynamic_threshold, compress=args.compress,
                             self_contained=args.self_contained, inputs=st["inputs"])
     loader = FrameLoader(seq, ctx.settings, st["poses"], st["pose_mode"], ctx.report, pools=ctx.pools,
-                         pre_device=ctx.pre_device, keep_points=args.self_contained, stages=ctx.stages,
+                         workers=ctx.workers, kind=ctx.kind, pre_device=ctx.pre_device,
+                         keep_points=args.self_contained, stages=ctx.stages,
                          keep_ground=get_method(args.method).wants_ground(ctx.options),
                          warn=lambda m: ctx.report(f"floxels: warning: {m}"))
 
     next_pose = next_pose_reader(seq, st["pose_mode"], st["poses"], loader)
 
-    info = {"out": st["out"], "selected": st["selected"], "skipped": len(st["selected"]) - len(todo),
-            "settings": st["settings"], "task": task}
+    info = {"out": st["out"], "selected": selected, "skipped": len(selected) - len(todo),
+            "settings": st["settings"], "task": task, "run_range": st["run_range"]}
     return SeqJob(label=task.label, seq=seq, loader=loader, todo=todo, write_one=write_one, next_pose=next_pose,
                   times_s=st["times_s"], info=info)
 
 
 def resume_todo(task, args, options: dict, settings) -> list[str]:
-    """The names of ``task``'s frames to estimate by the check :func:`open_sequence` (and
-    ``floxels run SEQ``) makes: outputs missing, unreadable, written from other inputs (their
-    window's scans, poses or times changed: ``pipeline/resume.py``), or all with --force. Said
-    nothing; raises as :func:`open_sequence` does (other settings: CLIError). The driver asks it
-    for the tasks whose outputs all exist, which it would otherwise skip unchecked."""
+    """The names of ``task``'s frames to estimate by the check :func:`open_sequence` makes:
+    outputs missing, unreadable, written from other inputs (their window's scans, poses or
+    times changed: ``pipeline/resume.py``), or all with --force. Said nothing; raises as
+    :func:`open_sequence` does (other settings: CLIError). The dataset driver asks it for the
+    tasks whose outputs all exist, which it would otherwise skip unchecked."""
     st = _resume_state(task, args, options, settings, lambda msg: None, sweep=False)
     return [st["seq"].frames[i].name for i in st["todo"]]
 
 
-def _resume_state(task, args, options: dict, settings, report, *, sweep: bool) -> dict:
-    """The sequence of ``task`` opened as the plain run opens one (frames, output directory,
-    poses, times, settings) and the frames left to do; ``sweep``: remove this task's own
-    temporaries first."""
+def _resume_state(task, args, options: dict, settings, report, *, sweep: bool, say=None) -> dict:
+    """The sequence of ``task`` opened (frames, output directory, poses, times, settings) and
+    the frames left to do; ``sweep``: remove this task's own temporaries first."""
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.io.outputs import cleanup_temps
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
-    from floxels_ext.lidar.pipeline.run_args import check_out_dir, resume_plan
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, parse_frame_range, resume_plan
     from floxels_ext.lidar.pipeline.run_inputs import resolve_poses
 
     spec = task.seq
     out = Path(task.out_dir)
     try:
-        seq = discover_input(spec.path, poses_file=spec.poses, calib=spec.calib, bin_columns=args.bin_columns,
-                             ext=args.ext, points_frame=args.points_frame)
+        seq = task.found if task.found is not None else \
+            discover_input(spec.path, poses_file=spec.poses, calib=spec.calib, bin_columns=args.bin_columns,
+                           ext=args.ext, points_frame=args.points_frame)
         check_out_dir(out, seq)
         selected = list(range(task.start, min(task.stop, len(seq))))
         out.mkdir(parents=True, exist_ok=True)
         if sweep:
-            cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
+            stale = cleanup_temps(out, {f"{seq.frames[i].name}.npz" for i in selected})
+            if stale and say is not None:
+                say(f"removed {stale} temporary file(s) left by an interrupted run")
         args_seq = _with(args, poses=str(spec.poses) if spec.poses else None,
                          calib=str(spec.calib) if spec.calib else None)
         pose_mode, poses = resolve_poses(seq, args_seq, out, report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report)
-    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses, **plan}
+    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, resume_report=say)
+    # the frames the run selects (--frames) of which this task is a part (a Ray task's range)
+    run_range = parse_frame_range(getattr(args, "frames", None), len(seq))
+    return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses,
+            "run_range": run_range, **plan}
 
 
 def _with(args, **changes):
@@ -116,8 +136,26 @@ def _with(args, **changes):
     return ns
 
 
+def _owned(job: SeqJob, i: int) -> bool:
+    """Whether a frame that could not be read counts as one of ``job``'s failures: its own
+    frames, and neighbours outside what the run selects (``--frames``: no task owns them),
+    read as support scans; a neighbour that is another task's frame is that task's."""
+    a, b = job.info["run_range"]
+    task = job.info["task"]
+    return task.start <= i < task.stop or not a <= i < b
+
+
+def settle_failures(job: SeqJob) -> None:
+    """Adds the frames ``job``'s loader could not use (unreadable, empty after cropping) to its
+    failures: a support scan's too, so that a run with an unreadable frame never ends as if all
+    were well (:func:`_owned`)."""
+    for i, msg in list(job.loader.errors.items()):
+        if _owned(job, i):
+            job.failed.setdefault(i, msg)
+
+
 def failure_lines(job: SeqJob) -> list[str]:
-    """One line per failed frame, naming its file (as the plain run lists them)."""
+    """One line per failed frame, naming its file."""
     out = []
     for i in sorted(job.failed):
         path = str(job.seq.frames[i].path)
@@ -126,14 +164,14 @@ def failure_lines(job: SeqJob) -> list[str]:
     return out
 
 
-def write_sequence_summary(job: SeqJob, ctx: DatasetContext) -> Path | None:
-    """The sequence's ``run_summary.json`` with the plain run's keys; the stage times are the
-    whole stream's so far (the stages are shared by its sequences), its wall time is from the
-    moment the stream took the sequence to its last frame written."""
+def write_sequence_summary(job: SeqJob, ctx: DatasetContext, wall: float | None = None) -> Path | None:
+    """The sequence's ``run_summary.json`` (``task.summary``, default in its output directory);
+    returns its path (None when it could not be written: said as a warning). Warns first about
+    frames with non-finite rows. The stage times are the whole stream's so far (the sequences
+    of a dataset share them); ``wall``: the run's seconds, default from the moment the stream
+    took the sequence to its last frame written."""
     args, seq, info = ctx.args, job.seq, job.info
-    for i, msg in job.loader.errors.items():  # unreadable support scans count as failures too
-        if i in info["selected"]:
-            job.failed.setdefault(i, msg)
+    settle_failures(job)
     todo = set(job.todo)
     nonfinite = {i: k for i, k in job.loader.nonfinite.items() if i in todo}
     if nonfinite:
@@ -141,27 +179,33 @@ def write_sequence_summary(job: SeqJob, ctx: DatasetContext) -> Path | None:
         ctx.report(f"floxels: warning: {len(nonfinite)} frame(s) have rows with NaN/inf coordinates (their flow "
                    f"is NaN): " + ", ".join(f"{seq.frames[i].path.name} ({nonfinite[i]} rows)" for i in first)
                    + (" ..." if len(nonfinite) > 3 else ""))
-    wall = max(0.0, job.t_end - job.t_start)
+    if wall is None:
+        wall = max(0.0, job.t_end - job.t_start)
     times = job.times
     lines = failure_lines(job)
+    counts = {i: c for i, c in sorted(job.loader.counts.items()) if i in todo}
     summary = {"input": str(seq.root), "out": str(info["out"]), "method": args.method, "device": ctx.device,
                "frames": len(seq), "selected": len(info["selected"]), "written": job.written,
                "skipped": info["skipped"], "failed": len(job.failed),
                "failures": [{"frame": seq.frames[i].name, "message": m} for i, m in zip(sorted(job.failed), lines)],
                "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
-               # as the plain run: frames with points but none left to optimise (also in "failed"),
-               # frames whose few far points blow up a distance transform
-               "no_points_after_crop": [seq.frames[i].name for i in sorted(job.loader.empty_crop) if i in todo],
-               "far_outliers": [seq.frames[i].name for i in sorted(job.loader.stray) if i in todo],
+               # frames with points but none left to optimise (counted in "failed" too)
+               "no_points_after_crop": [seq.frames[i].name for i in sorted(job.loader.empty_crop) if _owned(job, i)],
+               # frames whose few far points blow up a distance transform (warned about once)
+               "far_outliers": [seq.frames[i].name for i in sorted(job.loader.stray) if _owned(job, i)],
+               # per estimated frame: points kept (optimised), removed as ground, removed as
+               # outliers (far below the ground / far above the sensor), cropped (or non-finite)
+               "point_classes": {seq.frames[i].name: c for i, c in counts.items()},
+               "outliers": sum(c["outlier"] for c in counts.values()),
                "wall_s": round(wall, 4),
                "frames_per_s": round(job.written / wall, 3) if wall > 0 and job.written else None,
                "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
                "s_per_frame_median": round(statistics.median(times), 6) if times else None,
                "stages_s": ctx.stages.as_dict(), "workers": ctx.workers, "writers": ctx.writers,
                "worker_kind": ctx.kind, "writer_kind": ctx.kind, "preprocess_device": ctx.pre_device or "cpu",
-               "settings": json.loads(json.dumps(info["settings"], default=str)),
-               "dataset_stream": True}
-    path = Path(info["out"]) / "run_summary.json"
+               "settings": json.loads(json.dumps(info["settings"], default=str))}
+    task = info["task"]
+    path = Path(task.summary) if task.summary else Path(info["out"]) / "run_summary.json"
     try:
         from floxels_ext.output_paths import replace_atomically
 

@@ -1,20 +1,21 @@
-"""The frames of many sequences through one ``floxels run`` pipeline (``floxels run DATASET``,
-locally or in a Ray worker).
+"""The engine of ``floxels run``: the frames of one sequence or of many through one pipeline
+(here, or in a Ray worker).
 
-Running a dataset as one plain run per sequence started and drained everything per sequence:
-reader and writer threads, the read-ahead (the device waited for the first frames), the
-method's own pipeline (its first batch prepared with the device idle, its last optimised
-with nothing beside it) and the writers' tail. Here one set of reader threads, transform
-threads and writers serves every sequence, and the method gets one stream of targets
-(:func:`floxels_ext.estimator.stream.estimate_stream`): the segments of successive sequences
-laid end to end in one index space.
+Every run is a stream of tasks (``tasks.Task``: a sequence's frames, opened by
+``sequence.open_sequence`` as a :class:`SeqJob`); ``floxels run SEQ`` is a stream of one. One
+set of reader threads, transform threads and writers serves every sequence, and the method gets
+one stream of targets (:func:`floxels_ext.estimator.stream.estimate_stream`): the segments
+of successive sequences laid end to end in one index space. Running a dataset as one run per
+sequence had started and drained everything per sequence: reader and writer threads, the
+read-ahead (the device waited for the first frames), the method's own pipeline (its first batch
+prepared with the device idle, its last optimised with nothing beside it) and the writers' tail.
 
-* A segment is one chunk of one sequence, exactly as the plain run cuts it
-  (:func:`floxels_ext.lidar.pipeline.estimate_loop.plan_chunks`: ``--chunk`` targets and their support
-  scans, moved into one world frame re-centred on the chunk's first readable frame), so every
-  window, anchor and flow equals the plain run's; windows never leave their segment, so no
-  window mixes frames of two sequences, while a batch of the optimiser may hold targets of
-  both sides of a sequence end (``layout``: the segments, the scans, the targets).
+* A segment is one chunk of one sequence (``layout.plan_chunks``: ``--chunk`` targets and
+  their support scans, moved into one world frame re-centred on the chunk's first readable
+  frame), so every window, anchor and flow is the same however the frames are cut into tasks;
+  windows never leave their segment, so no window mixes frames of two sequences, while a batch
+  of the optimiser may hold targets of both sides of a sequence end (``layout``: the segments,
+  the scans, the targets).
 * Sequences are opened (files listed, poses, resume) one ahead on a thread of their own
   (``source``: an iterator of :class:`SeqJob`, :class:`Ahead`), and the read-ahead runs
   across sequence ends: the next sequence's first frames are read while the method still
@@ -30,18 +31,28 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
-from floxels_ext.lidar.pipeline.frame_loader import FrameLoader, GroundView, SensorView
-from floxels_ext.lidar.pipeline.estimate_loop import GIL_SWITCH_INTERVAL, EstimationError
+from floxels_ext.lidar.dataset.scan_views import GroundView, SegmentView, SensorView
+from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
 from floxels_ext.methods import accepts
 
-__all__ = ["SeqJob", "Ahead", "run_stream"]
+__all__ = ["SeqJob", "Ahead", "run_stream", "EstimationError", "GIL_SWITCH_INTERVAL"]
+
+# Python hands the GIL to a waiting thread only every "switch interval" (5 ms by default): with
+# reader and writer threads holding it for numpy work, the thread driving the GPU waited that
+# long each time it gave it up around a device call. A shorter interval during the run lets it
+# back sooner (bench/RESULTS.md, floxels run section); None leaves Python's setting alone.
+GIL_SWITCH_INTERVAL: float | None = 0.0005
+
+
+class EstimationError(ValueError):
+    """The method rejected its input before any frame was done (bad options, bad scans)."""
 
 
 @dataclass
@@ -111,12 +122,13 @@ class Ahead:
 
 
 def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chunk: int | None, device,
-               options: dict, stages, tpool, on_frame_done: Callable[[SeqJob, int], None],
+               options: dict, stages, on_frame_done: Callable[[SeqJob, int], None],
                on_finish: Callable[[SeqJob], None], report: Callable[[str], None]) -> None:
     """Estimate every target of every job of ``source`` through one pipeline (module docstring).
 
     ``on_frame_done(job, i)`` when frame ``i`` is written or failed; ``on_finish(job)`` once a
-    job is done (also a job with nothing to do), on whichever thread finished it. The writer is
+    job is done (also a job with nothing to do), on whichever thread finished it; its loader has
+    dropped its frames then (``release``) and is closed before returning. The writer is
     closed (queued results written) before returning, also on errors and Ctrl-C. Raises
     ``EstimationError`` (a ValueError/TypeError of the method before any frame was delivered)."""
     pad = num_scans - 1
@@ -136,17 +148,17 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
         on_frame_done(job, i)
         if finished:
             job.t_end = time.perf_counter()
-            job.loader.close()
+            job.loader.release()
             on_finish(job)
 
     def finish_empty(job: SeqJob) -> None:
         job.done = True
         job.t_end = time.perf_counter()
-        job.loader.close()
+        job.loader.release()
         on_finish(job)
 
     layout = Layout(src, num_scans, chunk, finish_empty)
-    scans = StreamScans(layout, tpool, stages)
+    scans = StreamScans(layout, stages)
     delivered: set[int] = set()
 
     def deliver(g: int, flow, fields=None) -> None:
@@ -218,7 +230,7 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
 
 def _per_segment(method, scans: StreamScans, targets: Targets, device, options: dict, deliver) -> None:
     """A method without ``estimate_stream``: one ``estimate_sequence`` call per segment (it
-    starts and drains its pipeline per chunk, as the plain run does)."""
+    starts and drains its pipeline per chunk)."""
     pass_times = accepts(method.estimate_sequence, "times")
     pass_sensors = accepts(method.estimate_sequence, "sensors")
     pass_ground = method.wants_ground(options)
@@ -229,7 +241,7 @@ def _per_segment(method, scans: StreamScans, targets: Targets, device, options: 
         if not batch:
             return
         seg = seg_now
-        view = _SegmentView(scans, seg.lo, seg.hi)
+        view = SegmentView(scans, seg.lo, seg.hi)
         extra = {"times": list(seg.times)} if pass_times and seg.times is not None else {}
         if pass_sensors:
             extra["sensors"] = SensorView(view)
@@ -247,32 +259,3 @@ def _per_segment(method, scans: StreamScans, targets: Targets, device, options: 
         seg_now = seg
         batch.append(g)
     flush()
-
-
-class _SegmentView(Sequence):
-    """Stream scans ``[lo, hi)`` as a sequence of their own (for ``estimate_sequence``)."""
-
-    def __init__(self, scans: StreamScans, lo: int, hi: int) -> None:
-        self.scans, self.lo, self.hi = scans, lo, hi
-
-    def __len__(self) -> int:
-        return self.hi - self.lo
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            idx = range(len(self))[k]
-            if k.step in (None, 1) and len(idx):
-                return self.scans[self.lo + idx[0]:self.lo + idx[-1] + 1]
-            return [self.scans[self.lo + j] for j in idx]
-        k = int(k)
-        if k < 0:
-            k += len(self)
-        if not 0 <= k < len(self):
-            raise IndexError(k)
-        return self.scans[self.lo + k]
-
-    def sensor(self, k: int):
-        return self.scans.sensor(self.lo + k)
-
-    def ground(self, k: int):
-        return self.scans.ground(self.lo + k)

@@ -51,6 +51,10 @@ class Task:
     names: list[str]
     todo: list[str] = field(default_factory=list)
     frame_paths: list[str] = field(default_factory=list)   # input files, for failure reports
+    summary: Path | None = None  # where its run_summary.json goes (--summary); None: in out_dir
+    # the sequence as ``discover_input`` listed it when the task was made here (``floxels run
+    # SEQ``), so that opening it does not list it again; None: opened from ``seq``
+    found: object = field(default=None, repr=False, compare=False)
 
     @property
     def label(self) -> str:

@@ -1,27 +1,29 @@
-"""Frames read and preprocessed ahead of the optimiser for ``floxels run``.
+"""Reading and preprocessing one frame for ``floxels run``, and doing so ahead of the optimiser.
 
-:class:`FrameLoader` reads, checks, crops and removes the ground of frames on worker threads
-(or processes), as far ahead as the caller prefetches; :class:`ChunkScans` hands a chunk's
-frames to the method as scans in one world frame, lazily, so the first windows start before the
-chunk is read; :class:`Stages` adds up where the time went. File reads and the lidar ops
-(cropping, ground removal, row selection, transforms) run without the GIL, and frames are
-hundreds of kB, so threads overlap them with the optimiser without copying frames between
-processes.
+:func:`load_frame` reads one frame file, crops it and removes its ground (the compiled CPU op,
+or torch on a GPU) and checks it (:mod:`floxels_ext.lidar.pipeline.frame_checks`), giving a
+:class:`PreparedFrame`; :class:`FrameLoader` runs it on worker threads (or processes), as far
+ahead as the caller prefetches, and keeps what each frame said (errors, non-finite rows, point
+classes) for the run's summary. File reads and the lidar ops (cropping, ground removal, row
+selection) run without the GIL, and frames are hundreds of kB, so threads overlap them with the
+optimiser without copying frames between processes. Moving the frames into a chunk's world
+frame is the engine's (``lidar/dataset/layout.py``: ``StreamScans``).
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from floxels_ext.lidar.pipeline.frame_checks import empty_crop_message, far_outliers, finite_mask
+from floxels_ext.lidar.pipeline.stages import Stages
 from floxels_ext.lidar.preprocess.transform import transform_points
 
-__all__ = ["PreparedFrame", "Stages", "load_frame", "single_threaded_blas", "LoaderPools", "FrameLoader", "ChunkScans"]
+__all__ = ["PreparedFrame", "load_frame", "single_threaded_blas", "LoaderPools", "FrameLoader"]
 
 
 @dataclass
@@ -45,53 +47,6 @@ class PreparedFrame:
     @property
     def n(self) -> int:
         return len(self.mask)
-
-
-@dataclass
-class Stages:
-    """Seconds per stage. read/preprocess/write: summed over worker threads (CPU time spent);
-    wait_input: the optimiser waited for frames; estimate: inside the method; wait_writer: the
-    optimiser waited for the writer (queue full); deliver: the optimiser handed results over (its
-    callback per frame, wait_writer included); wall: the whole pipeline. ``wait_input_in_estimate``:
-    the part of wait_input spent inside the method (it asks for the scans lazily), so
-    ``estimate - wait_input_in_estimate`` is the time the method actually computed."""
-
-    read: float = 0.0
-    preprocess: float = 0.0
-    transform: float = 0.0
-    estimate: float = 0.0
-    write: float = 0.0
-    wait_input: float = 0.0
-    wait_input_in_estimate: float = 0.0
-    wait_writer: float = 0.0
-    deliver: float = 0.0
-    wall: float = 0.0
-    in_estimate: bool = False  # set by the thread calling the method
-    optimiser_thread: int | None = None  # its threading.get_ident(): only its waits count
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-
-    def waited(self, dt: float) -> None:
-        """The calling thread waited ``dt`` s for a frame: counted when it is the optimiser's
-        thread (the transform threads wait for loads too, but the device does not)."""
-        if self.optimiser_thread is not None and threading.get_ident() != self.optimiser_thread:
-            return
-        self.add("wait_input", dt)
-        if self.in_estimate:
-            self.add("wait_input_in_estimate", dt)
-
-    def add(self, name: str, dt: float) -> None:
-        with self._lock:
-            setattr(self, name, getattr(self, name) + dt)
-
-    def as_dict(self) -> dict:
-        d = {k: round(getattr(self, k), 6) for k in
-             ("read", "preprocess", "transform", "estimate", "write", "wait_input", "wait_input_in_estimate",
-              "wait_writer", "deliver", "wall")}
-        # the method waits for nothing but its own work: the rest of the wall time is host-bound
-        d["compute"] = round(max(0.0, self.estimate - self.wait_input_in_estimate - self.wait_writer), 6)
-        d["outside_estimate"] = round(max(0.0, self.wall - self.estimate), 6)
-        d["host_bound"] = round(max(0.0, self.wall - d["compute"]), 6)
-        return d
 
 
 def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, pre_device=None,
@@ -191,73 +146,6 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     return out
 
 
-# A support scan's distance transform at the Floxels defaults (0.1 m cells, 2 m padding, float32)
-# over the axis-aligned extent of its points: a few stray returns far from the rest (--max-range
-# none) multiply it (one point 1 km away: 5.6 GB instead of 0.79 GB). Warned about above this
-# size when the scan's bulk alone would need a quarter of it or less.
-STRAY_DT_BYTES = 1e9
-STRAY_SPAN = 150.0  # m: scans whose coordinates all lie within this span are not examined further
-
-
-def _dt_bytes(lo, hi, cell: float = 0.1, padding: float = 2.0) -> float:
-    return 4.0 * float(np.prod((np.asarray(hi, np.float64) - lo + 2 * padding) / cell + 1))
-
-
-def far_outliers(kept: np.ndarray) -> str | None:
-    """A warning when a few points far from the rest of a scan blow up its distance transform
-    (see ``STRAY_DT_BYTES``), else None. Cheap: bounds of all points, quantiles of a sample."""
-    if len(kept) < 100:
-        return None
-    flat = kept.reshape(-1)  # one contiguous pass (per-column reductions cost ~100x more)
-    if float(flat.max()) - float(flat.min()) < STRAY_SPAN:  # every axis spans less: nothing to find
-        return None
-    lo = np.array([kept[:, k].min() for k in range(3)], np.float64)
-    hi = np.array([kept[:, k].max() for k in range(3)], np.float64)
-    full = _dt_bytes(lo, hi)
-    if full < STRAY_DT_BYTES:
-        return None
-    sample = kept[::max(1, len(kept) // 4096)].astype(np.float64)
-    blo = np.maximum(np.percentile(sample, 0.5, axis=0) - 10.0, lo)  # the bulk, 10 m margin
-    bhi = np.minimum(np.percentile(sample, 99.5, axis=0) + 10.0, hi)
-    bulk = _dt_bytes(blo, bhi)
-    if full < 4 * bulk:
-        return None
-    far = int(((kept < blo - 50.0) | (kept > bhi + 50.0)).any(axis=1).sum())  # clearly apart from the bulk
-    dims = lambda a, b: " x ".join(f"{v:.0f}" for v in b - a)  # noqa: E731
-    return (f"{far} point(s) lie far outside the rest of the scan (it spans {dims(lo, hi)} m, its bulk "
-            f"{dims(blo, bhi)} m): each distance transform of it needs ~{full / 1e9:.1f} GB instead of "
-            f"~{bulk / 1e9:.2f} GB (and more time); if they are stray returns, crop them (--max-range, --max-height)")
-
-
-def empty_crop_message(path, pts_sensor: np.ndarray, settings, pose_mode: str) -> str:
-    """Why a frame with finite points has none left after cropping and ground removal, with
-    the likely mistake: points not in the frame the ranges are measured in (the sensor at the
-    origin), or a crop that removes the whole scan."""
-    p = np.asarray(pts_sensor, np.float64)
-    p = p[np.isfinite(p).all(axis=1)]
-    r = np.hypot(p[:, 0], p[:, 1])
-    lo, hi = float(r.min()), float(r.max())
-    crop = ", ".join(f"--{k.replace('_', '-')} {getattr(settings, k)}" for k in ("min_range", "max_range", "max_height")
-                     if getattr(settings, k) is not None)
-    msg = (f"{path}: no point left to optimise after cropping ({crop}) and ground removal; its {len(p)} finite "
-           f"points lie {lo:.1f} to {hi:.1f} m from the sensor origin (horizontally)")
-    if settings.max_range is not None and lo > settings.max_range:
-        return msg + (". Likely a wrong frame: ranges are measured from each scan's sensor origin, and points in a "
-                      "world/map frame need their sensor pose ('pose' in the file, --points-frame world" +
-                      ("; --no-ego-motion measures from the world origin" if pose_mode == "identity" else "") +
-                      "), or check --poses/--calib; else widen --max-range")
-    return msg + ". Likely a wrong crop: check --min-range/--max-range/--max-height and the ground settings"
-
-
-def finite_mask(rows) -> np.ndarray:
-    """(N,) bool: the rows with finite coordinates (the keep op with nothing to crop)."""
-    from floxels_ext.ops.lidar import lidar_keep_mask
-
-    return lidar_keep_mask(rows, min_range=None, max_range=None, max_height=None, remove_ground=False,
-                           ground_cell=1.0, window_cells=1, ground_threshold=0.0, ground_max_rise=None,
-                           grid_distance=1.0, max_cells=1).numpy()
-
-
 _TLS = threading.local()
 _WORKER: dict = {}
 
@@ -296,7 +184,7 @@ class LoaderPools:
     """The reader threads (or processes) and the two transform threads of a run; a dataset's
     loaders share one set, so the readers of the next sequence are the same warm threads and
     start while the method still works on the current one. ``init_kwargs``: processes hold
-    one sequence's reading arguments (the plain run); without them each read carries its own."""
+    one sequence's reading arguments (a run of one sequence); without them each read carries its own."""
 
     def __init__(self, workers: int, kind: str = "thread", init_kwargs: dict | None = None) -> None:
         workers = max(1, workers)
@@ -320,7 +208,9 @@ class FrameLoader:
     """Reads and preprocesses frames ahead of use (:meth:`prefetch`) on ``workers`` threads, or
     processes (``kind="process"``: CPU preprocessing without sharing the GIL with the optimiser's
     host work; started at construction, see :mod:`floxels_ext.lidar.pipeline.worker_processes`).
-    ``pools``: shared :class:`LoaderPools` (a dataset's sequences), which :meth:`close` leaves open."""
+    ``pools``: shared :class:`LoaderPools` (a dataset's sequences), which :meth:`close` leaves
+    open; without them the loader makes its own (one sequence: worker processes then hold its
+    reading arguments once instead of receiving them with every frame)."""
 
     def __init__(self, seq, settings, poses, pose_mode: str, report, *, workers: int = 4, kind: str = "thread",
                  pre_device=None, keep_points: bool = False, stages: Stages | None = None, warn,
@@ -418,124 +308,17 @@ class FrameLoader:
             for k in [k for k in self.done if k < lo]:
                 del self.done[k]
 
-    def close(self) -> None:
+    def release(self) -> None:
+        """Drops every frame and cancels the reads not started (the sequence is done); what it
+        recorded of its frames (errors, counts) stays for the summary."""
         with self._lock:
             for fut in self.futures.values():
                 fut.cancel()
             self.futures.clear()
             self.done.clear()
-        if self._own_pools:
-            self.pools.close()
-
-
-class ChunkScans(Sequence):
-    """The ego-motion-compensated scans of frames ``[lo, hi)`` as a sequence: item ``k`` is frame
-    ``lo + k``'s kept points moved into the chunk's world frame (re-centred on ``anchor``). The
-    transforms run on the loader's transform threads, at most ``TRANSFORM_AHEAD`` items ahead of
-    the one asked for (``read_ahead(frame)`` is called with it: the caller's read-ahead); an item
-    is dropped once a later window starts after it."""
-
-    TRANSFORM_AHEAD = 32  # two batches of windows: the method prepares the next batch early
-
-    def __init__(self, loader: FrameLoader, lo: int, hi: int, anchor: np.ndarray, read_ahead=None) -> None:
-        self.loader, self.lo, self.hi, self.anchor = loader, lo, hi, anchor
-        self._read_ahead = read_ahead or (lambda i: loader.prefetch(range(i, hi)))
-        self._futs: dict = {}
-        self._next = 0  # transforms are submitted for items < _next
-        self._advance(0)
-
-    def _advance(self, k: int) -> None:
-        self._read_ahead(self.lo + k)
-        stop = min(len(self), k + self.TRANSFORM_AHEAD)
-        while self._next < stop:
-            self._futs[self._next] = self.loader.tpool.submit(self._make, self._next)
-            self._next += 1
-
-    def __len__(self) -> int:
-        return self.hi - self.lo
-
-    def _make(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """(the scan, its ground returns or None), both in the chunk's world frame."""
-        p = self.loader.get(self.lo + k)
-        t0 = time.perf_counter()
-        if p is None:
-            return np.zeros((0, 3), np.float32), None  # keeps the time offsets of the others right
-        T = p.to_world.copy()
-        T[:3, 3] -= self.anchor
-        s = transform_points(p.kept, T)
-        g = None if p.ground is None else transform_points(p.ground, T)
-        self.loader.stages.add("transform", time.perf_counter() - t0)
-        return s, g
-
-    def _scan(self, k: int) -> np.ndarray:
-        return self._made(k)[0]
-
-    def ground(self, k: int) -> np.ndarray | None:
-        """Ground returns of item ``k`` in the chunk's world frame (None unless the loader keeps them)."""
-        return self._made(k)[1]
-
-    def _made(self, k: int):
-        self._advance(k)
-        fut = self._futs.get(k)
-        if fut is None:  # dropped (asked for again after its window passed): make it again
-            fut = self._futs[k] = self.loader.tpool.submit(self._make, k)
-        if not fut.done():
-            t0 = time.perf_counter()
-            fut.result()
-            self.loader.stages.waited(time.perf_counter() - t0)
-        return fut.result()
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            idx = range(len(self))[k]
-            if k.step in (None, 1) and len(idx):  # a window: nothing before it is asked for again
-                for j in [j for j in self._futs if j < idx[0]]:
-                    del self._futs[j]
-            return [self._scan(j) for j in idx]
-        k = int(k)
-        if k < 0:
-            k += len(self)
-        if not 0 <= k < len(self):
-            raise IndexError(k)
-        return self._scan(k)
-
-    def sensor(self, k: int) -> np.ndarray | None:
-        """Sensor position of item ``k`` in the chunk's world frame (None where unknown)."""
-        p = self.loader.get(self.lo + k)
-        return None if p is None or p.sensor is None else p.sensor - self.anchor
 
     def close(self) -> None:
-        for f in self._futs.values():
-            f.cancel()
-        self._futs.clear()
-
-
-class ScanFieldView(Sequence):
-    """One per-scan field (``FIELD(k)``) of a scan sequence that has it (ChunkScans, StreamScans),
-    as a sequence of its own: what the methods that take it get (``sensors=``, ``ground=``)."""
-
-    FIELD = ""
-
-    def __init__(self, scans) -> None:
-        self.scans = scans
-
-    def __len__(self) -> int:
-        return len(self.scans)
-
-    def __getitem__(self, k):
-        get = getattr(self.scans, self.FIELD)
-        if isinstance(k, slice):
-            return [get(j) for j in range(len(self))[k]]
-        return get(int(k))
-
-
-class SensorView(ScanFieldView):
-    """Each scan's sensor position (``sensors=``)."""
-
-    FIELD = "sensor"
-
-
-class GroundView(ScanFieldView):
-    """Each scan's ground returns, where the loader keeps them (``ground=``)."""
-
-    FIELD = "ground"
+        """:meth:`release`, and its own pools stopped (shared ones stay open)."""
+        self.release()
+        if self._own_pools:
+            self.pools.close()

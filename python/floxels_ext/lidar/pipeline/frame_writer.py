@@ -99,9 +99,10 @@ class WriterPool:
     (``"process"``); ``put`` blocks while ``depth`` results wait (flat memory). Frames are
     independent files, written atomically, so their order does not matter; a failed write
     fails its frame (``failures``), not the run. Processes start at construction
-    (:mod:`floxels_ext.lidar.pipeline.worker_processes`). A dataset's sequences share one pool: each
-    ``put`` then names its sequence's ``write_one`` and an ``on_done(i, error)`` callback (on a
-    writer thread; ``error`` None when written)."""
+    (:mod:`floxels_ext.lidar.pipeline.worker_processes`). The sequences of a run share one pool:
+    each ``put`` names its sequence's ``write_one`` (``write_one`` given here: the one the
+    processes hold) and an ``on_done(i, error)`` callback (on a writer thread; ``error`` None
+    when written)."""
 
     def __init__(self, write_one, stages, *, depth: int = 32, workers: int = 4, kind: str = "thread",
                  drain: int | None = None) -> None:
@@ -130,6 +131,8 @@ class WriterPool:
             self._slots.acquire()
             self.stages.add("wait_writer", time.perf_counter() - t0)
             light = dataclasses.replace(p, kept=np.zeros((0, 3), np.float32))  # the writer needs no kept points
+            if write_one is self.write_one:  # the children hold it from their start: not sent with each frame
+                write_one = None
             try:
                 fut = self.pool.submit(_child_write, (i, light, flow_kept, elapsed, next_to_world, fields), write_one)
             except Exception as e:  # a writer died (killed, out of memory): the pool is broken

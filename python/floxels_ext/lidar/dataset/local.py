@@ -1,0 +1,148 @@
+"""``floxels run`` on this machine: one sequence (:func:`run_sequence`) or a dataset
+(:func:`run_dataset`), both through the engine (``worker``); they differ only in what they
+print. One sequence: its start line, a progress bar naming each frame, ``done: ...`` and the
+failed frames; a dataset: one progress bar counting frames and sequences, ``dataset done: ...``.
+
+Per frame: read the file (``floxels_ext.lidar.io``), crop and remove the ground in the scan's own
+sensor frame (``floxels_ext.lidar.preprocess``), bring the scans of its window into one frame
+with the poses (ego-motion compensation), estimate the flow with the chosen method and write
+``OUT_DIR/<frame name>.npz`` (see :data:`floxels_ext.lidar.io.outputs.OUTPUT`). Frames already
+written with the same settings from the same inputs are skipped, so an interrupted run continues
+where it stopped; frames whose window's scans, poses or times changed are recomputed
+(:mod:`floxels_ext.lidar.pipeline.resume`).
+
+Coordinates: the scans of a window are compensated in a world frame re-centred near the chunk
+being processed (world axes, so float32 stays precise with city-scale AV2 coordinates; the
+origin on a 10 m grid, so the flow does not depend on where chunks start: ``layout``); the
+flow is then rotated into the target frame's *native* coordinates, those its file stores (the
+sensor frame for plain files, the ego frame for AV2, the world frame for a ``floxels simulate``
+sequence). Flow is ego-motion compensated: static points have zero flow. ``ego_motion`` holds
+the rigid motion of the frame itself to the next one, for those who need raw displacements.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["run_sequence", "run_dataset"]
+
+
+def run_sequence(args) -> int:
+    """``floxels run SEQ``: one task of the sequence's selected frames through the engine."""
+    from floxels_ext.lidar.dataset.sequence import failure_lines, open_sequence, write_sequence_summary
+    from floxels_ext.lidar.dataset.worker import run_context, run_jobs
+    from floxels_ext.lidar.pipeline.progress import Progress
+
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
+    bar: Progress | None = None
+
+    def report(msg: str) -> None:  # errors and warnings: shown at every verbosity
+        (bar.message(msg) if bar is not None else print(msg, file=sys.stderr, flush=True))
+
+    def info(msg: str) -> None:
+        if verbosity >= 0:
+            report(msg)
+
+    ctx = run_context(args, report, shared_pools=False)
+    job = open_sequence(_sequence_task(args), ctx, say=info)
+    try:
+        bar = Progress(len(job.todo), verbosity=verbosity)
+        t0 = time.perf_counter()
+        try:
+            run_jobs([job], ctx, on_frame=lambda job, i: bar.update(note=job.seq.frames[i].name),
+                     on_finish=lambda job: None, write_one=job.write_one)
+        finally:
+            bar.close()
+    finally:
+        job.loader.close()  # its own readers
+    wall = time.perf_counter() - t0
+    summary_path = write_sequence_summary(job, ctx, wall=wall)
+    failed, times = job.failed, job.times
+    line = f"done: {job.written} frame(s) written, {job.info['skipped']} skipped (already done), {len(failed)} failed"
+    if job.loader.empty_crop:
+        line += f" ({len(job.loader.empty_crop)} with no point left after cropping)"
+    if times:
+        line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
+                 f"{sum(times):.1f} s total")
+    print(line, file=sys.stderr)  # also with -q: its help promises the final summary
+    if verbosity >= 1:
+        st = ctx.stages.as_dict()
+        print("stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()) + f"; summary: {summary_path}",
+              file=sys.stderr)
+    if failed:
+        print("failed frames:", file=sys.stderr)
+        for msg in failure_lines(job):
+            print(f"  {msg}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _sequence_task(args):
+    """The task of ``floxels run SEQ``: the sequence's frames that ``--frames`` selects, with
+    the checks made before any frame is read (the sequence found, at least 2 frames, --out and
+    --summary usable). Raises CLIError."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.dataset.tasks import SequenceSpec, Task
+    from floxels_ext.lidar.io import MissingDependencyError
+    from floxels_ext.lidar.io.poses import PoseFormatError
+    from floxels_ext.lidar.io.sources import InputError, discover_input
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, parse_frame_range
+    from floxels_ext.output_paths import check_output_file
+
+    try:
+        seq = discover_input(args.input, poses_file=args.poses, calib=args.calib, bin_columns=args.bin_columns,
+                             ext=args.ext, points_frame=args.points_frame)
+    except (InputError, PoseFormatError, MissingDependencyError) as e:
+        raise CLIError(str(e)) from None
+    if len(seq) < 2:
+        raise CLIError(f"{seq.root} holds {len(seq)} frame; scene flow needs at least 2")
+    out = Path(args.out)
+    check_out_dir(out, seq)
+    if args.summary:  # checked before the work, like every output path
+        check_output_file(args.summary, "--summary", "run_summary.json")
+    start, stop = parse_frame_range(args.frames, len(seq))
+    spec = SequenceSpec(Path(args.input), Path("."), Path(args.poses) if args.poses else None,
+                        Path(args.calib) if args.calib else None)
+    return Task(spec, out, start, stop, [f.name for f in seq.frames[start:stop]],
+                frame_paths=[str(f.path) for f in seq.frames[start:stop]],
+                summary=Path(args.summary) if args.summary else None, found=seq)
+
+
+def run_dataset(tasks, args, n_sequences: int) -> int:
+    """Every sequence of a dataset through one pipeline in this process (``worker.run_tasks``),
+    with one progress bar for the dataset."""
+    from floxels_ext.lidar.dataset.worker import run_tasks
+    from floxels_ext.lidar.pipeline.progress import DatasetProgress
+
+    verbosity = int(getattr(args, "verbosity", 0) or 0)
+    total = sum(len(t.names) for t in tasks)
+    todo = sum(len(t.todo) for t in tasks)
+    if verbosity >= 0:
+        print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done",
+              file=sys.stderr, flush=True)
+    run = [t for t in tasks if t.todo]
+    bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
+    for _ in range(len(tasks) - len(run)):
+        bar.sequence("skipped")
+    t0 = time.perf_counter()
+    try:
+        res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
+                        on_sequence=lambda task, outcome, job, lines: bar.sequence(outcome))
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    seqs = dict(res["sequences"])
+    seqs["skipped"] += len(tasks) - len(run)
+    print(f"dataset done: {n_sequences} sequences ({seqs['done']} done, {seqs['skipped']} skipped, {seqs['failed']} "
+          f"failed), {res['written']} frame(s) written in {wall:.1f} s"
+          + (f" ({res['written'] / wall:.2f} frames/s)" if wall > 0 and res["written"] else "")
+          + f", {len(res['failed'])} failure(s); outputs in {args.out}", file=sys.stderr)
+    if res["failed"]:
+        print("failed:", file=sys.stderr)
+        for line in res["failed"]:
+            print(f"  {line}", file=sys.stderr)
+        return 1
+    return 0
