@@ -21,6 +21,7 @@ ray = pytest.importorskip("ray")
 from floxels_ext import cli  # noqa: E402
 from floxels_ext.lidar.io.outputs import read_flow_output  # noqa: E402
 from floxels_ext.evaluation.seqio import save_sequence  # noqa: E402
+from ray_procs import cmdline, output_stamps, run_beside  # noqa: E402
 
 FLAGS = ["--device", "cpu", "--max-iters", "3", "--scans", "3", "--chunk", "1"]
 N_FRAMES = 4
@@ -159,7 +160,7 @@ class _Killer(threading.Thread):
             self._watch()
             if self.killed is None:
                 pids = [int(p) for p in os.listdir("/proc")
-                        if p.isdigit() and _cmdline(p).startswith("ray::FloxelsWorker") and _ours(int(p))]
+                        if p.isdigit() and cmdline(p).startswith("ray::FloxelsWorker") and _ours(int(p))]
                 if pids and self.inodes:
                     os.kill(pids[0], signal.SIGKILL)
                     self.killed = pids[0]
@@ -182,18 +183,6 @@ def _ours(pid: int) -> bool:
     return False
 
 
-def _cmdline(pid: str) -> str:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().split(b"\0", 1)[0].decode(errors="replace")
-    except OSError:
-        return ""
-
-
-def _stamps(out: Path) -> dict:
-    return {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.rglob("*.npz")}
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the worker's process id in /proc")
 @pytest.mark.parametrize("workers,retries", [(2, 0), (2, 2), (1, 0)])
 def test_worker_killed_then_rerun(cluster, dataset, tmp_path, capsys, workers, retries):
@@ -203,13 +192,7 @@ def test_worker_killed_then_rerun(cluster, dataset, tmp_path, capsys, workers, r
            "--retries", str(retries), "--keep-workers", "0", *FLAGS]
     _empty_pool()
     killer = _Killer(out)
-    killer.start()
-    try:
-        rc = cli.main(cmd)
-    finally:
-        killer.stop = True
-        killer.join()
-    err = capsys.readouterr().err
+    rc, err = run_beside(killer, cmd, capsys)
     assert killer.killed is not None, "no worker was killed"
     assert not killer.rewritten, f"written twice: {killer.rewritten}"
     assert "1 worker(s) lost" in err, err
@@ -220,12 +203,12 @@ def test_worker_killed_then_rerun(cluster, dataset, tmp_path, capsys, workers, r
         assert rc == 1 and "no worker left" in err and "failed:" in err, err
         assert "not written: " in err
     assert not list(out.rglob(".*.tmp"))
-    before = _stamps(out)
+    before = output_stamps(out)
     stale = out / "sim/s0" / ".000001.npz.4242.tmp"   # as if a writer had died without cleaning up
     stale.write_bytes(b"x")
     assert cli.main(cmd) == 0
     err = capsys.readouterr().err
     assert f"{len(before)} already done" in err
-    after = _stamps(out)
+    after = output_stamps(out)
     assert {p: after[p] for p in before} == before, "a frame was written twice"
     _assert_same(out, local)

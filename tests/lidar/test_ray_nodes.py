@@ -20,6 +20,7 @@ from floxels_ext import cli  # noqa: E402
 from floxels_ext.evaluation.seqio import save_sequence  # noqa: E402
 from floxels_ext.evaluation.sim import simulate_sequence  # noqa: E402
 from floxels_ext.lidar.io.outputs import read_flow_output  # noqa: E402
+from ray_procs import cmdline, output_stamps, process_tree, run_beside  # noqa: E402
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="finds the node's processes in /proc")]
@@ -46,38 +47,6 @@ def two_nodes():
     c.shutdown()
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{tid}/children") as f:
-                out += [int(x) for x in f.read().split()]
-    except OSError:
-        pass
-    return out
-
-
-def _tree(pid: int) -> list[int]:
-    todo, seen = [pid], []
-    while todo:
-        p = todo.pop()
-        seen.append(p)
-        todo += _children(p)
-    return seen
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().split(b"\0", 1)[0].decode(errors="replace")
-    except OSError:
-        return ""
-
-
-def _stamps(out: Path) -> dict:
-    return {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.rglob("*.npz")}
-
-
 class _NodeKiller(threading.Thread):
     """Once ``out`` holds 2 frames and the second node runs a worker, SIGKILLs every process of
     that node's raylet tree (its workers first, so none writes after the snapshot), records each
@@ -96,17 +65,17 @@ class _NodeKiller(threading.Thread):
     def run(self):
         try:
             while not self.stop:
-                for p, (ino, _) in _stamps(self.out).items():
+                for p, (ino, _) in output_stamps(self.out).items():
                     if self.inodes.setdefault(p, ino) != ino:
                         self.rewritten.append(p)
                 if self.at_kill is None and len(self.inodes) >= 2:
-                    workers = [p for p in _tree(self.raylet) if _cmdline(p).startswith("ray::FloxelsWorker")]
+                    workers = [p for p in process_tree(self.raylet) if cmdline(p).startswith("ray::FloxelsWorker")]
                     if workers:
-                        for p in reversed(_tree(self.raylet)):  # children before their parents
+                        for p in reversed(process_tree(self.raylet)):  # children before their parents
                             if p != self.raylet:
                                 os.kill(p, signal.SIGKILL)
                         os.kill(self.raylet, signal.SIGKILL)
-                        self.at_kill = _stamps(self.out)
+                        self.at_kill = output_stamps(self.out)
                         self.cluster.remove_node(self.node, allow_graceful=False)
                 time.sleep(0.02)
         except BaseException as e:  # noqa: BLE001 - reported by the test
@@ -124,13 +93,7 @@ def test_second_node_lost_mid_run(two_nodes, tmp_path, capsys):
     out = tmp_path / "ray"
     cmd = ["run", str(root), "--out", str(out), *RAY, *FLAGS]
     killer = _NodeKiller(cluster, second, out)
-    killer.start()
-    try:
-        rc = cli.main(cmd)
-    finally:
-        killer.stop = True
-        killer.join()
-    err = capsys.readouterr().err
+    rc, err = run_beside(killer, cmd, capsys)
     print(err)  # shown with pytest -rP
     assert killer.error is None, killer.error
     assert killer.at_kill is not None, "the second node was not killed mid-run:\n" + err
@@ -142,7 +105,7 @@ def test_second_node_lost_mid_run(two_nodes, tmp_path, capsys):
         err += capsys.readouterr().err
     assert rc == 0, err
     assert not killer.rewritten, f"written twice: {killer.rewritten}"
-    after = _stamps(out)
+    after = output_stamps(out)
     assert {p: after[p] for p in killer.at_kill} == killer.at_kill, "an output present at the kill was rewritten"
     names = sorted(p.relative_to(out).as_posix() for p in after)
     assert names == sorted(p.relative_to(local).as_posix() for p in local.rglob("*.npz"))
