@@ -191,7 +191,8 @@ def main() -> None:
     t0 = time.perf_counter()
     desc = make_kitti_dataset(data, seqs, frames, beams, az, cpus, args.distinct)
     warm = tmp / "warm"
-    make_kitti_dataset(warm, 2, 6, 16, 360, 2, 2)
+    # the warm-up jobs: a task per worker, so every worker of a Ray row starts (and stays in the pool)
+    make_kitti_dataset(warm, max([2, *(args.gpus or [1]), *args.cold, *args.subset_gpus]), 6, 16, 360, 2, 2)
     gen_s = time.perf_counter() - t0
     flags = ["--device", args.device, "-q", *args.run_args.split()]
     if args.max_iters or not cuda:

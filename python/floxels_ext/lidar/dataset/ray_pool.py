@@ -157,12 +157,11 @@ class Workers:
 
     def _give_back(self, slot: Slot, ok: bool) -> None:
         try:
-            if slot.pooled and ok:
-                if slot.launched:  # a pooled worker's run releases it; one still starting gets its answer
-                    slot.actor.offer.remote(self.job, None)
-                else:
-                    slot.actor.release.remote(self.job)
-            else:
+            if slot.pooled and ok and slot.launched:  # its run releases it (one still starting: at once)
+                slot.actor.offer.remote(self.job, None)
+            elif slot.pooled and ok and slot.claimed:  # taken from the pool, not needed: back to it
+                slot.actor.release.remote(self.job)
+            else:  # failed, not pooled, or started for this job and never used (no pool of extras)
                 self.ray.kill(slot.actor, no_restart=True)
         except Exception:  # noqa: BLE001 - a dead worker needs nothing
             pass

@@ -109,8 +109,8 @@ def _check_options(args, dataset: bool) -> None:
 
 def run_input(args) -> int:
     """Runs INPUT: one sequence (here, or through Ray with ``--ray``) or a dataset."""
-    if args.ray is None or not args.input or not args.out:
-        return _run_input(args, None)
+    if args.ray is None or not args.input or not args.out or not Path(args.input).exists():
+        return _run_input(args, None)  # (a missing INPUT is reported without starting Ray)
     from floxels_ext.lidar.dataset.ray_runner import early_workers
 
     _check_options(args, dataset=False)
