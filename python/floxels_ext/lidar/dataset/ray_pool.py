@@ -79,7 +79,8 @@ class Workers:
     def _options(self, name: str | None):
         from floxels_ext.lidar.dataset.ray_worker import FloxelsWorker
 
-        opts = dict(num_gpus=self.gpus, num_cpus=self.cpus, max_restarts=0, max_concurrency=4)
+        # threaded: run() holds one thread for the whole job; poll, offer and the pool's calls the others
+        opts = dict(num_gpus=self.gpus, num_cpus=self.cpus, max_restarts=0, max_concurrency=8)
         if name is not None:
             opts.update(name=name, namespace=NAMESPACE, lifetime="detached")
         return self.ray.remote(FloxelsWorker).options(**opts)

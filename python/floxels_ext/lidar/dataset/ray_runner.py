@@ -286,6 +286,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
         back = sorted(slot.leases)
         queue.extendleft(reversed(back))
         slot.leases.clear()
+        for k in back:  # their next holder reports its own frames (resume skips the written ones)
+            live.pop(k, None)
         workers.drop(slot, ok=False)
         lines = str(e).strip().splitlines()
         deaths.append(f"{slot.name}: {type(e).__name__}: {lines[-1] if lines else e}; {len(back)} task(s) handed "
