@@ -14,6 +14,7 @@ import floxels_ext.estimator.api as api_mod
 import floxels_ext.estimator.distance as dist_mod
 import floxels_ext.estimator.group as est_mod
 import floxels_ext.estimator.scans as scans_mod
+import floxels_ext.estimator.schedule as sched_mod
 import floxels_ext.estimator.solver_run as solver_mod
 from _solver_problems import simulated_scans
 from floxels_ext import Floxels, FloxelsConfig
@@ -68,10 +69,10 @@ for name in ("point_bounds", "build_dt", "problem_setup", "restore_outputs", "pr
     wrap(est_mod, name)
 wrap(dist_mod, "build_dt", "build_dt (early EDT)")
 wrap(scans_mod, "_finite_rows")
-wrap(scans_mod, "stage_points")
-wrap(scans_mod._STAGER, "take", "_STAGER.take")
-wrap(scans_mod._STAGER, "used", "_STAGER.used")
-wrap(scans_mod, "_numpy_float32")
+wrap(sched_mod, "stage_points")
+wrap(sched_mod._STAGER, "take", "_STAGER.take")
+wrap(sched_mod._STAGER, "used", "_STAGER.used")
+wrap(sched_mod, "host_float32")
 wrap(Floxels, "fit")
 wrap(est_mod.Solving, "finish", "Solving.finish")
 wrap(opsolver.PackedProblems, "__init__", "PackedProblems()")

@@ -41,7 +41,6 @@ CFG = "python/floxels_ext/estimator/config.py"
 REF = "python/floxels_ext/reference/estimator.py"
 SOLVER = "python/floxels_ext/ops/solver.py"
 STOP = "python/floxels_ext/estimator/early_stopping.py"
-ARGS = "python/floxels_ext/lidar/pipeline/run_args.py"
 OUTS = "python/floxels_ext/lidar/io/outputs.py"
 RES = "python/floxels_ext/lidar/pipeline/resume.py"
 
@@ -90,8 +89,8 @@ MUTATIONS = [
     ("early stopping ignores min delta", STOP, "if loss < self.ref - self.min_delta:", "if loss < self.ref:",
      ["tests/ops/test_solver.py", E2E_ONE]),
     # resume
-    ("resume ignores changed settings", ARGS, "if diff and clash is None:", "if False:", [RESUME]),
-    ("resume ignores changed inputs", ARGS, "why = inputs_diff(rec[\"inputs\"], json.loads(inputs[i]))", "why = None",
+    ("resume ignores changed settings", RES, "if diff and clash is None:", "if False:", [RESUME]),
+    ("resume ignores changed inputs", RES, "why = inputs_diff(rec[\"inputs\"], json.loads(inputs[i]))", "why = None",
      [RESUME]),
     ("resume window is the frame alone", RES, "return range(min(lo, max(i - 1, 0)), max(hi, min(i + 2, n)))",
      "return range(i, i + 1)", [RESUME]),
@@ -100,7 +99,7 @@ MUTATIONS = [
     ("resume records no poses", RES, "if poses is not None else None", "if False else None", [RESUME]),
     ("resume records no times", RES, '"times": None if times_s is None else', '"times": None if True else',
      [RESUME]),
-    ("dataset sequences resume without the input check", ARGS,
+    ("dataset sequences resume without the input check", RES,
      "args.force, inputs=inputs, report=resume_report or report)", "args.force, report=resume_report or report)",
      [RESUME]),
     ("written dataset sequences skipped unchecked", "python/floxels_ext/lidar/dataset/run.py",

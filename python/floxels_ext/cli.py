@@ -8,9 +8,10 @@ file's logic: list the module in ``SUBCOMMAND_MODULES`` (or call ``register``). 
 module exposes ``add_parser(subparsers)``, which creates its parser with
 ``subparsers.add_parser(name, help=...)`` and sets ``func`` via ``set_defaults(func=run)``;
 ``run(args)`` returns an exit code (or None for 0). Keep such modules' top-level imports light
-and import heavy things inside ``run``. User mistakes (missing files, bad arguments, malformed
-data) should raise ``CLIError`` or ``seqio.SequenceFormatError``: ``main`` prints
-``floxels: error: <message>`` to stderr and exits with status 2, without a traceback.
+and import heavy things inside ``run``: ``floxels --help`` imports every one of them and loads
+neither torch nor numpy (tests/test_cli_startup.py). User mistakes (missing files, bad
+arguments, malformed data) should raise ``CLIError`` or ``seqio.SequenceFormatError``: ``main``
+prints ``floxels: error: <message>`` to stderr and exits with status 2, without a traceback.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 from typing import Callable
 
 __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
@@ -27,7 +29,8 @@ __all__ = ["CLIError", "SUBCOMMAND_MODULES", "register", "build_parser", "main"]
 # The order is the order of ``floxels --help``.
 SUBCOMMAND_MODULES: list[str] = ["floxels_ext.evaluation.simulate_cli", "floxels_ext.evaluation.eval_cli",
                                  "floxels_ext.evaluation.demo", "floxels_ext.lidar.run",
-                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show"]
+                                 "floxels_ext.lidar.viz.accumulate", "floxels_ext.lidar.viz.show",
+                                 "floxels_ext.lidar.export.command"]
 _EXTRA: list[Callable] = []
 
 
@@ -72,6 +75,13 @@ class _Parser(argparse.ArgumentParser):
         self.print_usage(sys.stderr)
         self.exit(2, f"floxels: error: {message}\n")
 
+    def format_help(self) -> str:
+        # a subcommand's description may be a function: text that needs heavy imports (numpy)
+        # is built only when this help is printed, so that `floxels --help` stays fast
+        if callable(self.description):
+            self.description = self.description()
+        return super().format_help()
+
 
 def _version() -> str:
     try:
@@ -84,12 +94,25 @@ def _version() -> str:
         return __version__
 
 
+class _PrintVersion(argparse.Action):
+    """``--version``: the version is looked up when asked for (importlib.metadata costs ~40 ms of
+    every ``floxels`` start otherwise)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default,
+                         help=help or "show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"floxels_ext {_version()}")  # to stdout, as argparse's own version action does
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The top-level parser. Global options: ``--version``; ``-q/--quiet`` and ``-v/--verbose``
     (also after the subcommand), stored as ``args.verbosity`` = -1, 0 or 1, which
     subcommands read with ``getattr(args, "verbosity", 0)``."""
     parser = _Parser(prog="floxels", description="Floxels scene flow tools.")
-    parser.add_argument("--version", action="version", version=f"floxels_ext {_version()}")
+    parser.add_argument("--version", action=_PrintVersion)
     _add_verbosity(parser, 0)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
     sub.add_parser = _with_verbosity(sub.add_parser)
@@ -100,14 +123,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning met while a command runs (the estimator's, numpy's, ...), printed as the
+    commands print theirs: ``floxels: warning: ...``, without the source line it was raised at
+    (for a command's user that line is inside the package, not theirs)."""
+    print(f"floxels: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage (and --help exits 0)
+    # imported after parsing: they load numpy, which `floxels --help` does not need
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
     from floxels_ext.evaluation.seqio import SequenceFormatError
 
-    parser = build_parser()
-    args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage
     try:
-        rc = args.func(args)
+        with warnings.catch_warnings():  # restores the display on the way out
+            warnings.showwarning = _show_warning
+            rc = args.func(args)
     except (CLIError, SequenceFormatError, LidarFormatError, MissingDependencyError, FileNotFoundError,
             NotADirectoryError, PermissionError) as e:
         print(f"floxels: error: {e}", file=sys.stderr)
@@ -118,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into e.g. `head`, which exited: not an error of ours
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as e:  # the place, not the program: a read-only file system, a full disk, ...
+        print(f"floxels: error: {e}", file=sys.stderr)
+        return 2
     return 0 if rc is None else int(rc)
 
 

@@ -23,13 +23,20 @@ A method is a :class:`Method`: a name, a one-line description, and
 
 ``estimate_stream(scans, targets, device, options, callback)`` (optional): the same for many
 sequences laid end to end in one index space (``floxels run DATASET``): ``targets`` yields
-``(index, segment)`` pairs (``floxels_ext.estimator.stream.Segment``: the scans ``[lo, hi)``
+``(index, segment)`` pairs (``floxels_ext.estimator.windows.Segment``: the scans ``[lo, hi)``
 the window of ``index`` stays in, and their times), possibly waiting for the next sequence;
 one call serves them all, so the method's own pipeline neither restarts nor drains between
 sequences. Without it, ``floxels run`` calls ``estimate_sequence`` once per segment.
 
 ``config`` (optional) is the dataclass whose fields the options are; the CLI then parses
 ``--option KEY=VALUE`` text by each field's type (``cluster_loss=no`` is False).
+
+``support_frames(i, n, options)`` (optional): the frames (of ``n``) whose scans the estimate
+of frame ``i`` reads besides its own; ``floxels run`` fails a frame none of whose support scans
+could be read, instead of writing the method's answer without them (issue 45). A method that
+got no estimate for a frame passes ``{"failure": reason}`` as its per-point fields (to a
+callback that takes them); the frame then fails with that reason (Floxels: an optimisation that
+diverged).
 
 Modules register their methods lazily: list the module in ``METHOD_MODULES``; it must call
 :func:`register` at import time. Keeping heavy imports inside the functions keeps
@@ -38,6 +45,7 @@ Modules register their methods lazily: list the module in ``METHOD_MODULES``; it
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 from collections.abc import Callable, Sequence
@@ -58,6 +66,8 @@ class Method:
     estimate_stream: Callable | None = None
     # options -> whether the method reads the scans' removed ground (``ground=``) with them
     uses_ground: Callable[[dict], bool] | None = None
+    # (frame, frames in the sequence, options) -> the frames whose scans its estimate reads
+    support_frames: Callable[[int, int, dict], list[int]] | None = None
 
     def wants_ground(self, options: dict) -> bool:
         """Whether to keep and pass each scan's removed ground for ``options`` (bad options:
@@ -106,6 +116,46 @@ def get_method(name: str) -> Method:
 
 
 # ----------------------------------------------------------------------------- floxels
+def _floxels_deliver(cfg, callback):
+    """The estimator's callback ``(frame, result)`` as the method's: the flow, with the
+    motion evidence's fields (``evidence`` on) and ``failure`` where the optimisation diverged
+    (to a callback that takes fields; others get the flow, and the estimator's warning)."""
+    fields_ok = cfg.evidence != "off" or _takes_fields(callback)
+
+    def deliver(f, res):
+        fields = {} if cfg.evidence == "off" else {"evidence": res.evidence, "explained": res.explained}
+        if res.diverged and fields_ok:
+            fields["failure"] = f"the optimisation diverged: {res.diverged}; lower lr (lr={cfg.lr:g})"
+        if fields:
+            callback(f, res.flow, fields)
+        else:
+            callback(f, res.flow)
+    return deliver, fields_ok
+
+
+def _takes_fields(callback) -> bool:
+    try:
+        params = list(inspect.signature(callback).parameters.values())
+    except (TypeError, ValueError):
+        return False
+    return len(params) >= 3 or any(p.kind == p.VAR_POSITIONAL for p in params)
+
+
+@contextlib.contextmanager
+def _quiet_divergence(handled: bool):
+    """Where the failures reach the callback, the estimator's DivergedWarning would say it twice."""
+    if not handled:
+        yield
+        return
+    import warnings
+
+    from floxels_ext.estimator.result import DivergedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DivergedWarning)
+        yield
+
+
 def _floxels_sequence(scans, frames, device, options, callback, times=None, sensors=None, ground=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
     from floxels_ext.estimator.api import estimate_sequence
@@ -115,30 +165,31 @@ def _floxels_sequence(scans, frames, device, options, callback, times=None, sens
         cfg = FloxelsConfig(**options)
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
-    if cfg.evidence == "off":
+    deliver, handled = _floxels_deliver(cfg, callback)
+    with _quiet_divergence(handled):
         estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times, sensor_origins=sensors,
-                          ground_points=ground, callback=lambda f, res: callback(f, res.flow))
-    else:
-        estimate_sequence(scans, cfg, device=device, frames=list(frames), times=times, sensor_origins=sensors,
-                          ground_points=ground, callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
-                                                                          "explained": res.explained}))
+                          ground_points=ground, callback=deliver)
 
 
 def _floxels_stream(scans, targets, device, options, callback, sensors=None, ground=None) -> None:
     from floxels_ext.estimator.config import FloxelsConfig
-    from floxels_ext.estimator.stream import estimate_stream
+    from floxels_ext.estimator.windows import estimate_stream
 
     try:
         cfg = FloxelsConfig(**dict(options or {}))
     except TypeError as e:  # unknown field name
         raise ValueError(f"floxels: bad option: {e}") from None
-    if cfg.evidence == "off":
-        estimate_stream(scans, targets, cfg, device=device, sensors=sensors, grounds=ground,
-                        callback=lambda f, res: callback(f, res.flow))
-    else:  # the same per-point fields as _floxels_sequence
-        estimate_stream(scans, targets, cfg, device=device, sensors=sensors, grounds=ground,
-                        callback=lambda f, res: callback(f, res.flow, {"evidence": res.evidence,
-                                                                        "explained": res.explained}))
+    deliver, handled = _floxels_deliver(cfg, callback)  # the same per-point fields as _floxels_sequence
+    with _quiet_divergence(handled):
+        estimate_stream(scans, targets, cfg, device=device, sensors=sensors, grounds=ground, callback=deliver)
+
+
+def _floxels_support(i: int, n: int, options: dict) -> list[int]:
+    from floxels_ext.estimator.api import window_for
+    from floxels_ext.estimator.config import FloxelsConfig
+
+    lo, hi = window_for(i, n, int(options.get("num_scans", FloxelsConfig.num_scans)))
+    return [j for j in range(lo, hi) if j != i]
 
 
 def _register_floxels() -> None:
@@ -146,7 +197,7 @@ def _register_floxels() -> None:
 
     register(Method("floxels", "Floxels (voxel flow grid, multi-scan DT loss; this project)", _floxels_sequence,
                     FloxelsConfig, estimate_stream=_floxels_stream,
-                    uses_ground=lambda options: FloxelsConfig(**options).visibility))
+                    uses_ground=lambda options: FloxelsConfig(**options).visibility, support_frames=_floxels_support))
 
 
 _register_floxels()

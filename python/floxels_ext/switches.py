@@ -45,17 +45,17 @@ SWITCHES: tuple[Switch, ...] = (
     Switch("FLOXELS_CPU_DBSCAN", "0", "CUDA DBSCAN binding, once per process",
            "1 = DBSCAN of CUDA input runs on the CPU (escape hatch; same labels)"),
     # runtime, Python (measurement switches of optimisations that are on by default)
-    Switch("FLOXELS_SERIAL_STAGES", "0", "estimator (estimator/streams.py), every group",
+    Switch("FLOXELS_SERIAL_STAGES", "0", "estimator (estimator/schedule.py), every group",
            "1 = the preparation stages run one after another with synchronisations, for per-stage "
            "timings (bench/bench_speed.py)"),
-    Switch("FLOXELS_EARLY_DT", "1", "estimator (estimator/distance.py), every frame",
+    Switch("FLOXELS_EARLY_DT", "1", "estimator (estimator/schedule.py), every frame",
            "0 = support-scan EDTs wait for the whole upload instead of starting scan by scan"),
     Switch("FLOXELS_PIPELINE", "1", "estimate_sequence, every call",
            "0 = the next batch is not prepared while the GPU optimises the current one"),
     Switch("FLOXELS_RAMP", "1", "estimate_sequence, every call",
            "0 = full-size first batches instead of 4, 8, ... frames"),
     # tests and CI
-    Switch("FLOXELS_AV2_PAIR", "unset", "tests/evaluation/test_metrics_av2.py",
+    Switch("FLOXELS_AV2_PAIR", "unset", "tests/conftest.py (the tests on the Argoverse 2 pair)",
            "path of the shared Argoverse 2 pair (.npz) when it is not under ../shared/data"),
     Switch("FLOXELS_CI_VENV", "/tmp/floxels-ci-venv", ".ci/run", "the virtual environment CI creates"),
 )

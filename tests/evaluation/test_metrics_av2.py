@@ -15,8 +15,6 @@ the package imports for visualisation only, was replaced by a stub: it needs lib
 
 import json
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -60,21 +58,9 @@ OFFICIAL = {
 OFFICIAL_NUM_POINTS = 81855  # non-ground points of pc0
 
 
-def _pair_path() -> Path | None:
-    here = Path(__file__).resolve().parents[2]
-    for p in (os.environ.get("FLOXELS_AV2_PAIR"), here / "shared/data/av2_pair/av2_7fab2350_pair.npz",
-              "/work/shared/data/av2_pair/av2_7fab2350_pair.npz"):
-        if p and Path(p).is_file():
-            return Path(p)
-    return None
-
-
 @pytest.fixture(scope="module")
-def av2():
-    path = _pair_path()
-    if path is None:
-        pytest.skip("the shared Argoverse 2 pair (shared/data/av2_pair) is not available")
-    d = np.load(path)
+def av2(av2_pair_path):
+    d = np.load(av2_pair_path)
     pc0 = d["pc0"].astype(np.float64)
     T = d["ego1_T_ego0"]
     gt = (pc0 + d["flow"].astype(np.float64) - T[:3, 3]) @ T[:3, :3] - pc0  # object motion, sweep 0 frame

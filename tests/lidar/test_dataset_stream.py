@@ -142,7 +142,7 @@ def test_floxels_stream_equals_per_sequence():
     """estimate_stream over segments laid end to end, in batches that cross segment ends, equals
     estimate_sequence over each segment alone."""
     from floxels_ext import FloxelsConfig, estimate_sequence
-    from floxels_ext.estimator.stream import Segment, estimate_stream
+    from floxels_ext.estimator.windows import Segment, estimate_stream
     from floxels_ext.evaluation.sim import simulate_sequence
 
     cfg = FloxelsConfig(num_scans=3, max_iters=8)
@@ -158,3 +158,29 @@ def test_floxels_stream_equals_per_sequence():
     assert sorted(got) == list(range(7))
     for g in range(7):
         np.testing.assert_allclose(got[g], ref[g], atol=1e-6)
+
+
+def test_unreadable_neighbour_outside_frames_fails_the_run(data, tmp_path, monkeypatch, capsys):
+    """A support scan outside --frames that cannot be read fails the run (exit 1, named once in
+    the summary), as one sequence and as a dataset's task alike; its neighbours are written."""
+    import shutil
+
+    from floxels_ext import methods
+
+    def windows(scans, frames, device, options, callback):  # reads each target's window of 3
+        for f in frames:
+            _ = scans[max(0, f - 1):f + 2]
+            callback(f, np.asarray(scans[f], np.float32) * 0.01)
+
+    monkeypatch.setitem(methods._REGISTRY, "windows", methods.Method("windows", "test double", windows))
+    root = tmp_path / "root"
+    shutil.copytree(data / "s0", root / "s0")
+    (root / "s0" / "000001.npz").write_bytes(b"not a zip")
+    args = ["--method", "windows", *FLAGS, "--frames", "2:4"]
+    for inp, out in ((root / "s0", tmp_path / "plain"), (root, tmp_path / "ds")):
+        assert cli.main(["run", str(inp), "--out", str(out), *args]) == 1
+        summary_dir = out if inp.name == "s0" else out / "s0"
+        summary = json.loads((summary_dir / "run_summary.json").read_text())
+        assert [f["frame"] for f in summary["failures"]] == ["000001"] and summary["written"] == 2, summary
+        assert sorted(p.name for p in summary_dir.glob("*.npz")) == ["000002.npz", "000003.npz"]
+    assert "000001.npz" in capsys.readouterr().err

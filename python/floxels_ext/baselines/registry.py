@@ -84,9 +84,13 @@ def _fastnsf_sequence(scans, frames, device, options, callback, times=None) -> N
                  times=times)
 
 
+def _pair_support(i: int, n: int, options: dict) -> list[int]:
+    return [pair_for_frame(i, n)[0]]
+
+
 methods.register(methods.Method(
     "nsfp", "Neural Scene Flow Prior (8x128 MLP, truncated Chamfer, forward + backward flow)", _nsfp_sequence,
-    NSFPConfig))
+    NSFPConfig, support_frames=_pair_support))
 methods.register(methods.Method(
     "fastnsf", "Fast Neural Scene Flow (8x128 MLP, distance-transform loss on our EDT/dt_loss ops)",
-    _fastnsf_sequence, FastNSFConfig))
+    _fastnsf_sequence, FastNSFConfig, support_frames=_pair_support))

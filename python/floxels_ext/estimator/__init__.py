@@ -2,8 +2,9 @@
 frames on top of ``torch.ops.floxels``, and sliding windows over a sequence.
 
 ``api`` is the public surface (re-exported by ``floxels_ext``); ``group`` prepares and solves
-a group of target frames together; ``streams`` holds the CUDA stream scheduling; ``scans``
-validates and stages the input scans; ``solver_run`` drives the device-resident solver op;
+a group of target frames together, its data steps in execution order; ``schedule`` says where
+each step runs on a GPU (streams, events, waits, page-locked staging); ``windows`` slides the
+windows over a sequence or a stream of them; ``scans`` validates and uploads the input scans; ``solver_run`` drives the device-resident solver op;
 ``evidence`` tests after the optimisation whether a group's flow explains the support scans
 better than zero flow (``FloxelsConfig.evidence``).
 """

@@ -21,16 +21,21 @@ import numpy as np
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.distance import DistanceTransform, DtStreams
+from floxels_ext.estimator.distance import DistanceTransform, EarlyDts
 from floxels_ext.estimator.group import fit_group
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import check_ground, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
-from floxels_ext.estimator.stream import RAMP_START, Window, solve_windows, window_for
-from floxels_ext.estimator.streams import serial_stages
+from floxels_ext.estimator.schedule import serial_stages
+from floxels_ext.estimator.windows import RAMP_START, Window, solve_windows, window_for
 from floxels_ext.ops.solver import MAX_PROBLEMS
 from floxels_ext.switches import flag
 
-__all__ = ["Floxels", "FloxelsResult", "DistanceTransform", "estimate_flow", "estimate_sequence", "window_for"]
+__all__ = ["Floxels", "FloxelsResult", "DistanceTransform", "estimate_flow", "estimate_sequence", "window_for",
+           "MAX_FRAME_PERIOD_S"]
+
+#: With ``flow_unit="m/s"``, a frame period above this (s) is refused: lidars turn at 1-20 Hz,
+#: so such times are not seconds (nanosecond timestamps give ~1e8, milliseconds ~100).
+MAX_FRAME_PERIOD_S = 10.0
 
 
 class Floxels:
@@ -56,11 +61,13 @@ class Floxels:
         ``times``/``frame_period``/``sensor_origins``/``ground_points``: see :func:`estimate_flow`.
         """
         cache = dt_cache if dt_cache is not None else {}
-        early = DtStreams(self.config, cache)
+        early = EarlyDts(self.config, cache)
         warn_if_no_sensors(self.config, sensor_origins)
         prep = prepare_scans(scans, target, self.device, on_ready=early, times=times, period=frame_period,
                              sensors=sensor_origins, grounds=ground_points)
-        return fit_group(self.config, [(prep, cache)], early)[0]
+        res = fit_group(self.config, [(prep, cache)], early.streams)[0]
+        warn_diverged(self.config, [("the target", res)])
+        return res
 
     def fit_many(self, windows: Sequence[tuple[Sequence, int | None]]) -> list[FloxelsResult]:
         """Estimate several target frames in one optimisation: ``windows`` is a list of
@@ -79,7 +86,23 @@ class Floxels:
                 raise TypeError(f"windows[{k}] must be a (scans, target) pair, e.g. fit_many([(scans, 2)]); "
                                 f"got {type(w).__name__}" + (f" of length {len(w)}" if hasattr(w, "__len__") else ""))
         preps = [prepare_scans(scans, target, self.device) for scans, target in windows]
-        return fit_group(self.config, [(p, {}) for p in preps])
+        results = fit_group(self.config, [(p, {}) for p in preps])
+        warn_diverged(self.config, [(f"window {k}", r) for k, r in enumerate(results)])
+        return results
+
+
+def warn_diverged(cfg: FloxelsConfig, results: list[tuple[str, FloxelsResult]], total: int | None = None) -> None:
+    """One ``DivergedWarning`` naming the results (``(label, result)``, of ``total``, default
+    their number) whose optimisation diverged (:attr:`FloxelsResult.diverged`), if any."""
+    bad = [(label, r.diverged) for label, r in results if r.diverged]
+    if bad:
+        from floxels_ext.estimator.result import DivergedWarning
+        from floxels_ext.estimator.user_warnings import warn_user
+
+        which = ", ".join(label for label, _ in bad[:3]) + (" ..." if len(bad) > 3 else "")
+        warn_user(f"{len(bad)} of {total or len(results)} optimisation(s) diverged ({which}): {bad[0][1]}; lower lr "
+                  f"(lr={cfg.lr:g})",
+                  DivergedWarning)
 
 
 def _config_of(config: FloxelsConfig | None, preset: str | None) -> FloxelsConfig:
@@ -127,9 +150,9 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     if flow_unit == "m/s" and times is None and frame_period is None:
         raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
     frame_period_of(None, frame_period)  # checks it
+    to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
     flow = Floxels(config, device).fit(scans, target, times=times, frame_period=frame_period,
                                        sensor_origins=sensor_origins, ground_points=ground_points).flow
-    to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
     return flow if to_unit == 1.0 else flow * to_unit
 
 
@@ -141,7 +164,13 @@ def _unit_factor(flow_unit: str, times, frame_period) -> float:
         return 1.0
     if times is None and frame_period is None:
         raise ValueError("flow_unit='m/s' needs the scans' times= (seconds) or frame_period= (seconds)")
-    return 1.0 / frame_period_of(times, frame_period)
+    period = frame_period_of(times, frame_period)
+    if period > MAX_FRAME_PERIOD_S:  # nanosecond stamps gave velocities 1e9 times too small
+        unit, scale = ((("nanoseconds", "1e-9"), ("microseconds", "1e-6"), ("milliseconds", "1e-3"))
+                       [0 if period > 1e6 else 1 if period > 1e3 else 2])
+        raise ValueError(f"flow_unit='m/s' with a frame period of {period:.6g} s: times= and frame_period= are "
+                         f"seconds, and these look like {unit} (multiply them by {scale})")
+    return 1.0 / period
 
 
 def _batches(frames: list[int], size: int, ramp: bool) -> list[list[int]]:
@@ -237,8 +266,11 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         low[k] = min([low[k + 1]] + [w.start for w in batches[k]])
     batch_no = {id(b): k for k, b in enumerate(batches)}
     out = []
+    diverged: list = []
 
     def deliver(f, res):
+        if res.diverged:
+            diverged.append((f"frame {f}", res))
         if to_unit != 1.0:
             res.flow = res.flow * to_unit
         out.append(res.flow)
@@ -248,4 +280,6 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     solve_windows(scans, cfg, device, batches, deliver, pipelined=dev if pipelined else None,
                   horizon=lambda nxt: math.inf if not nxt else low[batch_no[id(nxt)]], sensors=sensor_origins,
                   grounds=ground_points)
+    if diverged:  # one warning for the call (the results themselves say it: ``res.diverged``)
+        warn_diverged(cfg, diverged, total=len(out))
     return out

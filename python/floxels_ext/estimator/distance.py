@@ -1,5 +1,6 @@
-"""Distance transforms of the support scans: building one, starting them on their own CUDA
-streams as the scans are uploaded, and the per-window view of a sequence-wide cache."""
+"""Distance transforms of the support scans: building one, starting those of a single frame as
+its scans are uploaded (:class:`EarlyDts`; on which streams: ``schedule.EdtStreams``), and the
+per-window view of a sequence-wide cache."""
 
 from __future__ import annotations
 
@@ -9,14 +10,12 @@ from dataclasses import dataclass
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.scans import upload
+from floxels_ext.estimator.schedule import EdtStreams, upload
 from floxels_ext.estimator.sight import Sight, scan_sight
-from floxels_ext.estimator.streams import serial_stages, side_stream
 from floxels_ext.ops import distance_transform
 from floxels_ext.ops.grid import grid_from_bounds
-from floxels_ext.switches import flag
 
-__all__ = ["DistanceTransform", "build_dt", "DtStreams", "WindowCache"]
+__all__ = ["DistanceTransform", "build_dt", "EarlyDts", "WindowCache"]
 
 F = torch.ops.floxels
 
@@ -54,38 +53,22 @@ def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None,
     return d
 
 
-class DtStreams:
-    """EDTs of a single frame on a GPU, each on a stream of its own (they overlap each
-    other's tails). As ``prepare_scans``' on_ready hook (:meth:`__call__`), it queues each
-    support scan's EDT as soon as its upload is queued, so the EDTs (the longest work before
-    the optimiser) start while later scans are still being copied; ``FLOXELS_EARLY_DT=0``
-    leaves them to :func:`~floxels_ext.estimator.group.prepare_group` (measurements)."""
+class EarlyDts:
+    """``prepare_scans``' on_ready hook for a single frame on a GPU: each support scan's EDT
+    queued (into ``cache``) as soon as its upload is, on a stream of its own (``streams``), so
+    the EDTs (the longest work before the optimiser) start while later scans are still being
+    copied; ``prepare_group`` then builds what is left on the same streams
+    (``FLOXELS_EARLY_DT=0``: all of them, for measurements)."""
 
-    def __init__(self, cfg: FloxelsConfig, cache: dict | None = None) -> None:
-        self.cfg, self.cache = cfg, cache  # cache: where __call__ puts the DTs
-        self.start: torch.cuda.Event | None = None  # on the main stream, before the first EDT
-        self.streams: list = []  # the streams used, for the main stream to wait for
-
-    def launch(self, points: torch.Tensor, bounds, sensor=None, ground_of=None) -> DistanceTransform | None:
-        """Queue the EDT of ``points`` (on a CUDA device) after the current stream's work."""
-        main = torch.cuda.current_stream(points.device)
-        if self.start is None:
-            self.start = torch.cuda.Event(enable_timing=True)
-            self.start.record(main)
-        st = side_stream(points.device, f"dt{len(self.streams) % 4}")
-        st.wait_stream(main)  # the upload
-        with torch.cuda.stream(st):
-            d = build_dt(points, self.cfg, bounds, sensor, ground_of)
-        self.streams.append(st)
-        return d
+    def __init__(self, cfg: FloxelsConfig, cache: dict) -> None:
+        self.cfg, self.cache = cfg, cache
+        self.streams = EdtStreams()
 
     def __call__(self, i: int, points: torch.Tensor, bounds, is_target: bool, sensor=None, ground_of=None) -> None:
-        dev = points.device
-        if dev.type != "cuda" or serial_stages(dev) or is_target or i in self.cache or points.shape[0] == 0:
+        if is_target or i in self.cache or points.shape[0] == 0 or not EdtStreams.early(points.device):
             return
-        if not flag("FLOXELS_EARLY_DT"):
-            return
-        self.cache[i] = self.launch(points, bounds, sensor, ground_of)
+        with self.streams.launching(points.device):
+            self.cache[i] = build_dt(points, self.cfg, bounds, sensor, ground_of)
 
 
 class WindowCache:

@@ -1,13 +1,14 @@
-"""A group of target frames optimised together: everything before the solver (the distance
-transforms still missing, DBSCAN, points sorted by (cluster, voxel) with their compact corners)
-in :func:`prepare_group`, the solver calls in :func:`solve_group`, and the results in
-:meth:`Solving.finish`. Each frame's result is the same as when it is optimised alone; the
-group shares kernel launches (and, in :func:`~floxels_ext.estimator.api.estimate_sequence`,
-the distance transforms of the scans its windows share)."""
+"""A group of target frames optimised together, its data steps in the order they run: the
+distance transforms still missing, DBSCAN, points sorted by (cluster, voxel) with their
+compact corners (:func:`prepare_group`), the packed solver calls (:func:`solve_group`), and
+the flows, their motion evidence and refinement, read back (:meth:`Solving.finish`). Each
+frame's result is the same as when it is optimised alone; the group shares kernel launches
+(and, in :func:`~floxels_ext.estimator.api.estimate_sequence`, the distance transforms of the
+scans its windows share). Where each step runs on a GPU (streams, events, waits) is
+``schedule.py``'s."""
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -15,16 +16,16 @@ from dataclasses import dataclass
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.distance import DtStreams, build_dt
+from floxels_ext.estimator.distance import build_dt
 from floxels_ext.estimator.evidence import MotionEvidence, run_evidence
 from floxels_ext.estimator.refine import cluster_velocity_search, rigid_refine, supports_of, vertex_init
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
 from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.solver_run import SolverRun
-from floxels_ext.estimator.streams import dt_stream, serial_stages, side_stream, sync_device, used_on
+from floxels_ext.estimator.schedule import EdtStreams, PrepareSchedule, receive
 from floxels_ext.ops.grid import grid_from_bounds, point_bounds
-from floxels_ext.ops.setup import problem_setup
+from floxels_ext.ops.setup import problem_setup_many
 from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
 
 __all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack", "problem_evidence"]
@@ -32,19 +33,21 @@ __all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "
 F = torch.ops.floxels
 
 
-def fit_group(cfg: FloxelsConfig, items: list, early: DtStreams | None = None) -> list[FloxelsResult]:
+def fit_group(cfg: FloxelsConfig, items: list, early: EdtStreams | None = None) -> list[FloxelsResult]:
     """Optimise the targets of ``items`` ([(PreparedScans, dt cache)]) together."""
-    return solve_group(cfg, prepare_group(cfg, items, early=early)).finish()
+    prepared = prepare_group(cfg, items, early=early)
+    return solve_group(cfg, prepared).finish()
 
 
 def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
-                  poll: Callable[[], object] | None = None, early: DtStreams | None = None) -> Prepared:
+                  poll: Callable[[], object] | None = None, early: EdtStreams | None = None) -> Prepared:
     """Everything before the optimisation: the distance transforms still missing from the
     caches, DBSCAN of every target, points sorted by (cluster, voxel) and their compact
     corners. ``pipelined``: all of it is enqueued on the current stream (the caller's
     side stream, while the GPU still optimises other frames) with no device
     synchronisation, and ``poll`` is called between targets to keep that work queued.
-    ``early``: the EDTs already started while the scans were uploaded (single frames)."""
+    ``early``: the EDTs already started while the scans were uploaded (single frames).
+    Where each step runs on a GPU: ``schedule.PrepareSchedule``."""
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
     device = items[0][0].points[0].device
@@ -67,40 +70,14 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
     found = iter(point_bounds([v[0] for v in todo.values() if v[2] is None] + [p for p, b in targets if b is None]))
     dt_bounds = [v[2] if v[2] is not None else next(found) for v in todo.values()]
     target_bounds = iter([b if b is not None else next(found) for _, b in targets])
-    # On CUDA, DBSCAN and the point sorting run on a side stream while the EDTs (memory
-    # bound) run on others: the host synchronisations of DBSCAN and the sorting then
-    # wait for their own kernels only. Single frames: one stream per EDT (they overlap
-    # each other's tails), the rest on the side stream. Pipelined (the caller's stream is
-    # the side stream): EDTs on a third stream. FLOXELS_SERIAL_STAGES=1 runs the stages
-    # one after the other (stage timings).
-    serial = serial_stages(device)
-    main = torch.cuda.current_stream(device) if device.type == "cuda" else None
-    side = edt_stream = None
-    if not serial:
-        side = None if pipelined else side_stream(device)
-        edt_stream = dt_stream(device) if pipelined else main
-        (side or edt_stream).wait_stream(main)  # the scans are ready
-    # single frames on a GPU: a stream per EDT (those already started while the scans were
-    # uploaded, and any others here)
-    streams = None if serial or pipelined else (early if early is not None else DtStreams(cfg))
-    dt_events = None
-    if streams is None and edt_stream is not None and todo:
-        dt_events = (torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True))
-        dt_events[0].record(edt_stream)
+    sched = PrepareSchedule(device, pipelined, early)
+    sched.begin_dts(len(todo))
     for (pts, users, _, sensor, ground_of), b in zip(todo.values(), dt_bounds):
-        if streams is not None:
-            d = streams.launch(pts, b, sensor, ground_of)
-        else:
-            with torch.cuda.stream(edt_stream) if edt_stream is not None else contextlib.nullcontext():
-                d = build_dt(pts, cfg, b, sensor, ground_of)
+        with sched.dt():
+            d = build_dt(pts, cfg, b, sensor, ground_of)
         for cache, i in users:
             cache[i] = d
-    if streams is not None and streams.start is not None:
-        for st in streams.streams:
-            main.wait_stream(st)
-        dt_events = (streams.start, torch.cuda.Event(enable_timing=True))
-    if dt_events is not None:
-        dt_events[1].record(edt_stream)
+    sched.end_dts()
     supports = []  # per item: (dts, origins, offsets, weights, sights or None)
     for prep, cache in items:
         dts, origins, offsets, weights, sights = [], [], [], [], []
@@ -118,24 +95,11 @@ def prepare_group(cfg: FloxelsConfig, items: list, pipelined: bool = False,
                 sights.append(d.sight)
         # sights where some support scan has one (a scan without counts everywhere)
         supports.append((dts, origins, offsets, weights, sights if any(s is not None for s in sights) else None))
-    if serial:
-        sync_device(device)
     timings["dt"] = time.perf_counter() - t0  # serial: wall time; else replaced by GPU time (dt_events)
-    stream_ctx = torch.cuda.stream(side) if side is not None else contextlib.nullcontext()
-    with stream_ctx:
+    with sched.targets():
         labels, problems, orders, grids = _targets(cfg, items, supports, target_bounds, timings, poll)
-    work = side if side is not None else (torch.cuda.current_stream(device) if pipelined else None)
-    if pipelined and edt_stream is not None:
-        # the DTs were made on the EDT stream and are used on the preparing stream's
-        # successors: that stream waits for them, and the allocator learns of the use
-        work.wait_stream(edt_stream)
-        for d in {id(t): t for pr in problems if pr is not None
-                  for t in [*pr.dts, *(x for s in (pr.sights or []) if s is not None for x in s.tensors())]}.values():
-            d.record_stream(work)
-    if side is not None:
-        used_on(main, items, problems, orders, labels)
-        main.wait_stream(side)
-    return Prepared(items, labels, problems, orders, grids, timings, t_start, dt_events)
+    sched.hand_over(items, problems, orders, labels)
+    return Prepared(items, labels, problems, orders, grids, timings, t_start, sched.dt_events)
 
 
 def solve_group(cfg: FloxelsConfig, prepared: Prepared, wait_for=None) -> Solving:
@@ -143,12 +107,7 @@ def solve_group(cfg: FloxelsConfig, prepared: Prepared, wait_for=None) -> Solvin
     (after ``wait_for``, the stream the preparation ran on, if any)."""
     t0 = time.perf_counter()
     packs = prepared.packs if prepared.packs is not None else pack(cfg, prepared)
-    if wait_for is not None:
-        main = torch.cuda.current_stream()
-        used_on(main, prepared.items, prepared.problems, prepared.orders, prepared.labels)
-        for _, packed in packs:
-            packed.record_stream(main)
-        main.wait_stream(wait_for)
+    receive(prepared, packs, wait_for)
     runs = []
     for group, packed in packs:
         run = SolverRun(packed)
@@ -190,29 +149,32 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
     timings["dbscan"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    live = [k for k, (prep, _) in enumerate(items) if prep.points[prep.target].shape[0] > 0]
+    grid = {k: grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40) for k in live}
+    # One op, one host synchronisation for the whole group: points sorted by (cluster, voxel)
+    # (neighbouring points touch neighbouring memory, a block of points meets few clusters, and
+    # the solver's segments, one cluster inside one cell, are long runs), their compact corners
+    # and the solver's segment tables (built here, while the EDTs run, rather than when
+    # packing), and the number of clusters. (floxels run's optimiser thread spent 42 % of its
+    # time in the per-target calls, py-spy, bench/RESULTS.md "Where floxels run waits".)
+    if poll is not None:
+        poll()
+    sts = dict(zip(live, problem_setup_many([items[k][0].points[items[k][0].target] for k in live],
+                                            [labels[k] for k in live], [grid[k][0] for k in live], cfg.voxel_size,
+                                            [grid[k][1] for k in live], SEGMENT_TILE)))
     problems, orders, grids = [], [], []
-    for (prep, _), lab, (dts, origins, offsets, weights, sights) in zip(items, labels, supports):
-        if poll is not None:
-            poll()
-        P = prep.points[prep.target]
-        if P.shape[0] == 0:
+    for k, ((prep, _), (dts, origins, offsets, weights, sights)) in enumerate(zip(items, supports)):
+        if k not in sts:
             problems.append(None)
             orders.append(None)
             grids.append(None)
             continue
-        g_origin, g_shape = grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size,
-                                             max_cells=1 << 40)
-        # One op, one host synchronisation: points sorted by (cluster, voxel) (neighbouring
-        # points touch neighbouring memory, a block of points meets few clusters, and the
-        # solver's segments, one cluster inside one cell, are long runs), their compact
-        # corners and the solver's segment tables (built here, while the EDTs run, rather
-        # than when packing), and the number of clusters.
-        st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
+        st = sts[k]
         problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
                                       cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments,
                                       sights))
         orders.append(st.order)
-        grids.append(g_origin)
+        grids.append(grid[k][0])
     timings["setup"] = time.perf_counter() - t0
     return labels, problems, orders, grids
 
@@ -287,8 +249,7 @@ class Solving:
         # synchronisation of the read-backs
         outs, ev_outs = restore_outputs(flows, [prep for prep, _ in pr.items], evidence)
         for _, packed, run in self.runs:
-            if run.cuda:
-                run.stream.synchronize()
+            run.wait()
         summaries: dict[int, tuple] = {}
         for (group, packed, _), host in zip(self.runs, hosts):
             for k, summary in zip(group, packed.summaries(host)):

@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from floxels_ext.ops._small import device_values
+
 __all__ = ["RECENTRE_GRID", "RECENTRE_ABOVE", "FLOAT32_WARN_RESOLUTION", "Recentring"]
 
 RECENTRE_GRID = 60.0
@@ -33,10 +35,25 @@ SAMPLE_ROWS = 4096
 
 def _finite_bounds(t: torch.Tensor) -> tuple[np.ndarray, np.ndarray] | None:
     """(min xyz, max xyz) in float64 of the finite rows of a sample of ``t`` (at most
-    ``SAMPLE_ROWS`` rows: enough to place the shift, and cheap on every call), or None."""
+    ``SAMPLE_ROWS`` rows: enough to place the shift, and cheap on every call), or None.
+
+    A host tensor is reduced by numpy: torch's axis-0 min/max of the strided sample woke the
+    intra-op thread pool and cost ~12 ms a frame on a 64-core device host (bench_speed's whole
+    frame 14.5 -> 30.8 ms, bench/RESULTS.md "The hidden 13 ms"); numpy takes microseconds.
+    A device tensor is reduced where it is (one synchronisation per call)."""
     if t.shape[0] == 0:
         return None
-    t = t[::max(1, t.shape[0] // SAMPLE_ROWS)]
+    t = t.detach()[::max(1, t.shape[0] // SAMPLE_ROWS)]
+    if t.device.type == "cpu":
+        # a numpy view (no ATen op at all); float16/bfloat16, which numpy lacks or reduces
+        # slowly, as a float64 copy of the sample
+        a = t.numpy() if t.dtype in (torch.float32, torch.float64) else t.to(torch.float64).numpy()
+        keep = np.isfinite(a).all(axis=1)
+        if not keep.all():
+            a = a[keep]
+            if a.shape[0] == 0:
+                return None
+        return a.min(axis=0).astype(np.float64), a.max(axis=0).astype(np.float64)
     keep = torch.isfinite(t).all(dim=1)
     if not bool(keep.all()):
         t = t[keep]
@@ -88,10 +105,13 @@ class Recentring:
 
     def apply(self, t: torch.Tensor) -> torch.Tensor:
         """``t`` minus the shift, computed in float64, returned as float32 (NaN/inf rows stay
-        non-finite); ``t`` itself when there is no shift."""
+        non-finite); ``t`` itself when there is no shift. Detached either way: the estimator
+        returns no gradient, and a tensor that requires one (``requires_grad=True``) is read
+        as data (numpy() refuses it)."""
+        t = t.detach()
         if not self.active or t.shape[0] == 0:
             return t
-        s = torch.as_tensor(self.shift, dtype=torch.float64, device=t.device)
+        s = device_values(self.shift.tolist(), torch.float64, t.device)
         return (t.to(torch.float64) - s).to(torch.float32)
 
     def restore(self, origin: list[float] | None) -> list[float] | None:

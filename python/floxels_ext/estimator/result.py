@@ -8,7 +8,11 @@ import torch
 
 from floxels_ext.ops.corners import CompactCorners
 
-__all__ = ["FloxelsResult"]
+__all__ = ["FloxelsResult", "DivergedWarning"]
+
+
+class DivergedWarning(UserWarning):
+    """An optimisation diverged: its flow is the start's (zero), not an estimate."""
 
 
 @dataclass
@@ -33,6 +37,20 @@ class FloxelsResult:
     # ``grid`` keeps the optimiser's flow (not zeroed).
     evidence: object | None = None
     explained: object | None = None
+
+    @property
+    def diverged(self) -> str | None:
+        """Why this optimisation diverged, or None. Diverged: the lowest loss is the start's
+        (zero flow; never improved on) while the loss rose far above it (10x, and by more than
+        1), what a learning rate far too large does (``lr=1e9`` returned all-zero flow without a
+        word; at the default 0.05 the loss rises by ~20 % in the first step at most)."""
+        if self.best_iter != 0 or len(self.losses) < 2:
+            return None
+        start, top = float(self.losses[0]), max(float(v) for v in self.losses[1:])
+        if top == top and top <= max(10.0 * start, start + 1.0):  # (NaN: diverged too)
+            return None
+        return (f"its loss rose from {start:.4g} to {top:.4g} and never went below the start, so its flow is "
+                f"the start's (zero), not an estimate")
 
     @property
     def grid(self) -> torch.Tensor | None:

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from floxels_ext.estimator.recentre import Recentring
+from floxels_ext.estimator.schedule import host_float32, staged_uploads
 from floxels_ext.estimator.user_warnings import warn_user
-from floxels_ext.ops.setup import stage_points
 
 
 @dataclass
@@ -310,8 +310,8 @@ def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int
     """Per scan: (a float32 contiguous copy on ``dev`` without the NaN/inf rows (warned
     about), the mask of kept rows, (min xyz, max xyz) or None).
 
-    Host scans bound for a GPU go through page-locked staging (:class:`_Stager`): one pass
-    on the host copies them and finds their bounds and whether all is finite, and the
+    Host scans bound for a GPU go through page-locked staging (``schedule.staged_uploads``): one
+    pass on the host copies them and finds their bounds and whether all is finite, and the
     upload runs asynchronously, so the estimator can size and start the distance transforms
     without waiting for the GPU. Other scans (and staged scans with bad rows) are checked
     on their device; the numbers of bad rows of all of them come back in one host
@@ -319,10 +319,8 @@ def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int
     its upload is queued."""
     out: list = [None] * len(scans)
     staged = [k for k, t in enumerate(scans) if dev.type == "cuda" and t.device.type == "cpu" and t.shape[0] > 0]
-    bufs = [_STAGER.take(dev, scans[k].shape[0] * 3) for k in staged]
-    for k, buf, (lo, hi, finite) in zip(staged, bufs, stage_points([scans[k] for k in staged], bufs)):
-        moved = buf.view(-1, 3).to(dev, non_blocking=True)
-        _STAGER.used(buf, dev)
+    for j, moved, (lo, hi), finite in staged_uploads([scans[k] for k in staged], dev):
+        k = staged[j]
         if finite:
             out[k] = (moved, torch.ones(moved.shape[0], dtype=torch.bool, device=dev), (lo, hi))
             if on_ready is not None:
@@ -341,60 +339,6 @@ def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int
                       + (" (their flow is NaN)" if is_target[k] else ""))
             t = t[f]
         out[k] = (t.contiguous(), f, None)
-    return out
-
-
-class _Stager:
-    """Page-locked host buffers for uploads, reused once their copy has run (an event per
-    buffer): allocating page-locked memory per frame would cost more than the copy."""
-
-    def __init__(self) -> None:
-        self.free: dict = {}  # device index -> [(buffer, event after its last upload)]
-
-    def take(self, dev: torch.device, numel: int) -> torch.Tensor:
-        """A free buffer of at least ``numel`` floats: the smallest that fits (a large one taken
-        by a small scan would leave the next large upload none), else a new one of the next
-        power of two (the next scan, a little larger, fits it too). Without both, uploads larger
-        than the smallest buffer (ground returns: 110k points a 128-beam scan) allocated and
-        first-touched fresh page-locked memory per scan: ~3-4 ms a frame of the run's
-        optimiser thread (bench/RESULTS.md)."""
-        pool = self.free.setdefault(_index(dev), [])
-        best = None
-        for k, (buf, ev) in enumerate(pool):
-            if buf.numel() >= numel and (best is None or buf.numel() < pool[best][0].numel()) and ev.query():
-                best = k
-        if best is not None:
-            return pool.pop(best)[0][:numel]
-        size = max(1 << 18, 1 << max(numel - 1, 0).bit_length())
-        return torch.empty(size, dtype=torch.float32, pin_memory=True)[:numel]
-
-    def used(self, view: torch.Tensor, dev: torch.device) -> None:
-        """``view`` (from take) has its upload to ``dev`` queued on dev's current stream."""
-        ev = torch.cuda.Event()
-        ev.record(torch.cuda.current_stream(dev))
-        base = view._base if view._base is not None else view
-        pool = self.free.setdefault(_index(dev), [])
-        pool.append((base, ev))
-        if len(pool) > 64:  # a burst of scans in flight: forget the oldest buffer
-            pool.pop(0)
-
-
-def _index(dev: torch.device) -> int:
-    return dev.index if dev.index is not None else torch.cuda.current_device()
-
-
-_STAGER = _Stager()
-
-
-def upload(t: torch.Tensor, dev: torch.device) -> torch.Tensor:
-    """``t`` (m, 3) as float32 on ``dev``; a host tensor bound for a GPU through the page-locked
-    staging buffers, its copy queued on the current stream (the host waits for nothing)."""
-    if dev.type != "cuda" or t.device.type != "cpu" or t.shape[0] == 0:
-        return t.to(device=dev, dtype=torch.float32)
-    buf = _STAGER.take(dev, t.shape[0] * 3)
-    buf.view(-1, 3).copy_(t)
-    out = buf.view(-1, 3).to(dev, non_blocking=True)
-    _STAGER.used(buf, dev)
     return out
 
 
@@ -427,7 +371,7 @@ def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], 
     every = fulls + evs
     out: list = [None] * len(every)
     to_host = [k for k in range(len(every)) if preps[k % nf].was_numpy]
-    for k, arr in zip(to_host, _numpy_float32([every[k] for k in to_host])):
+    for k, arr in zip(to_host, host_float32([every[k] for k in to_host])):
         out[k] = arr
     for k in range(len(every)):
         prep = preps[k % nf]
@@ -443,22 +387,3 @@ def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], 
         else:
             pairs.append((score.contiguous(), flag == 1.0))
     return out[:nf], pairs
-
-
-def _numpy_float32(tensors: list[torch.Tensor]) -> list[np.ndarray]:
-    """float32 numpy copies of (N_i, 3) tensors; CUDA ones in one page-locked transfer (the
-    arrays are views of one buffer)."""
-    if not tensors or not any(t.is_cuda for t in tensors):
-        return [t.cpu().numpy().astype(np.float32, copy=False) for t in tensors]
-    flat = torch.cat([t.reshape(-1).to(torch.float32) for t in tensors])
-    host = torch.empty(flat.shape, dtype=torch.float32, pin_memory=True)
-    host.copy_(flat, non_blocking=True)
-    torch.cuda.current_stream(flat.device).synchronize()
-    arr = host.numpy()  # keeps `host` alive
-    out, at = [], 0
-    for t in tensors:
-        n = t.numel()
-        out.append(arr[at:at + n].reshape(t.shape))
-        at += n
-    return out
-

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import torch
 
+from floxels_ext.ops._small import device_values
+
 __all__ = ["Sight", "scan_sight", "observed_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN"]
 
 AZ_BIN = math.radians(0.5)   # range image bins: coarser than a 64-beam lidar's rays, so that a
@@ -124,5 +126,5 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> torch.Tensor:
         idx, rr = _bins(rel[image].reshape(-1, 3))
         idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
         ok[image] &= imgs.view(-1)[idx] >= rr.view(len(image), n) - SEEN_MARGIN
-    shifts = torch.tensor(ks, dtype=torch.int32, device=p.device)[:, None]
+    shifts = device_values(ks, torch.int32, p.device)[:, None]
     return (ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32)  # distinct bits: the sum is their OR

@@ -98,6 +98,12 @@ class SolverRun:
             if len(self.pending) > 1:  # look one chunk behind: the chunk just queued keeps the GPU busy
                 self._retire(block=True)
         if wait:
+            self.wait()
+
+    def wait(self) -> None:
+        """Wait for everything queued on the run's stream (its iterations, and what the caller
+        queued behind them: the read-backs)."""
+        if self.cuda:
             self.stream.synchronize()
 
 

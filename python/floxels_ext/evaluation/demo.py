@@ -13,9 +13,9 @@ def add_parser(sub) -> None:
                                    "flow of its middle frame with Floxels, prints EPE/Acc5/Acc10/angle error "
                                    "for dynamic and static points and the time per frame, and writes a "
                                    "bird's-eye-view PNG of points and flow vectors.")
-    from floxels_ext.evaluation.sim.scenes import SCENES  # light: numpy only
+    from floxels_ext.evaluation.simulate_cli import SCENE_NAMES  # the simulator itself is not light
 
-    p.add_argument("--scene", default="crossing", choices=sorted(SCENES), help="simulated scene (default crossing)")
+    p.add_argument("--scene", default="crossing", choices=SCENE_NAMES, help="simulated scene (default crossing)")
     from floxels_ext.cli_types import nonnegative_int
 
     p.add_argument("--seed", type=nonnegative_int, default=0)

@@ -24,7 +24,6 @@ import os
 from pathlib import Path
 
 from floxels_ext.cli import CLIError
-from floxels_ext.numpy_files import open_npz
 
 __all__ = ["add_parser", "run", "load_eval_pair", "format_metrics"]
 
@@ -64,6 +63,8 @@ def add_parser(sub) -> None:
 
 # ----------------------------------------------------------------------------- loading
 def _keys(path: Path) -> set[str]:
+    from floxels_ext.numpy_files import open_npz  # (numpy: not at the top, for a fast `floxels --help`)
+
     try:
         with open_npz(path) as z:
             return set(z.files)
@@ -92,6 +93,7 @@ def _read_gt(path: Path, raw_classes: bool):
     import numpy as np
 
     from floxels_ext.evaluation import seqio
+    from floxels_ext.numpy_files import open_npz
 
     if not raw_classes:
         try:
@@ -127,6 +129,8 @@ def _read_pred(pp: Path, gp: Path, n: int, all_points: bool = True):
     unless ``all_points`` or the file has none (then every point)."""
     import numpy as np
 
+    from floxels_ext.numpy_files import open_npz
+
     if not pp.is_file():
         raise CLIError(f"missing predicted frame {pp} (ground truth {gp} exists)")
     try:
@@ -153,6 +157,31 @@ def _read_pred(pp: Path, gp: Path, n: int, all_points: bool = True):
                        f"{int(np.argmax(bad))}); predictions must be finite, since a NaN would silently drop "
                        f"its points (and whole classes) from the metrics")
     return np.asarray(flow, dtype=np.float64), mask
+
+
+def _check_one_run(pred_dir, paths: dict[int, Path]) -> None:
+    """Refuse predictions written with different settings (``floxels run --force --frames``
+    with other options over part of an OUT_DIR left it mixed, and the mix was scored as one
+    method). Outputs without a ``settings`` record (other writers) are not compared."""
+    from floxels_ext.numpy_files import open_npz
+
+    groups: dict[str, list[int]] = {}
+    for i, p in paths.items():
+        try:
+            with open_npz(p) as z:
+                key = json.dumps(json.loads(str(z["settings"])), sort_keys=True) if "settings" in z.files else None
+        except Exception:  # unreadable: reported by the full read
+            continue
+        if key is not None:
+            groups.setdefault(key, []).append(i)
+    if len(groups) > 1:
+        (ka, fa), (kb, fb) = sorted(groups.items(), key=lambda kv: kv[1][0])[:2]
+        a, b = json.loads(ka), json.loads(kb)
+        diff = [f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        raise CLIError(f"{pred_dir} mixes outputs written with {len(groups)} different settings: {_frame_list(fa)} "
+                       f"and {_frame_list(fb)} differ in {'; '.join(diff)[:300] or 'their settings'}; scores of the "
+                       f"mix would be no one run's. Recompute the odd ones with the same options (floxels run "
+                       f"--force), or score one part with --frames")
 
 
 def _numbered(d) -> dict[int, Path]:
@@ -206,6 +235,7 @@ def load_eval_pair(pred_dir, gt_dir, raw_classes: bool = False, frames: str | No
                            f"in {pred_dir} (first: {seqio.frame_path(pred_dir, missing[0]).name})")
     else:
         chosen = sorted(pred_paths)
+    _check_one_run(pred_dir, {i: pred_paths[i] for i in chosen})
     out_frames, preds = [], []
     total = left_out = 0
     for i in chosen:

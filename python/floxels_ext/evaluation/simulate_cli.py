@@ -36,14 +36,17 @@ def default_memory_limit() -> float:
     return 8e9
 
 
-def add_parser(sub) -> None:
-    from floxels_ext.evaluation.sim.scenes import SCENES  # light: numpy only
+# The names of sim.scenes.SCENES, spelt out: importing the simulator (numpy and all) for the
+# parser would slow down every `floxels --help`; tests/test_cli_startup.py checks they agree.
+SCENE_NAMES = ("crossing", "highway", "parking", "urban")
 
+
+def add_parser(sub) -> None:
     p = sub.add_parser("simulate", help="write a synthetic lidar sequence with ground-truth flow",
                        description="Simulate a spinning lidar in a synthetic scene and write one .npz per frame "
                                    "(points, pose, flow, classes, instance, ground, dynamic).")
     p.add_argument("out_dir", metavar="OUT_DIR", help="output sequence directory")
-    p.add_argument("--scene", choices=sorted(SCENES), default="urban")
+    p.add_argument("--scene", choices=SCENE_NAMES, default="urban")
     from floxels_ext.cli_types import finite_float, nonnegative_float, nonnegative_int, positive_float, positive_int
 
     p.add_argument("--seed", type=nonnegative_int, default=0)
@@ -70,6 +73,8 @@ def _run_simulate(args) -> int:
 
     if args.frames < 1:
         raise CLIError("--frames must be >= 1")
+    if not args.out_dir.strip():  # Path('') is the current directory: never meant
+        raise CLIError("OUT_DIR is empty; give the directory to write the sequence to")
     out = Path(args.out_dir)
     if out.exists() and not out.is_dir():
         raise CLIError(f"{out} exists and is not a directory")
@@ -94,6 +99,9 @@ def _run_simulate(args) -> int:
     if getattr(args, "verbosity", 0) > 0 or secs > 60:
         print(f"simulating {args.frames} frame(s) of {beams} x {steps} rays: estimated {mem / 1e9:.1f} GB peak memory, "
               f"~{secs:.0f} s on one core", flush=True)
+    from floxels_ext.output_paths import check_writable_dir
+
+    check_writable_dir(out, "OUT_DIR")  # a read-only place before the work, not a traceback after it
     t0 = time.perf_counter()
     try:
         seq = simulate_sequence(args.scene, args.frames, args.seed, small=args.small,

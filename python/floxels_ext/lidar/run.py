@@ -26,19 +26,21 @@ def add_parser(sub) -> None:
     import textwrap
 
     from floxels_ext.lidar.dataset.run import add_dataset_arguments
-    from floxels_ext.lidar.io.outputs import OUTPUT
 
-    p = sub.add_parser(
-        "run", help="estimate scene flow for a whole lidar sequence (resumable)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="\n\n".join(textwrap.fill(t, 92) for t in (
+    def description() -> str:  # called when the help is printed (cli._Parser): io.outputs loads numpy
+        from floxels_ext.lidar.io.outputs import OUTPUT
+
+        return "\n\n".join(textwrap.fill(t, 92) for t in (
             "Estimate the flow of every frame of INPUT and write one .npz per frame to OUT_DIR.",
             "INPUT: a directory of frame files of one format (.bin .npy .npz .pcd .ply .feather, natural "
             "order), a 'floxels simulate' sequence, or an Argoverse 2 log directory "
             "(sensors/lidar/*.feather + city_SE3_egovehicle.feather).",
             "Ego-motion: --poses FILE, else poses stored with the frames (AV2, .npz 'pose'), else "
             "--odometry kiss-icp (estimated; pip install 'floxels_ext[odometry]'), else --no-ego-motion "
-            "if the scans are already in one frame.")) + "\n\n" + OUTPUT)
+            "if the scans are already in one frame.")) + "\n\n" + OUTPUT
+
+    p = sub.add_parser("run", help="estimate scene flow for a whole lidar sequence (resumable)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, description=description)
     p.add_argument("input", metavar="INPUT", nargs="?")
     p.add_argument("--out", metavar="OUT_DIR", help="output directory (created; required)")
     p.add_argument("--poses", metavar="FILE", help="poses: KITTI poses.txt (12/line), 4x4 per line, TUM, "

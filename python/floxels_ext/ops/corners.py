@@ -16,6 +16,7 @@ import torch
 
 from floxels_ext.ops._checks import require_tensors
 from floxels_ext.ops._lib import ops_ns
+from floxels_ext.ops._small import device_values
 
 
 @torch.library.register_fake("floxels::corner_gather")
@@ -58,7 +59,7 @@ torch.library.register_autograd("floxels::corner_scatter", _scatter_backward, se
 
 
 # corner j = (cx, cy, cz) with j = cz * 4 + cy * 2 + cx, the order of trilinear_gather
-_CORNER_OFFSETS = torch.tensor([[cx, cy, cz] for cz in (0, 1) for cy in (0, 1) for cx in (0, 1)])
+_CORNER_OFFSETS = [[cx, cy, cz] for cz in (0, 1) for cy in (0, 1) for cx in (0, 1)]
 
 
 @dataclass
@@ -93,16 +94,16 @@ def compact_corners(points: torch.Tensor, origin: Sequence[float], spacing: floa
     dev, dt = points.device, points.dtype
     # All 8 corners at once (a dozen kernels instead of ~120 small ones: this runs once per
     # frame, where launch overhead matters); same arithmetic as trilinear_gather's clamping.
-    # constants copied without blocking: a blocking copy would wait for the stream's queued work
-    size = torch.tensor([X, Y, Z]).to(dev, non_blocking=True)
-    o = torch.tensor([float(v) for v in origin], dtype=dt).to(dev, non_blocking=True)
+    # constants copied without blocking (ops/_small.py)
+    size = device_values([X, Y, Z], torch.int64, dev)
+    o = device_values([float(v) for v in origin], dt, dev)
     hi = (size - 1).to(dt)
     # clamped in floating point before any conversion to an index; fmax/fmin (unlike
     # clamp/minimum) send NaN to the bound instead of propagating it
     u = torch.fmin(torch.fmax((points - o) / spacing, hi.new_zeros(())), hi)
     i0 = torch.minimum(u.floor().long(), (size - 2).clamp(min=0))
     t = u - i0.to(dt)
-    offs = _CORNER_OFFSETS.to(dev, non_blocking=True)                 # (8, 3): x fastest, then y, then z
+    offs = device_values(_CORNER_OFFSETS, torch.int64, dev)         # (8, 3): x fastest, then y, then z
     idx = torch.minimum(i0[:, None, :] + offs, size - 1)            # (N, 8, 3)
     lin = (idx[..., 2] * Y + idx[..., 1]) * X + idx[..., 0]
     wf = torch.where(offs.bool(), t[:, None, :], 1 - t[:, None, :])  # (N, 8, 3) per-axis weights

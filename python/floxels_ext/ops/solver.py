@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from floxels_ext.ops._lib import ops_ns
+from floxels_ext.ops._small import device_values
 from floxels_ext.ops.corners import CompactCorners
 
 MAX_PROBLEMS = 16  # csrc/kernels/solver.h kMaxProblems
@@ -153,7 +154,7 @@ class PackedProblems:
         row = [0.0] * STATE_COLS
         row[COL_ACTIVE], row[COL_BEST_LOSS], row[3], row[COL_BEST_ITER] = 1.0, float("inf"), float("inf"), -1.0
         # 3: early stopping's reference loss
-        self.state = torch.tensor([row] * self.num_problems, dtype=torch.float64).to(dev, non_blocking=True)
+        self.state = device_values([row] * self.num_problems, torch.float64, dev)
         self.history = torch.full((self.num_problems, cfg.max_iters), float("nan"), dtype=torch.float64, device=dev)
 
     def record_stream(self, stream) -> None:
@@ -235,8 +236,8 @@ def _concat_segments(own: list, point_ranges: list[int]):
         segs += sp.shape[0] - 1
         ents += ve.shape[0]
     dev = own[0][0].device
-    seg_ptr.append(torch.tensor([point_ranges[-1]], dtype=torch.int32).to(dev, non_blocking=True))
-    vtx_ptr.append(torch.tensor([ents], dtype=torch.int32).to(dev, non_blocking=True))
+    seg_ptr.append(device_values([point_ranges[-1]], torch.int32, dev))
+    vtx_ptr.append(device_values([ents], torch.int32, dev))
     return (torch.cat(seg_ptr).contiguous(), torch.cat(vtx_ptr).contiguous(), torch.cat(vtx_entry).contiguous())
 
 

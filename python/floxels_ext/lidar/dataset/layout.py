@@ -20,7 +20,7 @@ import numpy as np
 from floxels_ext.lidar.preprocess.transform import transform_points
 
 __all__ = ["Layout", "StreamScans", "Targets", "DEFAULT_CHUNK", "READ_AHEAD", "TRANSFORM_AHEAD", "ANCHOR_GRID",
-           "snap_anchor", "plan_chunks"]
+           "snap_anchor", "chunk_anchor", "plan_chunks"]
 
 # Targets per method call by default. Long calls: each call starts and drains the method's
 # pipeline (estimate_sequence prepares the next batch while the device optimises one), which cost
@@ -50,6 +50,27 @@ def snap_anchor(position) -> np.ndarray:
     return np.round(np.asarray(position, np.float64) / ANCHOR_GRID) * ANCHOR_GRID
 
 
+# Points more than this far from their native origin (m) are in a world frame already (map
+# scale, UTM); their chunk is re-centred near them instead, on a grid of this step (a multiple
+# of ANCHOR_GRID, so the alignment argument above holds; coarse, so that the anchor does not
+# depend on which points of the scan are looked at).
+FAR_ANCHOR = 1000.0
+
+
+def chunk_anchor(p) -> np.ndarray:
+    """The world-frame origin of a chunk whose first readable frame is ``p`` (a PreparedFrame):
+    its native origin (the sensor) snapped to ``ANCHOR_GRID``; for points far from their native
+    origin (world-frame files at map scale, whose native origin is the world's: issue 45), a
+    point near them snapped to ``FAR_ANCHOR``, so the chunk's float32 coordinates stay small."""
+    base = np.asarray(p.to_world[:3, 3], np.float64)
+    if len(p.kept):
+        sample = np.asarray(p.kept[::max(1, len(p.kept) // 256)], np.float64)
+        centre = p.to_world[:3, :3] @ sample.mean(axis=0) + base
+        if np.isfinite(centre).all() and np.abs(centre - base).max() > FAR_ANCHOR:
+            return np.round(centre / FAR_ANCHOR) * FAR_ANCHOR
+    return snap_anchor(base)
+
+
 def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
     """Targets per segment: ``chunk`` at a time (None: ``DEFAULT_CHUNK``)."""
     size = chunk or DEFAULT_CHUNK
@@ -61,7 +82,7 @@ class Segment:
     ``[g, g + hi - lo)``; ``segment`` is the method's view of it."""
 
     def __init__(self, job, lo: int, hi: int, g: int, targets: list[int], num_scans: int) -> None:
-        from floxels_ext.estimator.stream import Segment
+        from floxels_ext.estimator.windows import Segment
 
         self.job, self.lo, self.hi, self.g, self.targets = job, lo, hi, g, targets
         times = None if job.times_s is None else job.times_s[lo:hi]
@@ -78,7 +99,7 @@ class Segment:
                 for i in range(self.lo, self.hi):
                     p = self.job.loader.get(i)
                     if p is not None:
-                        a = snap_anchor(p.to_world[:3, 3])
+                        a = chunk_anchor(p)
                         break
                 self._anchor.append(a)
             return self._anchor[0]

@@ -46,7 +46,11 @@ def run_sequence(args) -> int:
         if verbosity >= 0:
             report(msg)
 
-    ctx = run_context(args, report, shared_pools=False)
+    def frame_report(msg: str) -> None:  # with -q a frame's error is said once, in the final list
+        if verbosity >= 0 or not msg.startswith("floxels: error:"):
+            report(msg)
+
+    ctx = run_context(args, frame_report, shared_pools=False)
     job = open_sequence(_sequence_task(args), ctx, say=info)
     try:
         bar = Progress(len(job.todo), verbosity=verbosity)
@@ -108,7 +112,7 @@ def _sequence_task(args):
                         Path(args.calib) if args.calib else None)
     return Task(spec, out, start, stop, [f.name for f in seq.frames[start:stop]],
                 frame_paths=[str(f.path) for f in seq.frames[start:stop]],
-                summary=Path(args.summary) if args.summary else None, found=seq)
+                summary=Path(args.summary) if args.summary else None, selection=(start, stop), found=seq)
 
 
 def run_dataset(tasks, args, n_sequences: int) -> int:
@@ -125,11 +129,16 @@ def run_dataset(tasks, args, n_sequences: int) -> int:
               file=sys.stderr, flush=True)
     run = [t for t in tasks if t.todo]
     bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
+
+    def report(msg: str) -> None:  # with -q a frame's or task's error is said once, in the final list
+        if verbosity >= 0 or not msg.startswith("floxels: error:"):
+            bar.message(msg)
+
     for _ in range(len(tasks) - len(run)):
         bar.sequence("skipped")
     t0 = time.perf_counter()
     try:
-        res = run_tasks(run, args, report=bar.message, on_frame=lambda job, i: bar.frames(1),
+        res = run_tasks(run, args, report=report, on_frame=lambda job, i: bar.frames(1),
                         on_sequence=lambda task, outcome, job, lines: bar.sequence(outcome))
     finally:
         bar.close()

@@ -37,7 +37,7 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("datasets and clusters", textwrap.fill(
         "INPUT may also be a dataset: a directory holding sequences at any depth (an Argoverse 2 split "
         "of log folders, KITTI odometry with sequences/NN/velodyne and poses/NN.txt, a directory of "
-        "'floxels simulate' sequences) or a text file listing sequence directories (one a line, "
+        "'floxels simulate' sequences; frame files beside sequences are refused) or a text file listing sequence directories (one a line, "
         "optionally 'PATH --poses FILE --calib FILE'). OUT then mirrors the input tree. Without --ray "
         "the sequences run here, one after another through one pipeline (the next one read while the "
         "current one is estimated); with --ray, one worker per GPU does the same with the sequences it "
@@ -123,8 +123,9 @@ def _run_input(args, workers) -> int:
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 
-    if not args.input or not args.out:
-        return run_sequence(args)  # its argument check names what is missing
+    from floxels_ext.lidar.pipeline.run_args import require_input_and_out
+
+    require_input_and_out(args)
     specs = discover_dataset(args.input, args.out, args.sequences)
     _check_options(args, specs is not None)
     if specs is None:
@@ -144,6 +145,9 @@ def _run_input(args, workers) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out {out} exists and is not a directory")
+    from floxels_ext.output_paths import check_writable_dir
+
+    check_writable_dir(out, "--out")  # before any sequence is opened (a read-only place)
     task_frames = args.task_frames if args.ray is not None else 0
     tasks, problems = plan_tasks(specs, out, args, task_frames=task_frames, align=args.chunk or 64)  # 64: half the run's default chunk
     if problems:

@@ -38,6 +38,8 @@ class DatasetContext:
     workers: int = 0
     writers: int = 0
     kind: str = "thread"
+    drain: int = 0         # writer threads that write what is queued at the end
+    keep_ground: bool = False  # the method reads each scan's removed ground
     extra: dict = field(default_factory=dict)
 
 
@@ -52,7 +54,6 @@ def open_sequence(task, ctx: DatasetContext, say=None) -> SeqJob:
     from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
     from floxels_ext.lidar.pipeline.frame_writer import FrameOutput
     from floxels_ext.lidar.pipeline.run_inputs import next_pose_reader, output_meta
-    from floxels_ext.methods import get_method
 
     args = ctx.args
     st = _resume_state(task, args, ctx.options, ctx.settings, ctx.report, sweep=True, say=say)
@@ -69,14 +70,13 @@ def open_sequence(task, ctx: DatasetContext, say=None) -> SeqJob:
                             self_contained=args.self_contained, inputs=st["inputs"])
     loader = FrameLoader(seq, ctx.settings, st["poses"], st["pose_mode"], ctx.report, pools=ctx.pools,
                          workers=ctx.workers, kind=ctx.kind, pre_device=ctx.pre_device,
-                         keep_points=args.self_contained, stages=ctx.stages,
-                         keep_ground=get_method(args.method).wants_ground(ctx.options),
+                         keep_points=args.self_contained, stages=ctx.stages, keep_ground=ctx.keep_ground,
                          warn=lambda m: ctx.report(f"floxels: warning: {m}"))
 
     next_pose = next_pose_reader(seq, st["pose_mode"], st["poses"], loader)
 
     info = {"out": st["out"], "selected": selected, "skipped": len(selected) - len(todo),
-            "settings": st["settings"], "task": task, "run_range": st["run_range"]}
+            "settings": st["settings"], "task": task}
     return SeqJob(label=task.label, seq=seq, loader=loader, todo=todo, write_one=write_one, next_pose=next_pose,
                   times_s=st["times_s"], info=info)
 
@@ -99,7 +99,8 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool, s
     from floxels_ext.lidar.io.outputs import cleanup_temps
     from floxels_ext.lidar.io.poses import PoseFormatError
     from floxels_ext.lidar.io.sources import InputError, discover_input
-    from floxels_ext.lidar.pipeline.run_args import check_out_dir, parse_frame_range, resume_plan
+    from floxels_ext.lidar.pipeline.resume import resume_plan
+    from floxels_ext.lidar.pipeline.run_args import check_out_dir, parse_frame_range
     from floxels_ext.lidar.pipeline.run_inputs import resolve_poses
 
     spec = task.seq
@@ -120,7 +121,8 @@ def _resume_state(task, args, options: dict, settings, report, *, sweep: bool, s
         pose_mode, poses = resolve_poses(seq, args_seq, out, report)
     except (InputError, PoseFormatError, MissingDependencyError) as e:
         raise CLIError(str(e)) from None
-    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, resume_report=say)
+    plan = resume_plan(seq, selected, out, args, options, settings, pose_mode, poses, report, resume_report=say,
+                       sweep=sweep)
     # the frames the run selects (--frames) of which this task is a part (a Ray task's range)
     run_range = parse_frame_range(getattr(args, "frames", None), len(seq))
     return {"seq": seq, "out": out, "selected": selected, "pose_mode": pose_mode, "poses": poses,
@@ -140,8 +142,8 @@ def _owned(job: SeqJob, i: int) -> bool:
     """Whether a frame that could not be read counts as one of ``job``'s failures: its own
     frames, and neighbours outside what the run selects (``--frames``: no task owns them),
     read as support scans; a neighbour that is another task's frame is that task's."""
-    a, b = job.info["run_range"]
     task = job.info["task"]
+    a, b = task.selection or (0, job.n)
     return task.start <= i < task.stop or not a <= i < b
 
 

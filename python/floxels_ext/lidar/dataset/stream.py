@@ -4,7 +4,7 @@
 Every run is a stream of tasks (``tasks.Task``: a sequence's frames, opened by
 ``sequence.open_sequence`` as a :class:`SeqJob`); ``floxels run SEQ`` is a stream of one. One
 set of reader threads, transform threads and writers serves every sequence, and the method gets
-one stream of targets (:func:`floxels_ext.estimator.stream.estimate_stream`): the segments
+one stream of targets (:func:`floxels_ext.estimator.windows.estimate_stream`): the segments
 of successive sequences laid end to end in one index space. Running a dataset as one run per
 sequence had started and drained everything per sequence: reader and writer threads, the
 read-ahead (the device waited for the first frames), the method's own pipeline (its first batch
@@ -39,6 +39,7 @@ import numpy as np
 
 from floxels_ext.lidar.dataset.layout import Layout, StreamScans, Targets
 from floxels_ext.lidar.dataset.scan_views import GroundView, SegmentView, SensorView
+from floxels_ext.lidar.pipeline.frame_checks import frame_failure
 from floxels_ext.lidar.pipeline.frame_loader import FrameLoader
 from floxels_ext.methods import accepts
 
@@ -168,8 +169,9 @@ def run_stream(source: Iterator[SeqJob], *, writer, method, num_scans: int, chun
         job = seg.job
         delivered.add(g)
         p = job.loader.get(i)
-        if p is None:
-            resolve(job, i, job.loader.errors.get(i, "unreadable"))
+        why = None if p is None else frame_failure(method, options, job.loader, i, len(job.seq), fields)
+        if p is None or why is not None:
+            resolve(job, i, why or job.loader.errors.get(i, "unreadable"))
         else:
             if not job.times:  # its wall time starts when the stream starts working on it
                 job.t_start = now - dt

@@ -3,13 +3,18 @@ output goes, and how a sequence is cut into tasks.
 
 ``floxels run DATASET --out OUT`` accepts, besides one sequence directory:
 
-* a directory tree holding sequences at any depth (up to ``MAX_DEPTH``): an Argoverse 2 split
+* a directory tree holding sequences at any depth: an Argoverse 2 split
   (``<log_id>/sensors/lidar``), KITTI odometry (``sequences/NN/velodyne`` with the poses in
   ``poses/NN.txt`` and ``sequences/NN/calib.txt`` paired automatically), a directory of
   ``floxels simulate`` sequences, or any directories of frame files;
 * a text file listing sequence directories, one a line (``#`` comments; relative paths are
   relative to the file), optionally followed by ``--poses FILE`` and ``--calib FILE`` for that
   sequence.
+
+Directories of ``floxels run`` outputs (``.npz`` files holding ``flow`` and ``settings``) are
+never taken for sequences, and symbolic links that lead back up the tree are followed once. A
+directory that holds frame files *and* sequences below it (two stray frames at a dataset root)
+is refused, naming both: it used to become one short sequence that hid every sequence below it.
 
 A sequence's output goes to ``OUT/<its path relative to the root>``, so the output tree mirrors
 the input tree. A task is a contiguous range of a sequence's frames, run as ``floxels run SEQ
@@ -25,10 +30,7 @@ import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks",
-           "MAX_DEPTH"]
-
-MAX_DEPTH = 4  # KITTI's dataset/sequences/NN/velodyne is depth 3
+__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks"]
 
 
 @dataclass
@@ -52,6 +54,9 @@ class Task:
     todo: list[str] = field(default_factory=list)
     frame_paths: list[str] = field(default_factory=list)   # input files, for failure reports
     summary: Path | None = None  # where its run_summary.json goes (--summary); None: in out_dir
+    # the frames [start, stop) the run selects of this sequence (--frames), of which the task is
+    # a part; None: all of them
+    selection: tuple[int, int] | None = None
     # the sequence as ``discover_input`` listed it when the task was made here (``floxels run
     # SEQ``), so that opening it does not list it again; None: opened from ``seq``
     found: object = field(default=None, repr=False, compare=False)
@@ -68,14 +73,37 @@ def _lidar_suffixes() -> tuple[str, ...]:
 
 
 def is_sequence_dir(d: Path) -> bool:
-    """Whether ``floxels run`` would read ``d`` as one sequence (AV2 log or a directory of frames)."""
+    """Whether ``floxels run`` would read ``d`` as one sequence (AV2 log or a directory of frames,
+    not of ``floxels run`` outputs)."""
     if (d / "sensors" / "lidar").is_dir():
         return True
+    return bool(_frame_files(d)) and not _is_run_output(d)
+
+
+def _frame_files(d: Path) -> list[str]:
+    """The names of ``d``'s lidar frame files (broken links included: they are frames that fail)."""
     suffixes = _lidar_suffixes()
     try:
-        return any(e.is_file() and not e.name.startswith(".") and Path(e.name).suffix.lower() in suffixes
-                   for e in os.scandir(d))
+        return sorted(e.name for e in os.scandir(d) if not e.name.startswith(".")
+                      and Path(e.name).suffix.lower() in suffixes and (e.is_file() or e.is_symlink()))
     except OSError:
+        return []
+
+
+def _is_run_output(d: Path) -> bool:
+    """Whether ``d`` holds ``floxels run`` outputs (a summary, or .npz frames with a flow and
+    settings) rather than input frames."""
+    if (d / "run_summary.json").is_file():
+        return True
+    first = next((n for n in _frame_files(d) if n.lower().endswith(".npz")), None)
+    if first is None:
+        return False
+    from floxels_ext.numpy_files import open_npz
+
+    try:
+        with open_npz(d / first) as z:
+            return "flow" in z.files and "settings" in z.files
+    except Exception:  # not readable as .npz: an input frame that will fail with its reason
         return False
 
 
@@ -90,26 +118,52 @@ def _kitti_pairing(d: Path) -> tuple[Path | None, Path | None]:
     return (poses if poses.is_file() else None), (calib if calib.is_file() else None)
 
 
-def _walk(root: Path, exclude: Path | None) -> list[Path]:
+def _walk(root: Path, exclude: Path | None) -> tuple[list[Path], list[tuple[Path, list[Path]]]]:
+    """(sequence directories under ``root`` at any depth, [(a directory holding frame files,
+    the sequences below it)]: the ambiguous ones). A sequence's sub-directories are searched too
+    (an AV2 log's ``sensors/lidar`` excepted), so that stray frame files never hide sequences."""
     found: list[Path] = []
+    mixed: list[tuple[Path, list[Path]]] = []
+    seen: set[str] = set()
 
-    def visit(d: Path, depth: int) -> None:
-        if exclude is not None and (d == exclude or exclude in d.parents):
-            return  # never read our own output tree as input
-        if depth > 0 and is_sequence_dir(d):
-            found.append(d)
-            return
-        if depth >= MAX_DEPTH:
-            return
+    def subdirs(d: Path) -> list[Path]:
         try:
-            subs = sorted(e.path for e in os.scandir(d) if e.is_dir() and not e.name.startswith("."))
+            return [Path(p) for p in sorted(e.path for e in os.scandir(d) if e.is_dir() and not e.name.startswith("."))]
         except OSError:
-            return
-        for s in subs:
-            visit(Path(s), depth + 1)
+            return []
+
+    def visit(d: Path, depth: int) -> list[Path]:
+        if exclude is not None and (d == exclude or exclude in d.parents):
+            return []  # never read our own output tree as input
+        real = os.path.realpath(d)
+        if real in seen:  # a link back up the tree (or to a place seen): once
+            return []
+        seen.add(real)
+        if depth > 0 and (d / "sensors" / "lidar").is_dir():
+            found.append(d)
+            return [d]
+        below = [q for s in subdirs(d) for q in visit(s, depth + 1)]
+        if depth > 0 and is_sequence_dir(d):
+            if below:
+                mixed.append((d, below))
+            found.append(d)
+            return [d, *below]
+        return below
 
     visit(root, 0)
-    return found
+    return sorted(found), mixed
+
+
+def _mixed_error(d: Path, below: list[Path], root: Path):
+    from floxels_ext.cli import CLIError
+
+    files = _frame_files(d)
+    rel = [str(q.relative_to(root)) if root in q.parents else str(q) for q in below]
+    return CLIError(f"{d} holds {len(files)} frame file(s) ({', '.join(files[:3])}{' ...' if len(files) > 3 else ''}) "
+                    f"and {len(below)} sequence(s) in its sub-directories ({', '.join(rel[:3])}"
+                    f"{' ...' if len(rel) > 3 else ''}): it is not clear whether it is one sequence or holds "
+                    f"sequences. Move the stray frame files away (then its sub-directories are the sequences), "
+                    f"or give one sequence directory as INPUT")
 
 
 def _read_list(list_file: Path) -> list[SequenceSpec]:
@@ -168,14 +222,20 @@ def discover_dataset(input_path, out=None, patterns: list[str] | None = None) ->
             return None  # one frame file: the plain run explains that INPUT must be a directory
         specs = _read_list(root)
     else:
-        if is_sequence_dir(root):
-            return None
         exclude = Path(out).resolve() if out else None
-        dirs = _walk(root.resolve(), exclude)
+        if (root / "sensors" / "lidar").is_dir():
+            return None  # an AV2 log
+        dirs, mixed = _walk(root.resolve(), exclude)
+        if _frame_files(root):  # frames at the root: one sequence, unless sequences lie below too
+            if dirs:
+                raise _mixed_error(root, dirs, root.resolve())
+            return None
+        if mixed:
+            raise _mixed_error(*mixed[0], root.resolve())
         if not dirs:
-            raise CLIError(f"{root} holds no lidar frames and no sequences in its sub-directories (up to "
-                           f"{MAX_DEPTH} levels: AV2 <log>/sensors/lidar, KITTI sequences/NN/velodyne, "
-                           f"directories of frame files)")
+            raise CLIError(f"{root} holds no lidar frames and no sequences in its sub-directories (at any depth: "
+                           f"AV2 <log>/sensors/lidar, KITTI sequences/NN/velodyne, directories of frame files; "
+                           f"directories of floxels run outputs are not inputs)")
         specs = []
         for d in dirs:
             poses, calib = _kitti_pairing(d)
@@ -231,5 +291,5 @@ def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, 
         cuts = [*range(start, stop, step), stop]
         for a, b in zip(cuts[:-1], cuts[1:]):
             tasks.append(Task(s, out_dir, a, b, [f.name for f in seq.frames[a:b]],
-                              frame_paths=[str(f.path) for f in seq.frames[a:b]]))
+                              frame_paths=[str(f.path) for f in seq.frames[a:b]], selection=(start, stop)))
     return tasks, problems

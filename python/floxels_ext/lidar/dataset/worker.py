@@ -28,8 +28,11 @@ def run_context(args, report: Callable[[str], None], *, shared_pools: bool = Tru
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.dataset.sequence import DatasetContext
     from floxels_ext.lidar.pipeline.frame_loader import LoaderPools
-    from floxels_ext.lidar.pipeline.run_args import apply_cpu_default, check_args, preprocess_settings, reader_plan
+    from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS
+    from floxels_ext.lidar.pipeline.run_args import (apply_cpu_default, check_args, host_cores, preprocess_settings,
+                                                      reader_plan)
     from floxels_ext.lidar.pipeline.stages import Stages
+    from floxels_ext.methods import get_method
 
     device, options = check_args(args, torch)
     # on the CPU, the threads every command uses (a Ray worker has set its own: args.cpu_limit)
@@ -40,7 +43,9 @@ def run_context(args, report: Callable[[str], None], *, shared_pools: bool = Tru
         raise CLIError("--preprocess-device cuda runs in worker threads; it contradicts --worker-kind process")
     return DatasetContext(args=args, device=device, options=options, settings=settings,
                           pools=LoaderPools(workers, kind) if shared_pools else None, stages=Stages(),
-                          pre_device=pre_dev, report=report, workers=workers, writers=writers, kind=kind)
+                          pre_device=pre_dev, report=report, workers=workers, writers=writers, kind=kind,
+                          drain=min(DRAIN_WRITERS, host_cores(args)),
+                          keep_ground=get_method(args.method).wants_ground(options))
 
 
 def run_jobs(jobs: Iterable, ctx, *, on_frame: Callable[[object, int], None],
@@ -54,14 +59,12 @@ def run_jobs(jobs: Iterable, ctx, *, on_frame: Callable[[object, int], None],
     from floxels_ext.lidar.dataset.stream import EstimationError, run_stream
     from floxels_ext.lidar.io import MissingDependencyError
     from floxels_ext.lidar.pipeline.frame_loader import single_threaded_blas
-    from floxels_ext.lidar.pipeline.frame_writer import DRAIN_WRITERS, WriterPool
-    from floxels_ext.lidar.pipeline.run_args import host_cores
+    from floxels_ext.lidar.pipeline.frame_writer import WriterPool
     from floxels_ext.methods import get_method
 
     args = ctx.args
     try:
-        writer = WriterPool(write_one, ctx.stages, workers=ctx.writers, kind=ctx.kind,
-                            drain=min(DRAIN_WRITERS, host_cores(args)))
+        writer = WriterPool(write_one, ctx.stages, workers=ctx.writers, kind=ctx.kind, drain=ctx.drain)
         # with the method on the GPU, numpy's BLAS serves only the per-scan host work: one thread each
         blas = single_threaded_blas() if ctx.device.startswith("cuda") else contextlib.nullcontext()
         with blas:

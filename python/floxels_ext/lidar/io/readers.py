@@ -10,7 +10,8 @@ whose message starts with the file's path.
 extension           format
 ==================  ===========================================================================
 ``.bin``            raw float32 rows x, y, z, intensity[, ring] (KITTI: 4 columns, nuScenes: 5);
-                    the column count comes from the file size, or ``bin_columns``
+                    the column count comes from the file size (checked: rows in scan
+                    order, a 4th column >= 0), or ``bin_columns``
 ``.npy``            (N, >=3) numeric array, or a structured array with fields x, y, z
 ``.npz``            key ``points`` (else the first (N, >=3) array); optional ``pose`` (4, 4)
 ``.pcd``            PCL point cloud, DATA ascii / binary / binary_compressed (LZF), fields
@@ -47,15 +48,15 @@ def _bin_plausibly_5_columns(flat: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(ring)) and np.all(ring == np.round(ring)) and np.all((ring >= 0) & (ring < 1024)))
 
 
-def _disorder(a: np.ndarray) -> float:
+def _disorder(a: np.ndarray, rows: int = 200_000) -> float:
     """How far consecutive rows of x, y, z jump, relative to each column's spread (median
-    |step| / interquartile range, averaged over x, y, z). Lidar files are stored in scan
-    order, so read with the right column count this is small (~0.01); read with a wrong
-    count, each column mixes x, y, z and intensity and it is large. Shuffled points give
-    ~0.5 for every count (no evidence either way). Median over the three columns: one
-    noisy column (e.g. z of a flat ground) does not hide the others' order."""
-    xyz = a[:, :3].astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(1)][:200_000]
+    |step| / interquartile range, averaged over x, y, z), on the first ``rows`` finite rows.
+    Lidar files are stored in scan order, so read with the right column count this is small
+    (~0.01); read with a wrong count, each column mixes x, y, z and intensity and it is large.
+    Shuffled points give ~0.5 for every count (no evidence either way). Median over the three
+    columns: one noisy column (e.g. z of a flat ground) does not hide the others' order."""
+    xyz = a[:rows, :3].astype(np.float64)
+    xyz = xyz[np.isfinite(xyz).all(1)]
     if xyz.shape[0] < 16:
         return float("nan")
     q75, q25 = np.percentile(xyz, [75, 25], axis=0)
@@ -63,9 +64,27 @@ def _disorder(a: np.ndarray) -> float:
     return float(np.median(step / np.maximum(q75 - q25, 1e-6)))
 
 
+def _ordered_columns(flat: np.ndarray, size: int, rows: int) -> int | None:
+    """The column count (3..8, one the file's size allows) whose rows read in scan order, when
+    one clearly does (else None): the smallest count within twice the lowest disorder (a
+    multiple of the true count reads x, y, z of every other row in order too)."""
+    score = {c: _disorder(flat[:rows * c].reshape(-1, c), rows) for c in range(3, 9) if size % (4 * c) == 0}
+    score = {c: v for c, v in score.items() if np.isfinite(v)}
+    if len(score) < 2:
+        return None
+    low = min(score.values())
+    return min(c for c, v in score.items() if v <= 2 * low) if low < 0.1 else None
+
+
+# the size guess is checked on the first rows only (scan order shows there; cheap for readers)
+GUESS_CHECK_ROWS = 8192
+
+
 def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size: int, explicit: bool) -> None:
-    """Refuse a .bin whose values cannot be lidar coordinates (garbage, wrong dtype) or that
-    another column count reads clearly better than ``cols`` (a wrong ``--bin-columns``)."""
+    """Refuse a .bin whose values cannot be lidar coordinates (garbage, wrong dtype), that
+    another column count reads clearly better than ``cols`` (a wrong ``--bin-columns``, or a
+    wrong guess from the size: an x y z-only file whose size also divides by 4 or 5 columns),
+    or, for a guessed count, whose 4th column cannot be an intensity (negative values)."""
     # NaN rows are legitimate (kept, flagged invalid); huge finite values are what random
     # bytes or another dtype read as float32 look like. Judged on <= 8192 evenly spaced rows
     # (the whole file only when none of them is finite): the full pass cost more than reading.
@@ -82,20 +101,25 @@ def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size:
                           + ("coordinates beyond 100 km" if frac > 0.1 else "finite coordinates")
                           + ": not a float32 x y z ... .bin lidar file, "
                           f"or the wrong column count" + ("" if explicit else " (set it with --bin-columns)"))
-    if not explicit:
+    best = _ordered_columns(flat, size, 200_000 if explicit else GUESS_CHECK_ROWS)
+    if explicit:
+        if best is not None and best != cols:
+            raise _fail(path, f"reading it with {cols} columns (--bin-columns) scrambles the coordinates: "
+                              f"the rows look like {best} float32 columns (KITTI has 4, nuScenes 5); "
+                              f"use --bin-columns {best} or leave it out")
         return
-    score = {c: _disorder(flat.reshape(-1, c)) for c in range(3, 9) if size % (4 * c) == 0}
-    score = {c: v for c, v in score.items() if np.isfinite(v)}
-    if cols not in score or len(score) < 2:
-        return
-    low = min(score.values())
-    # the smallest count that reads the rows in order (a multiple of the true count reads
-    # x, y, z of every other row in order too, losing the rows between)
-    best = min(c for c, v in score.items() if v <= 2 * low)
-    if low < 0.1 and best != cols:
-        raise _fail(path, f"reading it with {cols} columns (--bin-columns) scrambles the coordinates: "
-                          f"the rows look like {best} float32 columns (KITTI has 4, nuScenes 5); "
-                          f"use --bin-columns {best} or leave it out")
+    guess = f"its size reads as {cols} float32 columns (x y z intensity{' ring' if cols == 5 else ''})"
+    if best is not None and best != cols:
+        raise _fail(path, f"{guess}, but its rows look like {best} columns ({'x y z only' if best == 3 else 'in scan order'}); "
+                          f"pass --bin-columns {best}")
+    inten = a[::step, 3]
+    inten = inten[np.isfinite(inten)]
+    neg = float((inten < 0).mean()) if len(inten) else 0.0
+    if neg > 0.01:  # an intensity is >= 0; a coordinate (x y z-only rows read as 4) is not
+        hint = f"pass --bin-columns {best}" if best is not None else \
+            "pass --bin-columns 3 if the rows are x y z only, or the file's column count"
+        raise _fail(path, f"{guess}, but its 4th column is negative in {100 * neg:.0f}% of the rows: not an "
+                          f"intensity (x y z-only rows read as {cols} columns?); {hint}")
 
 
 def read_bin(path, bin_columns: int | None = None) -> LidarScan:
@@ -103,7 +127,10 @@ def read_bin(path, bin_columns: int | None = None) -> LidarScan:
 
     ``bin_columns`` forces the column count; it is refused when the file's size is not a
     whole number of such rows or when another count reads the file clearly better (rows in
-    scan order). Files whose values are mostly NaN/inf or beyond 100 km are refused."""
+    scan order). Without it the count comes from the size (4, or 5 with a small-integer ring
+    column), refused when another count reads the rows clearly better or when the 4th column
+    is negative (not an intensity): an x y z-only file needs ``bin_columns=3``. Files whose
+    values are mostly NaN/inf or beyond 100 km are refused."""
     size = os.path.getsize(path)
     if bin_columns is not None and (isinstance(bin_columns, bool) or not isinstance(bin_columns, (int, np.integer))
                                     or bin_columns < 3):
@@ -222,6 +249,8 @@ def read_points(path, *, bin_columns: int | None = None) -> LidarScan:
     if suffix not in READERS:
         raise LidarFormatError(f"{p}: unknown lidar file extension {p.suffix!r}; supported: {', '.join(SUFFIXES)}")
     if not p.is_file():
+        if p.is_symlink() and not p.exists():
+            raise LidarFormatError(f"{p}: broken symbolic link (to {os.readlink(p)}, which does not exist)")
         raise LidarFormatError(f"{p}: no such file" if not p.exists() else f"{p}: not a regular file")
     try:
         return read_bin(p, bin_columns) if suffix == ".bin" else READERS[suffix](p)

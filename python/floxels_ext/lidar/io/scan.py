@@ -22,6 +22,10 @@ class LidarScan:
     fields: dict[str, np.ndarray] = field(default_factory=dict)  # extra per-point columns
     pose: np.ndarray | None = None                   # (4, 4) float64 sensor-to-world, if the file has one
     timestamp_ns: int | None = None
+    # (N, 3) float64, the coordinates as stored, where the file stores float64 (else None):
+    # world-frame files at map scale (UTM: 5e6 m, where float32 resolves 0.5 m) keep their
+    # precision until ``floxels run`` re-centres them (issue 45)
+    exact: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -52,4 +56,4 @@ def _finish(path, xyz: np.ndarray, fields: dict | None = None, **kw) -> LidarSca
     # float32 columns stay views of the rows read (x y z intensity ...): the run's ops read any
     # strides, and the copies cost ~2 ms a 240k-point frame on its reader threads
     pts = xyz if xyz.dtype == np.float32 else xyz.astype(np.float32)
-    return LidarScan(pts, dict(fields or {}), **kw)
+    return LidarScan(pts, dict(fields or {}), exact=xyz if xyz.dtype == np.float64 else None, **kw)

@@ -61,7 +61,8 @@ class SequenceInput:
 
 
 def _lidar_files(d: Path, ext: str | None) -> list[Path]:
-    files = [p for p in d.iterdir() if p.is_file() and not p.name.startswith(".")
+    # a broken link is a frame that fails by name, not a dropped frame (a gap in the numbering)
+    files = [p for p in d.iterdir() if (p.is_file() or p.is_symlink()) and not p.name.startswith(".")
              and p.suffix.lower() in SUFFIXES]
     if ext:
         ext = ext.lower() if ext.startswith(".") else "." + ext.lower()

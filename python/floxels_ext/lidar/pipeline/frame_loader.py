@@ -28,7 +28,8 @@ __all__ = ["PreparedFrame", "load_frame", "single_threaded_blas", "LoaderPools",
 
 @dataclass
 class PreparedFrame:
-    kept: np.ndarray         # (M, 3) float32: the optimised points, native coordinates, file order
+    kept: np.ndarray         # (M, 3) float32 (float64 for float64 files): the optimised points, native
+                             # coordinates, file order
     mask: np.ndarray         # (N,) bool: which rows of the file they are
     nonfinite: np.ndarray    # indices of the rows with NaN/inf coordinates
     to_world: np.ndarray     # (4, 4) native -> world
@@ -40,7 +41,7 @@ class PreparedFrame:
     # the sensor's position in the world frame (the native frame's origin, or the file's pose
     # for points already in the world frame); None where unknown. Floxels' range_mask.
     sensor: np.ndarray | None = None
-    # (G, 3) float32: the returns preprocessing classed as ground, native coordinates; only when
+    # (G, 3) float32 (float64 for float64 files): the returns preprocessing classed as ground, native coordinates; only when
     # the method reads them (Floxels' visibility: its range images), else None
     ground: np.ndarray | None = None
 
@@ -59,6 +60,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     its ground returns (``PreparedFrame.ground``)."""
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError
     from floxels_ext.lidar.io.outputs import points_crc32
+    from floxels_ext.lidar.pipeline.frame_checks import beyond_ground_grid, float32_far_message
     from floxels_ext.lidar.preprocess.masks import preprocess_classes
     from floxels_ext.lidar.preprocess.settings import GROUND, KEPT
     from floxels_ext.lidar.preprocess.transform import host_rows
@@ -93,10 +95,19 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
         out["error"] = str(e)
         return out
     pts = scan.points if scan.points.dtype == np.float32 else scan.points.astype(np.float32)
+    # float64 files: the points kept, the ground and the sensor-frame points come from the
+    # float64 rows, so map-scale coordinates keep their precision until the engine re-centres
+    # them (issue 45); float32 files far out have lost it already: said once
+    exact = scan.exact if scan.exact is not None else pts
+    if exact is pts:
+        far = float32_far_message(path, pts)
+        if far:
+            out["far_float32"] = far
     t1 = time.perf_counter()
     out["read"] = t1 - t0
     rows = host_rows(pts)  # the file's x y z columns, viewed (the ops read any strides)
-    pts_sensor = pts if sensor_from_native is None else transform_points(pts, sensor_from_native)
+    exact_rows = rows if exact is pts else host_rows(exact)
+    pts_sensor = exact if sensor_from_native is None else transform_points(exact, sensor_from_native)
     classes = None
     try:
         if settings is None:
@@ -116,7 +127,7 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     except ValueError as e:
         out["error"] = f"{path}: preprocessing failed: {e}"
         return out
-    kept, nonfinite = lidar_select(rows, mask)  # one pass without the GIL
+    kept, nonfinite = lidar_select(exact_rows, mask)  # one pass without the GIL
     nonfinite = nonfinite.numpy()
     if len(nonfinite) == len(pts):
         out["error"] = f"{path}: no finite points (all {len(pts)} rows have NaN/inf coordinates)"
@@ -135,8 +146,12 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     if classes is not None:
         n = np.bincount(classes, minlength=4)
         counts = {"kept": int(n[1]), "ground": int(n[2]), "outlier": int(n[3]), "cropped": int(n[0])}
+        if settings.remove_ground and counts["ground"] == 0:
+            beyond = beyond_ground_grid(path, pts_sensor, settings, pose_mode)
+            if beyond:
+                out["no_ground"] = beyond
         if keep_ground:
-            ground = lidar_select(rows, classes == GROUND)[0].numpy()
+            ground = lidar_select(exact_rows, classes == GROUND)[0].numpy()
     to_world = np.asarray(to_world, np.float64)
     if pose_mode != "seqio":
         sensor = to_world[:3, 3].copy()  # the native frame's origin: the sensor
@@ -237,6 +252,8 @@ class FrameLoader:
         self.stray: dict[int, str] = {}  # frames whose far outliers blow up a distance transform
         self.counts: dict[int, dict] = {}  # frame -> PreparedFrame.counts (run summary)
         self._warned_no_pose = False
+        self._warned_far = False
+        self._warned_no_ground = False
         self._lock = threading.Lock()
 
     def prefetch(self, indices) -> None:
@@ -266,11 +283,19 @@ class FrameLoader:
                 self.stray[i] = res["stray"]
             first_no_pose = res.get("warning") == "no_pose" and not self._warned_no_pose
             self._warned_no_pose |= first_no_pose
+            first_far = "far_float32" in res and not self._warned_far
+            self._warned_far |= first_far
+            first_no_ground = "no_ground" in res and not self._warned_no_ground
+            self._warned_no_ground |= first_no_ground
             self.done[i] = fr
         if "error" in res:
             self.report(f"floxels: error: {res['error']}")
         if first_stray:  # once: the summary lists every such frame
             self.warn(res["stray"] + " (further frames like it are listed in the run summary)")
+        if first_far:  # once: the precision was lost when the files were written
+            self.warn(res["far_float32"])
+        if first_no_ground:
+            self.warn(res["no_ground"] + " (said for the first such frame)")
         if first_no_pose:
             self.warn(f"{self.seq.frames[i].path} has no 'pose': ranges and heights are measured from the world origin")
         return fr

@@ -1,5 +1,6 @@
 """What each frame's output was computed from, so that a resumed ``floxels run`` recomputes the
-frames whose inputs changed (issue 30, item 4).
+frames whose inputs changed (issue 30, item 4), and which frames of a sequence are still to do
+(:func:`resume_plan`, :func:`check_resume`).
 
 A frame's flow depends on the scans of its window (the method's window around it, and the
 next scan, whose pose gives ``ego_motion``), their poses and their times. Each output records
@@ -7,7 +8,8 @@ them as ``inputs`` (JSON)::
 
     {"scans": {NAME: [size, mtime_ns], ...},      # each window file's size and modification time
      "poses": {NAME: "blake2b of the 4x4", ...},   # null: the poses are in the files, or none
-     "times": {NAME: seconds after the target, ...}}  # null: frames evenly spaced
+     "times": {NAME: seconds after the target, ...},  # null: frames evenly spaced
+     "read": {"bin_columns": 3}}                   # only where a reading option is given
 
 Sizes with modification times, not content hashes: a stat per file costs microseconds while
 hashing every scan again would cost a read of the whole sequence per run; an edit, a copy
@@ -15,6 +17,11 @@ over or a fixed file changes the time (``cp -p`` of a same-size file with its ol
 not be seen). Poses and times are recorded as resolved values, so editing one line of a poses
 file recomputes only the frames whose windows use that pose, and removing ``times.txt``
 recomputes the frames whose offsets it set.
+
+A reading option that changes the points read from the same files (``--bin-columns`` of
+``.bin`` frames) is an input too: outputs read with another one are recomputed (issue 45: a
+rerun with ``--bin-columns 3`` kept the outputs of x y z-only files misread as 4 columns).
+It is recorded only when given, so records without ``read`` mean the default reading.
 
 Outputs written before this record existed have no ``inputs``: they are kept as done (their
 inputs cannot be compared), and the run says how many, pointing at ``--force``.
@@ -25,10 +32,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["window_frames", "input_records", "inputs_diff"]
+__all__ = ["window_frames", "input_records", "inputs_diff", "resume_plan", "check_resume"]
 
 
 def window_frames(i: int, n: int, num_scans: int) -> range:
@@ -60,6 +68,7 @@ def input_records(seq, frames, num_scans: int, poses, times_s) -> dict[int, str]
         except OSError:
             stat[j] = None
     digest = {j: _pose_digest(poses[j]) for j in need} if poses is not None else None
+    read = _read_options(seq)
     out = {}
     for i in frames:
         win = window_frames(i, n, num_scans)
@@ -68,14 +77,29 @@ def input_records(seq, frames, num_scans: int, poses, times_s) -> dict[int, str]
                "poses": None if digest is None else {nm: digest[j] for nm, j in zip(names, win)},
                "times": None if times_s is None else
                {nm: round(float(times_s[j]) - float(times_s[i]), 9) for nm, j in zip(names, win)}}
+        if read:
+            rec["read"] = read
         out[i] = json.dumps(rec, sort_keys=True)
     return out
+
+
+def _read_options(seq) -> dict:
+    """The reading options given that change the points read from ``seq``'s files."""
+    if seq.bin_columns is not None and seq.frames and seq.frames[0].path.suffix.lower() == ".bin":
+        return {"bin_columns": int(seq.bin_columns)}
+    return {}
 
 
 def inputs_diff(recorded: dict, current: dict) -> str | None:
     """None when the two records match, else what changed (for the message)."""
     if recorded == current:
         return None
+    ra, rb = recorded.get("read") or {}, current.get("read") or {}
+    if ra != rb:
+        def said(r):
+            return f"--bin-columns {r['bin_columns']}" if "bin_columns" in r else "the column count from the size"
+
+        return f"its scans are read with {said(rb)} now ({said(ra)} then)"
     rs, cs = recorded.get("scans") or {}, current.get("scans") or {}
     if set(rs) != set(cs):
         return "its window holds other frames now"
@@ -89,3 +113,89 @@ def inputs_diff(recorded: dict, current: dict) -> str | None:
                 return f"{what} {'now given' if a is None else 'no longer given'}"
             return f"the {what} of {', '.join(nm for nm in b if a.get(nm) != b[nm])[:60]} changed"
     return "its inputs changed"
+
+
+def resume_plan(seq, selected: list[int], out, args, options: dict, settings, pose_mode: str, poses, report,
+                resume_report=None, sweep: bool = True) -> dict:
+    """What a sequence's run writes and what is already done, the same for ``floxels run SEQ``
+    and each sequence of a dataset: the run's settings, each selected frame's output path, the
+    frames' timestamps and times (s), what each output depends on (its window's files, poses,
+    times: :func:`input_records`) and the frames still to do (:func:`check_resume`, which
+    reports to ``resume_report``, default ``report``). ``sweep``: first set aside the outputs of
+    frames no longer in the input (``out_dir.py``). Keys: settings, out_path, stamps, times_s,
+    times_source, inputs, todo."""
+    from floxels_ext.lidar.pipeline.out_dir import set_aside_orphans, warn_mixed_settings
+    from floxels_ext.lidar.pipeline.run_args import parse_frame_range
+    from floxels_ext.lidar.pipeline.run_inputs import frame_times, run_settings
+
+    if sweep:
+        set_aside_orphans(seq, Path(out), report)
+    settings_ = run_settings(args, options, settings, pose_mode, seq)
+    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
+    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
+    # pipeline passes them to methods whose estimate_sequence takes ``times``
+    stamps = [f.timestamp_ns for f in seq.frames]
+    times_s, times_source = frame_times(seq, stamps, report)
+    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
+    todo = check_resume(out_path, selected, settings_, args.force, inputs=inputs, report=resume_report or report)
+    if args.force and args.frames:
+        warn_mixed_settings(seq, Path(out), range(*parse_frame_range(args.frames, len(seq))), settings_, report)
+    return {"settings": settings_, "out_path": out_path, "stamps": stamps, "times_s": times_s,
+            "times_source": times_source, "inputs": inputs, "todo": todo}
+
+
+def check_resume(out_path: dict, selected: list[int], settings: dict, force: bool, inputs: dict | None = None,
+                 report=None) -> list[int]:
+    """Frames to estimate: those without an output, those whose output cannot be read
+    (truncated by a crash, not an output), those whose inputs changed since they were written
+    (``inputs``: ``{frame: JSON record}`` of :func:`input_records`), and
+    (with --force) all. An output written with other settings (method, options, preprocessing,
+    poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
+    carry no input record: they count as done, and ``report`` says so."""
+    from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.io.outputs import read_resume_record, settings_mismatch
+
+    if force:
+        return list(selected)
+    todo, clash = [], None
+    unreadable, changed, legacy = [], [], []
+    for i in selected:
+        if not out_path[i].is_file():
+            todo.append(i)
+            continue
+        rec = read_resume_record(out_path[i])
+        if rec is None:  # unreadable (e.g. truncated by a crash of the machine): recompute it
+            todo.append(i)
+            unreadable.append(i)
+            continue
+        diff = settings_mismatch(rec["settings"], settings)
+        if diff and clash is None:
+            clash = (out_path[i], diff)
+        if inputs is None or i not in inputs:
+            continue
+        if rec["inputs"] is None:
+            legacy.append(i)
+            continue
+        why = inputs_diff(rec["inputs"], json.loads(inputs[i]))
+        if why is not None:
+            todo.append(i)
+            changed.append((i, why))
+    if clash is not None:
+        raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
+                       f"use --force to recompute, or another --out")
+    if report is not None:
+        def names(frames):
+            return ", ".join(out_path[i].name for i in frames[:3]) + (" ..." if len(frames) > 3 else "")
+
+        if unreadable:
+            report(f"recomputing {len(unreadable)} output(s) that cannot be read (truncated or not an output of "
+                   f"floxels run): {names(unreadable)}")
+        if changed:
+            i, why = changed[0]
+            report(f"recomputing {len(changed)} frame(s) whose inputs changed since they were written (their "
+                   f"window's scans, poses or times), e.g. {out_path[i].name}: {why}")
+        if legacy:
+            report(f"floxels: warning: {len(legacy)} output(s) were written by an earlier version without a record "
+                   f"of their inputs ({names(legacy)}): kept as done; a change of their scans, poses or times "
+                   f"since then is not detected (--force recomputes them)")
+    return sorted(todo)

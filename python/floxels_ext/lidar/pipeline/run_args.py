@@ -1,5 +1,6 @@
 """``floxels run``'s arguments checked before any data is read (every mistake a CLIError,
-reported as ``floxels: error: ...``), the frames to do (resume), and how many readers to use."""
+reported as ``floxels: error: ...``), and how many readers and writers to use. Which frames are
+still to do (the resume) is ``resume.py``'s."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["parse_options", "parse_frame_range", "parse_frames", "check_args", "method_options",
-           "preprocess_settings", "apply_cpu_default", "check_out_dir", "check_resume", "reader_plan"]
+__all__ = ["parse_options", "parse_frame_range", "require_input_and_out", "check_args", "method_options",
+           "preprocess_settings", "apply_cpu_default", "check_out_dir", "host_cores", "reader_plan"]
 
 
 def parse_options(items: list[str], max_iters: int | None, config: type | None) -> dict:
@@ -64,12 +65,6 @@ def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
     return start, stop
 
 
-def parse_frames(text: str | None, n: int) -> list[int]:
-    """``--frames`` as the list of selected frame indices (the dataset path's range, listed)."""
-    start, stop = parse_frame_range(text, n)
-    return list(range(start, stop))
-
-
 def resolve_preset(args) -> dict:
     """``--preset``'s Floxels fields (besides the window) and ``args.scans`` set to the
     preset's window when ``--scans`` was not given. Raises CLIError for a preset with
@@ -77,7 +72,8 @@ def resolve_preset(args) -> dict:
     from floxels_ext.cli import CLIError
     from floxels_ext.estimator.config import PRESETS, FloxelsConfig
 
-    name = getattr(args, "preset", None) or "paper"
+    name = getattr(args, "preset", None)
+    name = "paper" if name is None else name  # '' is refused like any unknown name (as the API does)
     if name not in PRESETS:
         raise CLIError(f"unknown --preset {name!r}; choose from {', '.join(PRESETS)}")
     if name != "paper" and getattr(args, "method", "floxels") != "floxels":
@@ -89,14 +85,21 @@ def resolve_preset(args) -> dict:
     return fields
 
 
+def require_input_and_out(args) -> None:
+    """CLIError unless INPUT and --out are given."""
+    from floxels_ext.cli import CLIError
+
+    if not args.input or not args.out:
+        raise CLIError("floxels run needs INPUT and --out OUT_DIR")
+
+
 def check_args(args, torch):
     """Validate the plain arguments; returns (device, options). Raises CLIError."""
     from floxels_ext.cli import CLIError
     from floxels_ext.methods import available_methods
 
     resolve_preset(args)
-    if not args.input or not args.out:
-        raise CLIError("floxels run needs INPUT and --out OUT_DIR")
+    require_input_and_out(args)
     if args.method not in available_methods():
         raise CLIError(f"unknown --method {args.method!r}; available: {', '.join(available_methods())}")
     if not 2 <= args.scans <= 13:
@@ -176,7 +179,10 @@ def apply_cpu_default(args, device: str, report=None) -> None:
 
 
 def check_out_dir(out: Path, seq) -> None:
+    """``--out`` not the input, and a place that takes files (tried with a write: a read-only
+    place is refused here, before any frame is read). Raises CLIError."""
     from floxels_ext.cli import CLIError
+    from floxels_ext.output_paths import check_writable_dir
 
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out {out} exists and is not a directory")
@@ -186,87 +192,7 @@ def check_out_dir(out: Path, seq) -> None:
         if o == d:
             raise CLIError(f"--out {out} is {what}: the outputs would be taken for input frames by the next run; "
                            f"choose another directory")
-
-
-def resume_plan(seq, selected: list[int], out, args, options: dict, settings, pose_mode: str, poses, report,
-                resume_report=None) -> dict:
-    """What a sequence's run writes and what is already done, the same for ``floxels run SEQ``
-    and each sequence of a dataset: the run's settings, each selected frame's output path, the
-    frames' timestamps and times (s), what each output depends on (its window's files, poses,
-    times: lidar/pipeline/resume.py) and the frames still to do (:func:`check_resume`, which
-    reports to ``resume_report``, default ``report``). Keys: settings, out_path, stamps,
-    times_s, times_source, inputs, todo."""
-    from floxels_ext.lidar.pipeline.resume import input_records
-    from floxels_ext.lidar.pipeline.run_inputs import frame_times, run_settings
-
-    settings_ = run_settings(args, options, settings, pose_mode, seq)
-    out_path = {i: out / f"{seq.frames[i].name}.npz" for i in selected}
-    # per-frame times in seconds where the input names them (AV2 sweeps: ns timestamps); the
-    # pipeline passes them to methods whose estimate_sequence takes ``times``
-    stamps = [f.timestamp_ns for f in seq.frames]
-    times_s, times_source = frame_times(seq, stamps, report)
-    inputs = input_records(seq, selected, args.scans, poses if pose_mode == "table" else None, times_s)
-    todo = check_resume(out_path, selected, settings_, args.force, inputs=inputs, report=resume_report or report)
-    return {"settings": settings_, "out_path": out_path, "stamps": stamps, "times_s": times_s,
-            "times_source": times_source, "inputs": inputs, "todo": todo}
-
-
-def check_resume(out_path: dict, selected: list[int], settings: dict, force: bool, inputs: dict | None = None,
-                 report=None) -> list[int]:
-    """Frames to estimate: those without an output, those whose output cannot be read
-    (truncated by a crash, not an output), those whose inputs changed since they were written
-    (``inputs``: ``{frame: JSON record}`` of :func:`floxels_ext.lidar.pipeline.resume.input_records`), and
-    (with --force) all. An output written with other settings (method, options, preprocessing,
-    poses source, ...) stops the run (CLIError) unless --force. Outputs of earlier versions
-    carry no input record: they count as done, and ``report`` says so."""
-    from floxels_ext.cli import CLIError
-    from floxels_ext.lidar.io.outputs import read_resume_record, settings_mismatch
-    from floxels_ext.lidar.pipeline.resume import inputs_diff
-
-    if force:
-        return list(selected)
-    todo, clash = [], None
-    unreadable, changed, legacy = [], [], []
-    for i in selected:
-        if not out_path[i].is_file():
-            todo.append(i)
-            continue
-        rec = read_resume_record(out_path[i])
-        if rec is None:  # unreadable (e.g. truncated by a crash of the machine): recompute it
-            todo.append(i)
-            unreadable.append(i)
-            continue
-        diff = settings_mismatch(rec["settings"], settings)
-        if diff and clash is None:
-            clash = (out_path[i], diff)
-        if inputs is None or i not in inputs:
-            continue
-        if rec["inputs"] is None:
-            legacy.append(i)
-            continue
-        why = inputs_diff(rec["inputs"], json.loads(inputs[i]))
-        if why is not None:
-            todo.append(i)
-            changed.append((i, why))
-    if clash is not None:
-        raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
-                       f"use --force to recompute, or another --out")
-    if report is not None:
-        def names(frames):
-            return ", ".join(out_path[i].name for i in frames[:3]) + (" ..." if len(frames) > 3 else "")
-
-        if unreadable:
-            report(f"recomputing {len(unreadable)} output(s) that cannot be read (truncated or not an output of "
-                   f"floxels run): {names(unreadable)}")
-        if changed:
-            i, why = changed[0]
-            report(f"recomputing {len(changed)} frame(s) whose inputs changed since they were written (their "
-                   f"window's scans, poses or times), e.g. {out_path[i].name}: {why}")
-        if legacy:
-            report(f"floxels: warning: {len(legacy)} output(s) were written by an earlier version without a record "
-                   f"of their inputs ({names(legacy)}): kept as done; a change of their scans, poses or times "
-                   f"since then is not detected (--force recomputes them)")
-    return sorted(todo)
+    check_writable_dir(out, "--out")
 
 
 def host_cores(args) -> int:

@@ -1,15 +1,14 @@
 """Where a run's ego-motion and frame times come from: pose tables, poses in the frames, KISS-ICP
-odometry (cached next to the outputs), a KITTI ``times.txt``, AV2 timestamps or gaps in the
-frame numbering."""
+odometry (cached next to the outputs with what it was computed from: ``odometry_cache.py``), a
+KITTI ``times.txt``, AV2 timestamps or gaps in the frame numbering."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["resolve_poses", "odometry_poses", "frame_times", "run_settings", "output_meta", "next_pose_reader"]
+__all__ = ["resolve_poses", "frame_times", "run_settings", "output_meta", "next_pose_reader"]
 
 
 def resolve_poses(seq, args, out: Path, report):
@@ -36,44 +35,14 @@ def resolve_poses(seq, args, out: Path, report):
             except ValueError:
                 continue
     if args.odometry == "kiss-icp":
-        return "table", odometry_poses(seq, out, report, int(getattr(args, "verbosity", 0) or 0))
+        from floxels_ext.lidar.pipeline.odometry_cache import odometry_poses
+
+        return "table", odometry_poses(seq, out, report, int(getattr(args, "verbosity", 0) or 0),
+                                       force=bool(getattr(args, "force", False)))
     raise CLIError(f"{seq.root}: no poses for ego-motion compensation. Give one of: --poses FILE (KITTI "
                    f"poses.txt, .npy/.npz (F,4,4), AV2 city_SE3_egovehicle.feather); --odometry kiss-icp "
                    f"(estimate them; needs pip install 'floxels_ext[odometry]'); or --no-ego-motion if the scans "
                    f"are already in one common frame")
-
-
-def odometry_poses(seq, out: Path, report, verbosity: int = 0) -> np.ndarray:
-    from floxels_ext.lidar.io import read_poses
-    from floxels_ext.lidar.io.poses import PoseFormatError
-    from floxels_ext.lidar.preprocess.odometry import kiss_icp_poses
-    from floxels_ext.lidar.pipeline.progress import Progress
-
-    cache = out / "poses_kiss_icp.txt"
-    if cache.is_file():
-        try:
-            poses = read_poses(cache)
-            if len(poses) == len(seq):
-                report(f"reusing odometry poses from {cache}")
-                return poses
-        except PoseFormatError:
-            pass
-
-    def scans():
-        for i in range(len(seq)):
-            try:
-                yield seq.load(i).points
-            except ValueError:
-                yield np.zeros((0, 3), np.float32)
-
-    bar = Progress(len(seq), "frames (KISS-ICP odometry)", verbosity=verbosity)
-    poses = kiss_icp_poses(scans(), progress=lambda i: bar.update())
-    bar.close()
-    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
-    np.savetxt(tmp, poses[:, :3, :].reshape(len(poses), 12), fmt="%.9g")
-    os.replace(tmp, cache)
-    report(f"wrote odometry poses to {cache} (KITTI format)")
-    return poses
 
 
 def frame_times(seq, stamps: list, report) -> tuple[list[float] | None, str | None]:

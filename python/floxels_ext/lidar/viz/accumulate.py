@@ -22,13 +22,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
+# numpy is imported inside the functions: `floxels --help` loads this module for its parser and
+# must stay fast (cli.py: subcommand modules keep their top-level imports light)
 
 __all__ = ["accumulate", "accumulate_run", "add_parser", "run"]
 
 
 def _nearest_flow(src_pts: np.ndarray, src_flow: np.ndarray, query: np.ndarray, radius: float,
                   fallback: np.ndarray) -> np.ndarray:
+    import numpy as np
     from scipy.spatial import cKDTree
 
     if len(src_pts) == 0:
@@ -47,6 +49,8 @@ def accumulate(points: list, flows: list, reference: int, *, mode: str = "consta
     ``points[k]``, ``flows[k]``: (N_k, 3) in one common frame (``flows[k]`` may be None for the
     reference scan, which is not moved). Non-finite rows are dropped. Returns (M, 3) float32
     points and (M,) int32 index of the scan each came from."""
+    import numpy as np
+
     if mode not in ("constant-velocity", "chain"):
         raise ValueError(f"mode must be 'constant-velocity' or 'chain', got {mode!r}")
     if len(points) != len(flows):
@@ -86,12 +90,6 @@ def accumulate(points: list, flows: list, reference: int, *, mode: str = "consta
     return np.concatenate(out_p).astype(np.float32), np.concatenate(out_k)
 
 
-def _run_frames(run_dir: Path) -> list[Path]:
-    from floxels_ext.lidar.io.outputs import run_outputs
-
-    return run_outputs(run_dir)
-
-
 def load_run_frame(path: Path) -> dict:
     """One ``floxels run`` output (:func:`floxels_ext.lidar.io.outputs.read_flow_output`, points included:
     stored or read back from the source file); errors name the file."""
@@ -105,37 +103,41 @@ def load_run_frame(path: Path) -> dict:
 
 
 def accumulate_run(run_dir, frame: int | str, *, neighbours: int = 2, mode: str = "constant-velocity",
-                   mask_only: bool = False, radius: float = 1.0, use_flow: bool = True):
-    """Densify frame ``frame`` (index in the sorted outputs, or a frame name) of a ``floxels run``
-    output directory with its ``neighbours`` outputs on each side (``use_flow=False``: ego-motion
-    compensation only, the 'before' picture). Returns (points (M,3) in the
+                   mask_only: bool = False, radius: float = 1.0, use_flow: bool = True, note=print):
+    """Densify frame ``frame`` (its name, or its index among the run's input frames:
+    :mod:`floxels_ext.lidar.viz.run_frames`) of a ``floxels run`` output directory with the
+    outputs of the ``neighbours`` frames on each side (``use_flow=False``: ego-motion
+    compensation only, the 'before' picture). A neighbour without output is left out (``note``
+    says which); the others keep their true time offsets. Returns (points (M,3) in the
     reference frame's coordinates, time offset (M,) int32, frame names used)."""
-    from floxels_ext.cli import CLIError
+    import numpy as np
 
-    files = _run_frames(Path(run_dir))
-    names = [p.stem for p in files]
-    if isinstance(frame, str) and frame in names:  # a frame name wins over an index
-        r = names.index(frame)
-    else:
-        try:
-            r = int(frame)
-        except ValueError:
-            raise CLIError(f"{run_dir} has no output for frame {frame!r}") from None
-        r = r + len(files) if r < 0 else r
-        if not 0 <= r < len(files):
-            raise CLIError(f"frame index {frame} out of range: {run_dir} holds {len(files)} outputs")
-    lo, hi = max(0, r - neighbours), min(len(files), r + neighbours + 1)
-    data = [load_run_frame(files[k]) for k in range(lo, hi)]
-    ref_pose = data[r - lo]["pose"]
+    from floxels_ext.lidar.viz.run_frames import RunFrames
+
+    run = RunFrames(run_dir)
+    ref = run.pick(frame, note=note)
+    around, missing = run.neighbours(ref, neighbours)
+    if missing:
+        note(f"note: left out {', '.join(missing)}: no output (failed or not estimated)")
+    if run.inputs() is None:
+        note("note: the run's input frames cannot be listed; neighbours are the adjacent outputs")
+    data = {off: load_run_frame(run.path(name)) for off, name in around if name is not None}
+    ref_pose = data[0]["pose"]
+    offsets = [off for off, _ in around]
     pts_w, flow_w = [], []
-    for d in data:
+    for off in offsets:  # a frame without output: an empty scan at its time (nothing to move)
+        d = data.get(off)
+        if d is None:
+            pts_w.append(np.zeros((0, 3)))
+            flow_w.append(np.zeros((0, 3)))
+            continue
         T = np.linalg.solve(ref_pose, d["pose"])  # this frame's coordinates -> the reference's
         keep = d["mask"].astype(bool) if mask_only else np.ones(len(d["points"]), bool)
         p = d["points"][keep].astype(np.float64)
         pts_w.append(p @ T[:3, :3].T + T[:3, 3])
         flow_w.append(d["flow"][keep].astype(np.float64) @ T[:3, :3].T * (1.0 if use_flow else 0.0))
-    pts, src = accumulate(pts_w, flow_w, r - lo, mode=mode, radius=radius)
-    return pts, (src + lo - r).astype(np.int32), names[lo:hi]
+    pts, src = accumulate(pts_w, flow_w, offsets.index(0), mode=mode, radius=radius)
+    return pts, np.asarray(offsets, np.int32)[src], [name for _, name in around if name is not None]
 
 
 # ----------------------------------------------------------------------------- CLI
@@ -145,7 +147,8 @@ def add_parser(sub) -> None:
                                    "'floxels run' and write the merged cloud as binary PLY (properties: x y z, "
                                    "time_offset (frame - reference), red green blue by time offset).")
     p.add_argument("run_dir", metavar="RUN_DIR", help="an OUT_DIR of 'floxels run'")
-    p.add_argument("frame", metavar="FRAME", help="frame name (e.g. 000042) or index among RUN_DIR's sorted outputs")
+    p.add_argument("frame", metavar="FRAME", help="frame name (e.g. 000042) or its index among the run's input "
+                   "frames (as floxels run --frames counts them)")
     p.add_argument("--out", required=True, metavar="FILE.ply")
     p.add_argument("--neighbours", type=int, default=2, help="scans on each side (default 2: t-2 .. t+2)")
     p.add_argument("--mode", choices=["constant-velocity", "chain"], default="constant-velocity")
@@ -157,11 +160,14 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-_OFFSET_COLOURS = np.array([[255, 255, 255], [240, 80, 60], [60, 160, 250], [250, 190, 40], [90, 210, 120],
-                            [200, 100, 230], [120, 220, 220]], np.uint8)
+# colour of each time offset: 0, +1, -1, +2, -2, ... (more distant ones share the last)
+_OFFSET_COLOURS = ((255, 255, 255), (240, 80, 60), (60, 160, 250), (250, 190, 40), (90, 210, 120),
+                   (200, 100, 230), (120, 220, 220))
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from floxels_ext.cli import CLIError
     from floxels_ext.lidar.io.writers import write_ply
 
@@ -172,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output_file(args.out, "--out", "dense.ply")
     pts, off, names = accumulate_run(args.run_dir, args.frame, neighbours=args.neighbours, mode=args.mode,
                                      mask_only=args.mask_only, radius=args.radius, use_flow=not args.no_flow)
-    rgb = _OFFSET_COLOURS[np.minimum(np.abs(off) * 2 - (off < 0), len(_OFFSET_COLOURS) - 1)]
+    rgb = np.array(_OFFSET_COLOURS, np.uint8)[np.minimum(np.abs(off) * 2 - (off < 0), len(_OFFSET_COLOURS) - 1)]
     write_ply(out, pts, time_offset=off.astype(np.int8), red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
     print(f"wrote {out}: {len(pts)} points from frames {names[0]}..{names[-1]} "
           f"({'no motion' if args.no_flow else args.mode})")

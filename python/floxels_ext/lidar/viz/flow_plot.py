@@ -1,10 +1,12 @@
 """Readable bird's-eye views of scene flow with matplotlib (extra ``viz``; headless, Agg).
 
 One figure: the scene in metres (static points grey, moving points coloured by the flow's
-direction (hue) and speed (saturation), like the colour wheel in the corner, whose radius is
-speed), each moving object boxed and labelled with its number and speed, a scale bar; below,
-zoom panels on the largest moving objects with their flow arrows (ground truth as black
-outlines when given); optionally the ground truth's scene beside the estimate.
+direction (hue) and speed (saturation), like the colour wheel beside it, whose radius is
+speed), each moving object boxed and numbered, a scale bar; beside the scene, outside the
+data, the colour wheel and the key of the numbers (each object's median speed); zoom panels
+on the largest moving objects with their flow arrows (ground truth as black outlines when
+given); optionally the ground truth's scene beside the estimate. Before (issue 45) the wheel
+sat in a corner of the scene, over its points, and the speed labels in the scene overlapped.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 
 from floxels_ext.lidar.io._optional import require
 
-__all__ = ["plot_flow_bev", "moving_objects", "require_matplotlib"]
+__all__ = ["plot_flow_bev", "flow_figure", "moving_objects", "require_matplotlib"]
 
 
 def require_matplotlib():
@@ -73,31 +75,9 @@ def _scale_bar(ax, span: float) -> None:
                                   sep=3, frameon=True, size_vertical=span / 300, color="black"))
 
 
-# where the colour wheel may go, in axes fractions (the scale bar holds the lower right)
-_WHEEL_SIZE = 0.25
-_WHEEL_CORNERS = {"upper left": (0.015, 0.73), "upper right": (0.735, 0.73), "lower left": (0.015, 0.05)}
-
-
-def _wheel_corner(pts, view, boxes) -> tuple[float, float]:
-    """The corner for the colour wheel that hides the fewest points (an object box counts as
-    many points: the wheel must not hide a moving object)."""
-    (x0, x1), (y0, y1) = view
-    best, where = None, _WHEEL_CORNERS["upper left"]
-    for fx, fy in _WHEEL_CORNERS.values():
-        lo = np.array([x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)])
-        hi = lo + _WHEEL_SIZE * np.array([x1 - x0, y1 - y0])
-        hidden = int(np.all((pts[:, :2] >= lo) & (pts[:, :2] <= hi), axis=1).sum())
-        hidden += 10_000 * sum(bool(np.all(b_hi >= lo) and np.all(b_lo <= hi)) for b_lo, b_hi in boxes)
-        if best is None or hidden < best:
-            best, where = hidden, (fx, fy)
-    return where
-
-
-def _wheel(parent, vmax_frame: float, to_unit: float, unit: str, corner=(0.015, 0.73)) -> None:
-    """Colour key in a corner of ``parent`` (axes fractions of its lower left): direction =
-    angle, speed = radius (same mapping as the points; ``vmax_frame`` in m/frame, labels in
-    ``unit``)."""
-    ax = parent.inset_axes([corner[0], corner[1], _WHEEL_SIZE, _WHEEL_SIZE], projection="polar")
+def _wheel(ax, vmax_frame: float, to_unit: float, unit: str) -> None:
+    """Colour key on the polar axes ``ax``: direction = angle, speed = radius (same mapping as
+    the points; ``vmax_frame`` in m/frame, labels in ``unit``)."""
     th, r = np.meshgrid(np.linspace(-math.pi, math.pi, 181), np.linspace(0, vmax_frame, 40))
     vec = np.stack([r.ravel() * np.cos(th.ravel()), r.ravel() * np.sin(th.ravel())], -1)
     rgb = _flow_colours(vec, vmax_frame).reshape(r.shape + (3,))
@@ -105,14 +85,24 @@ def _wheel(parent, vmax_frame: float, to_unit: float, unit: str, corner=(0.015, 
     vmax = vmax_frame * to_unit
     ax.set_ylim(0, vmax_frame)
     ax.set_yticks([vmax_frame / 2, vmax_frame])
-    ax.set_yticklabels([f"{vmax / 2:.2g}", f"{vmax:.2g} {unit}"], fontsize=7)
+    ax.set_yticklabels([f"{vmax / 2:.2g}", f"{vmax:.2g}"], fontsize=7)
     ax.set_xticks(np.radians([0, 90, 180, 270]))
     ax.set_xticklabels(["+x", "+y", "-x", "-y"], fontsize=7)
     ax.tick_params(pad=0)
-    ax.set_title("direction / speed", fontsize=7, pad=2)
+    ax.set_title(f"direction / speed ({unit})", fontsize=8, pad=4)
 
 
-def _scene(ax, pts, flow, moving, vmax, view, objects, speeds, unit, title, static_mask=None) -> None:
+def _object_key(ax, entries: list[str]) -> None:
+    """The numbers of the boxed objects with their median speeds (``entries``), as text on a
+    bare axes."""
+    ax.axis("off")
+    if not entries:
+        return
+    lines = ["moving objects", "(median speed)"] + [f"{k + 1}: {e}" for k, e in enumerate(entries)]
+    ax.text(0.5, 1.0, "\n".join(lines), transform=ax.transAxes, ha="center", va="top", fontsize=8, linespacing=1.5)
+
+
+def _scene(ax, pts, flow, moving, vmax, view, objects, title, static_mask=None) -> None:
     still = ~moving
     grey = np.where(static_mask[still], 0.55, 0.78) if static_mask is not None else 0.6
     ax.scatter(pts[still, 0], pts[still, 1], s=0.8, c=np.broadcast_to(np.atleast_1d(grey)[:, None] * [1, 1, 1],
@@ -123,12 +113,13 @@ def _scene(ax, pts, flow, moving, vmax, view, objects, speeds, unit, title, stat
         ax.scatter(pts[order, 0], pts[order, 1], s=4.0, c=_flow_colours(flow[order, :2], vmax),
                    linewidths=0, rasterized=True)
     boxes, labels = [], []
-    for k, (g, sp) in enumerate(zip(objects, speeds)):
+    for k, g in enumerate(objects):
         lo, hi = pts[g, :2].min(0) - 0.8, pts[g, :2].max(0) + 0.8
         ax.add_patch(_rect(lo, hi))
         boxes.append((lo, hi))
-        labels.append(ax.text(hi[0], hi[1], f" {k + 1}: {sp:.2g} {unit}", fontsize=8, va="bottom", ha="left",
-                              clip_on=True, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8)))
+        # the number only (its speed is in the key beside the scene): short labels find free places
+        labels.append(ax.text(hi[0], hi[1], f"{k + 1}", fontsize=8, va="bottom", ha="left", clip_on=True,
+                              bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8)))
     (x0, x1), (y0, y1) = view
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
@@ -138,22 +129,26 @@ def _scene(ax, pts, flow, moving, vmax, view, objects, speeds, unit, title, stat
     ax.set_title(title, fontsize=10)
     ax.grid(True, lw=0.3, alpha=0.5)
     _scale_bar(ax, min(x1 - x0, y1 - y0))
+    ax.apply_aspect()  # the axes' final place, before labels are placed in pixels
     _declutter(ax, labels, boxes)
 
 
-# label positions tried around an object's box, in order: (corner x, corner y, ha, va)
+# label positions tried around an object's box, in order: (corner x, corner y, ha, va); each
+# also moved outward by one and two label sizes when every spot next to the box is taken
 _LABEL_SPOTS = [("hi", "hi", "left", "bottom"), ("lo", "hi", "right", "bottom"), ("hi", "lo", "left", "top"),
-                ("lo", "lo", "right", "top"), ("hi", "mid", "left", "center"), ("lo", "mid", "right", "center")]
+                ("lo", "lo", "right", "top"), ("hi", "mid", "left", "center"), ("lo", "mid", "right", "center"),
+                ("mid", "hi", "center", "bottom"), ("mid", "lo", "center", "top")]
 
 
 def _declutter(ax, labels, boxes) -> None:
-    """Move each object's label to the first spot around its box where it overlaps no label
-    placed before it and no other object's box (else the spot overlapping least)."""
+    """Move each object's label to the first spot around its box (or one or two label sizes
+    further out) where it overlaps no label placed before it, no other object's box and no
+    edge of the panel; where none is free, the spot overlapping least (labels count most)."""
     if not labels:
         return
     fig = ax.figure
     renderer = fig.canvas.get_renderer()
-    to_px = ax.transData.transform
+    to_px, to_data = ax.transData.transform, ax.transData.inverted().transform
     box_px = [(to_px(lo), to_px(hi)) for lo, hi in boxes]
     a = ax.get_window_extent(renderer)
     frame = ((a.x0, a.y0), (a.x1, a.y1))
@@ -164,22 +159,33 @@ def _declutter(ax, labels, boxes) -> None:
         h = min(a[1][1], b[1][1]) - max(a[0][1], b[0][1])
         return max(w, 0.0) * max(h, 0.0)
 
+    def extent(t):
+        e = t.get_window_extent(renderer).expanded(1.1, 1.15)
+        return (e.x0, e.y0), (e.x1, e.y1)
+
     for k, (t, (lo, hi)) in enumerate(zip(labels, boxes)):
+        (w, h) = np.subtract(*extent(t)[::-1])
         best = None
-        for sx, sy, ha, va in _LABEL_SPOTS:
-            x = {"lo": lo[0], "hi": hi[0]}[sx]
-            y = {"lo": lo[1], "hi": hi[1], "mid": (lo[1] + hi[1]) / 2}[sy]
-            t.set_position((x, y))
-            t.set_ha(ha)
-            t.set_va(va)
-            e = t.get_window_extent(renderer).expanded(1.05, 1.1)
-            ext = ((e.x0, e.y0), (e.x1, e.y1))
-            area = (ext[1][0] - ext[0][0]) * (ext[1][1] - ext[0][1])
-            cost = (sum(overlap(ext, p) for p in placed) + sum(overlap(ext, b) for j, b in enumerate(box_px) if j != k)
-                    + 4 * (area - overlap(ext, frame)))  # cut at the panel's edge: worse than an overlap
-            if best is None or cost < best[0]:
-                best = (cost, (x, y), ha, va, ext)
-            if cost == 0:
+        for step in (0, 1, 2):
+            for sx, sy, ha, va in _LABEL_SPOTS:
+                x = {"lo": lo[0], "hi": hi[0], "mid": (lo[0] + hi[0]) / 2}[sx]
+                y = {"lo": lo[1], "hi": hi[1], "mid": (lo[1] + hi[1]) / 2}[sy]
+                px = to_px((x, y)) + step * np.array([{"left": w, "right": -w, "center": 0}[ha] if va == "center" else 0,
+                                                      {"bottom": h, "top": -h, "center": 0}[va]])
+                pos = tuple(to_data(px))
+                t.set_position(pos)
+                t.set_ha(ha)
+                t.set_va(va)
+                ext = extent(t)
+                area = (ext[1][0] - ext[0][0]) * (ext[1][1] - ext[0][1])
+                cost = (10 * sum(overlap(ext, p) for p in placed)
+                        + sum(overlap(ext, b) for j, b in enumerate(box_px) if j != k)
+                        + 4 * (area - overlap(ext, frame)) + step)  # cut at the edge: worse than a box
+                if best is None or cost < best[0]:
+                    best = (cost, pos, ha, va, ext)
+                if cost <= step:
+                    break
+            if best[0] <= step:
                 break
         _, pos, ha, va, ext = best
         t.set_position(pos)
@@ -228,12 +234,30 @@ def _zoom(ax, pts, flow, gt, g, k, sp, vmax, unit, to_unit, speed) -> None:
 def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "",
                   frame_period: float | None = None, min_speed: float = 0.1, view=None,
                   max_zooms: int = 4, dpi: int = 110) -> Path:
-    """Write a PNG of ``points`` (N, 3) and their ``flow`` (N, 3, metres per frame).
+    """Write a PNG of ``points`` (N, 3) and their ``flow`` (N, 3, metres per frame): the
+    figure of :func:`flow_figure` (same arguments)."""
+    plt = require_matplotlib()
+    fig = flow_figure(points, flow, gt_flow=gt_flow, mask=mask, title=title, frame_period=frame_period,
+                      min_speed=min_speed, view=view, max_zooms=max_zooms, dpi=dpi)
+    path = Path(path)
+    from floxels_ext.output_paths import replace_atomically
+
+    try:
+        return replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp.png"), path,
+                                  lambda t: fig.savefig(t, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
+
+
+def flow_figure(points, flow, *, gt_flow=None, mask=None, title: str = "", frame_period: float | None = None,
+                min_speed: float = 0.1, view=None, max_zooms: int = 4, dpi: int = 110):
+    """The matplotlib figure of :func:`plot_flow_bev` (the caller closes it).
 
     ``gt_flow``: ground truth, drawn beside the estimate and as black arrows in the zooms;
     ``mask``: points that were estimated (others, e.g. ground, drawn lighter); points moving
     more than ``min_speed`` m/frame are "moving"; ``frame_period`` (s) labels speeds in m/s
-    (else m/frame); ``view`` ((x0, x1), (y0, y1)) in metres (default: the points' extent)."""
+    (else m/frame); ``view`` ((x0, x1), (y0, y1)) in metres (default: the points' extent).
+    Its axes carry labels: ``"scene"`` (and ``"truth"``), ``"wheel"``, ``"key"``, ``"zoom k"``."""
     plt = require_matplotlib()
     pts = np.asarray(points, np.float64)
     flow = np.asarray(flow, np.float64)
@@ -265,45 +289,43 @@ def plot_flow_bev(path, points, flow, *, gt_flow=None, mask=None, title: str = "
         view = ((lo[0], hi[0]), (lo[1], hi[1]))
     zooms = objects[:max_zooms]
     ncols = 2 if gt is not None else 1
-    if ncols == 2 or not zooms:  # scene(s) on top, zooms in a row below
-        fig = plt.figure(figsize=(7.5 * ncols, 7.5 + (2.9 if zooms else 0)), dpi=dpi)
+    key_w = 1.9  # the column beside the scene(s): colour wheel and object key, outside the data
+    if ncols == 2 or not zooms:  # scene(s) and key on top, zooms in a row below
+        fig = plt.figure(figsize=(7.5 * ncols + key_w, 7.5 + (2.9 if zooms else 0)), dpi=dpi)
         grid = fig.add_gridspec(2 if zooms else 1, max(len(zooms), 1),
                                 height_ratios=[7.5, 2.7] if zooms else None, hspace=0.3)
-        top_grid = grid[0, :].subgridspec(1, ncols, wspace=0.15)
+        top_grid = grid[0, :].subgridspec(1, ncols + 1, wspace=0.15, width_ratios=[7.5] * ncols + [key_w])
         zoom_cells = [grid[1, k] for k in range(len(zooms))]
-    else:  # one scene on the left, zooms in a 2 x 2 block on the right
-        fig = plt.figure(figsize=(13.5, 7.8), dpi=dpi)
-        grid = fig.add_gridspec(1, 2, width_ratios=[7.5, 5.2], wspace=0.18)
-        top_grid = grid[0, 0].subgridspec(1, 1)
-        right = grid[0, 1].subgridspec(2, 2, hspace=0.35, wspace=0.3)
+    else:  # one scene on the left, the key, zooms in a 2 x 2 block on the right
+        fig = plt.figure(figsize=(13.5 + key_w, 7.8), dpi=dpi)
+        grid = fig.add_gridspec(1, 3, width_ratios=[7.5, key_w, 5.2], wspace=0.12)
+        top_grid = grid[0, :2].subgridspec(1, 2, width_ratios=[7.5, key_w], wspace=0.12)
+        right = grid[0, 2].subgridspec(2, 2, hspace=0.35, wspace=0.3)
         zoom_cells = [right[k // 2, k % 2] for k in range(len(zooms))]
-    ax = fig.add_subplot(top_grid[0, 0])
+    key_cells = top_grid[0, ncols].subgridspec(2, 1, height_ratios=[1.0, 1.6], hspace=0.25)
+    ax = fig.add_subplot(top_grid[0, 0], label="scene")
     vm = vmax_frame
     # colours are in m/frame internally; the wheel's labels in the display unit
-    _scene(ax, pts, flow, moving, vm, view, objects, speeds, unit,
+    _scene(ax, pts, flow, moving, vm, view, objects,
            "estimated flow" + (f" ({int(moving.sum())} moving points)" if moving.any() else " (nothing moving)"),
            static_mask=mask)
+    key = [f"{sp:.2g} {unit}" for sp in speeds]
     if gt is not None:
         gspeed = np.linalg.norm(gt[:, :2], axis=1)
         gmov = mask & (gspeed > min_speed)
-        # the estimate's objects, labelled with their true speeds (same numbers in both panels)
-        _scene(fig.add_subplot(top_grid[0, 1], sharex=ax, sharey=ax), pts, gt, gmov, vm, view, objects,
-               [float(np.median(gspeed[g])) * to_unit for g in objects], unit,
-               f"ground truth ({int(gmov.sum())} moving points)", static_mask=mask)
+        true = [float(np.median(gspeed[g])) * to_unit for g in objects]
+        # the estimate's objects, numbered alike in both panels
+        _scene(fig.add_subplot(top_grid[0, 1], sharex=ax, sharey=ax, label="truth"), pts, gt, gmov, vm, view,
+               objects, f"ground truth ({int(gmov.sum())} moving points)", static_mask=mask)
+        key = [f"{k} (true {t:.2g})" for k, t in zip(key, true)]
     for k, g in enumerate(zooms):
-        _zoom(fig.add_subplot(zoom_cells[k]), pts, flow, gt, g, k, speeds[k], vm, unit, to_unit, speed)
-    boxes = [(pts[g, :2].min(0) - 0.8, pts[g, :2].max(0) + 0.8) for g in objects]
-    _wheel(ax, vm, to_unit, unit, _wheel_corner(pts, view, boxes))
+        _zoom(fig.add_subplot(zoom_cells[k], label=f"zoom {k}"), pts, flow, gt, g, k, speeds[k], vm, unit, to_unit,
+              speed)
+    _wheel(fig.add_subplot(key_cells[0], projection="polar", label="wheel"), vm, to_unit, unit)
+    _object_key(fig.add_subplot(key_cells[1], label="key"), key)
     if title:
         fig.suptitle(title, fontsize=11)
-    path = Path(path)
-    from floxels_ext.output_paths import replace_atomically
-
-    try:
-        return replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp.png"), path,
-                                  lambda t: fig.savefig(t, bbox_inches="tight"))
-    finally:
-        plt.close(fig)
+    return fig
 
 
 def _arrow_scale(g, pts, speed) -> float:

@@ -3,10 +3,11 @@ recording (``pip install 'floxels_ext[viz]'``).
 
 With matplotlib (extra ``viz``) the picture is :func:`floxels_ext.lidar.viz.flow_plot.plot_flow_bev`:
 metres on the axes, a scale bar, moving points coloured by direction and speed (colour
-wheel), moving objects boxed with their speeds, zoom panels on them. Without matplotlib a
-plain raster (:func:`render_frame`) is written instead: optimised points coloured by height,
-the others dim grey, flow arrows whose hue is the heading (wheel top right) and brightness
-the speed.
+wheel beside the scene), moving objects boxed and numbered (their speeds in a key under the
+wheel), zoom panels on them. Without matplotlib a plain raster (:func:`render_frame`) is
+written instead: optimised points coloured by height, the others dim grey, flow arrows whose
+hue is the heading (wheel in a strip right of the view, outside the data) and brightness the
+speed.
 """
 
 from __future__ import annotations
@@ -15,13 +16,16 @@ import argparse
 import math
 from pathlib import Path
 
-import numpy as np
+# numpy is imported inside the functions: `floxels --help` loads this module for its parser and
+# must stay fast (cli.py: subcommand modules keep their top-level imports light)
 
 __all__ = ["add_parser", "run", "render_frame", "direction_wheel"]
 
 
 def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.ndarray:
     """Draw the heading colour legend (same mapping as ``viz.bev_image``) in the top-right corner."""
+    import numpy as np
+
     from floxels_ext.lidar.viz.bev_png import hsv_to_rgb
 
     h, w, _ = img.shape
@@ -41,7 +45,10 @@ def direction_wheel(img: np.ndarray, radius: int = 28, margin: int = 8) -> np.nd
 
 def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, center=None,
                  flow_scale: float = 1.0, legend: bool = True) -> np.ndarray:
-    """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask)."""
+    """(H, W, 3) uint8 BEV image of a run output (keys points, flow, mask); with ``legend`` the
+    heading wheel is in a strip of 72 columns right of the view."""
+    import numpy as np
+
     from floxels_ext.lidar.viz.bev_png import BACKGROUND, bev_image
 
     pts = np.asarray(data["points"], np.float64)
@@ -56,11 +63,18 @@ def render_frame(data: dict, *, extent: float = 40.0, resolution: float = 0.1, c
     rest = bev_image(pts[ok & ~mask], color_by="grey", **kw)
     empty = np.all(img == BACKGROUND, axis=2) & ~np.all(rest == BACKGROUND, axis=2)
     img[empty] = (0.45 * rest[empty] + 0.55 * np.array(BACKGROUND)).astype(np.uint8)
-    return direction_wheel(img) if legend else img
+    if not legend:
+        return img
+    # the wheel in a strip of its own right of the view, not over its top right corner
+    strip = np.empty((img.shape[0], 2 * 28 + 2 * 8, 3), np.uint8)
+    strip[:] = BACKGROUND
+    return direction_wheel(np.concatenate([img, strip], axis=1))
 
 
 def _default_center(points) -> tuple[float, float]:
     """The sensor (origin) when the points surround it, else the points' median."""
+    import numpy as np
+
     pts = np.asarray(points, np.float64)
     ok = np.isfinite(pts).all(1)
     if not ok.any():
@@ -77,13 +91,14 @@ def add_parser(sub) -> None:
                        description="Render one output of 'floxels run' (a .npz file, or RUN_DIR with --frame) as a "
                                    "bird's-eye-view PNG. With matplotlib (pip install 'floxels_ext[viz]'): metres on "
                                    "the axes and a scale bar, moving points coloured by direction (hue) and speed "
-                                   "(saturation; colour wheel), each moving object boxed and labelled with its median "
-                                   "speed, zoom panels with flow arrows on the largest ones, ground and cropped points "
+                                   "(saturation; colour wheel beside the scene), each moving object boxed and numbered "
+                                   "(median speeds in a key under the wheel), zoom panels with flow arrows on the largest ones, ground and cropped points "
                                    "grey. Without matplotlib: a plain raster (points coloured by height, flow arrows "
-                                   "coloured by direction, legend wheel top right), sized by --extent/--resolution "
+                                   "coloured by direction, legend wheel in a strip on the right), sized by --extent/--resolution "
                                    "and with arrows scaled by --flow-scale.")
     p.add_argument("target", metavar="FRAME_NPZ_OR_RUN_DIR")
-    p.add_argument("--frame", default="0", help="with a RUN_DIR: frame index (sorted order) or name (default 0)")
+    p.add_argument("--frame", default=None, help="with a RUN_DIR: the frame's name (e.g. 000042) or its index among "
+                   "the run's input frames, as floxels run --frames counts them (default: the first output)")
     p.add_argument("--png", metavar="FILE", help="output PNG (default <frame name>.png in the current directory)")
     from floxels_ext.cli_types import positive_float
 
@@ -100,27 +115,24 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _resolve(target: str, frame: str) -> Path:
-    from floxels_ext.lidar.viz.accumulate import _run_frames
+def _resolve(target: str, frame: str | None) -> Path:
     from floxels_ext.cli import CLIError
+    from floxels_ext.lidar.viz.run_frames import RunFrames
 
     t = Path(target)
     if t.is_file():
+        if frame is not None:
+            raise CLIError(f"--frame picks a frame of a RUN_DIR; {t} is one output file")
         return t
     if not t.is_dir():
         raise CLIError(f"{t} does not exist")
-    files = _run_frames(t)
-    names = [p.stem for p in files]
-    if frame in names:
-        return files[names.index(frame)]
-    try:
-        k = int(frame)
-        return files[k]
-    except (ValueError, IndexError):
-        raise CLIError(f"{t}: no frame {frame!r} ({len(files)} outputs: {names[0]} .. {names[-1]})") from None
+    run = RunFrames(t)
+    return run.path(run.pick(frame))
 
 
 def write_rerun(path: Path, data: dict, name: str) -> None:
+    import numpy as np
+
     from floxels_ext.lidar.io._optional import require
 
     rr = require("rerun", "viz", "rerun-sdk", "writing rerun recordings (--rerun)")
@@ -203,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
                            flow_scale=1.0 if args.flow_scale is None else args.flow_scale)
         write_png(png, img)
         size = f"{img.shape[1]}x{img.shape[0]}"
-    print(f"wrote {png} ({size}, {len(data['points'])} points, {n_mov} moving)")
+    print(f"wrote {png} (frame {path.stem}, {size}, {len(data['points'])} points, {n_mov} moving)")
     if args.rerun:
         try:
             write_rerun(Path(args.rerun), data, path.stem)

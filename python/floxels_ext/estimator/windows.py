@@ -1,4 +1,6 @@
-"""Sliding windows over a stream of segments: many sequences through one optimiser pipeline.
+"""Sliding windows: each target's window of scans, and the batch loop that optimises them
+(:func:`solve_windows`), over one sequence (``api.estimate_sequence``) or a stream of
+segments (:func:`estimate_stream`: many sequences through one optimiser pipeline).
 
 :func:`estimate_sequence` (``api.py``) optimises the windows of one sequence, preparing the
 next batch while the device optimises the current one; each call starts that pipeline (a first
@@ -27,7 +29,7 @@ from floxels_ext.estimator.distance import WindowCache
 from floxels_ext.estimator.recentre import Recentring
 from floxels_ext.estimator.group import pack, prepare_group, solve_group
 from floxels_ext.estimator.scans import check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
-from floxels_ext.estimator.streams import serial_stages, side_stream
+from floxels_ext.estimator.schedule import Pipeline, serial_stages
 from floxels_ext.ops.solver import MAX_PROBLEMS
 from floxels_ext.switches import flag
 
@@ -90,7 +92,7 @@ def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable
     """Optimise the windows of ``batches`` (lists of :class:`Window`), one batch at a time;
     ``deliver(frame, result)`` per target in order. Each scan's distance transform is built
     once and shared by the windows that use it. ``pipelined`` (a CUDA device): the next batch
-    is prepared on a side stream of it while the device optimises this one. ``horizon(next_batch)``:
+    is prepared on a side stream of it while the device optimises this one (``schedule.Pipeline``). ``horizon(next_batch)``:
     the lowest scan index a later window uses (default: the next batch's lowest start, right
     when window starts never decrease); DTs and device scans below it are freed. ``sensors``:
     each scan's sensor position (indexed like ``scans``; ``FloxelsConfig.range_mask``);
@@ -100,7 +102,7 @@ def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable
     # one float64 shift per segment (scans far from the origin), chosen at its first window and
     # kept, so the windows of a segment share scans and distance transforms in one frame
     recentrings: dict[int, Recentring] = {}
-    side = side_stream(pipelined) if pipelined is not None else None
+    pipe = Pipeline(pipelined)
     if horizon is None:
         def horizon(nxt):
             return min(w.start for w in nxt) if nxt else math.inf
@@ -113,9 +115,9 @@ def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable
                                    sensors=None if sensors is None else [sensors[j] for j in range(w.start, w.stop)],
                                    grounds=None if grounds is None else [grounds[j] for j in range(w.start, w.stop)]),
                      WindowCache(cache, w.start)) for w in batch]
-        if side is None:
+        if not pipe.on:
             return prepare_group(cfg, items())
-        with torch.cuda.stream(side):
+        with pipe.preparing():
             prepared = prepare_group(cfg, items(), pipelined=True, poll=poll)
             prepared.packs = pack(cfg, prepared)  # packing, too, before the current batch ends
             return prepared
@@ -126,7 +128,7 @@ def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable
         return
     prepared = prepare(batch)
     while batch:
-        solving = solve_group(cfg, prepared, wait_for=side)
+        solving = solve_group(cfg, prepared, wait_for=pipe.side)
         error, nxt = None, None
         try:
             nxt = next(it, None)  # a stream's source may wait for its next segment here: the device is busy

@@ -1,0 +1,159 @@
+"""The regression guard: two (or more) commits built side by side on one GPU host, their speed
+benches interleaved, each figure's ratio printed (issue 42: a 2x frame regression landed unseen).
+
+Run ``prepare`` here (it needs git), then ``run`` in one device call:
+
+    python tools/ab_bench.py prepare 37d68ff HEAD          # sources into .ab/<name>/ (ignored by git)
+    python tools/ab_bench.py prepare 37d68ff WORKTREE      # the working tree as it is, uncommitted changes too
+    # device call, carrying .ab:  python3 tools/ab_bench.py run --rounds 2 --out $OUT
+
+``run`` builds every prepared source with CUDA into /tmp/ab/<name> (in parallel), then, round by
+round and source by source (A, B, A, B, ...: a host's drift touches both alike), runs that
+source's own ``bench/bench_speed.py --no-reference --no-cpu`` and ``bench/bench_run.py`` against
+its own build, and prints one table: each figure's median over the rounds per source and its
+ratio to the first source (for times, > 1 means slower; for rates, < 1). Writes ab_bench.json.
+Every change to the estimator or the pipeline lands with this table (bench/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+AB = ROOT / ".ab"
+
+# (label, bench, JSON path, lower is better)
+FIGURES = [
+    ("frame ms (bench_speed whole frame)", "speed", ("frame_s",), True, 1e3),
+    ("sequence frames/s (bench_speed, batch 16)", "speed", ("seq_fps",), False, 1.0),
+    ("floxels run KITTI frames/s", "run", ("runs", "kitti", "frames_per_s"), False, 1.0),
+    ("floxels run AV2 frames/s", "run", ("runs", "av2", "frames_per_s"), False, 1.0),
+    ("in-memory ceiling frames/s", "run", ("ceiling", "frames_per_s"), False, 1.0),
+]
+
+
+def prepare(revs: list[str]) -> None:
+    AB.mkdir(exist_ok=True)  # (.gitignore lists /.ab/)
+    names = []
+    for rev in revs:
+        if rev == "WORKTREE":
+            name = "worktree"
+            dst = AB / name
+            shutil.rmtree(dst, ignore_errors=True)
+            files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, check=True,
+                                   capture_output=True, text=True).stdout.split("\n")
+            for f in files:
+                if f and (ROOT / f).is_file() and not f.startswith(".ab/"):
+                    (dst / f).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(ROOT / f, dst / f)
+        else:
+            sha = subprocess.run(["git", "rev-parse", "--short", rev], cwd=ROOT, check=True, capture_output=True,
+                                 text=True).stdout.strip()
+            name = f"{len(names)}_{sha}"
+            dst = AB / name
+            shutil.rmtree(dst, ignore_errors=True)
+            dst.mkdir(parents=True)
+            archive = subprocess.run(["git", "archive", "--format=tar", sha], cwd=ROOT, check=True,
+                                     capture_output=True).stdout
+            subprocess.run(["tar", "-x", "-C", str(dst)], input=archive, check=True)
+        names.append(name)
+        print(f"{rev} -> .ab/{name}")
+    (AB / "order.json").write_text(json.dumps(names) + "\n")
+
+
+def _build(name: str, log_dir: Path, cuda: bool) -> tuple[str, int, float]:
+    t0 = time.perf_counter()
+    env = dict(os.environ, FLOXELS_CUDA="ON" if cuda else "OFF",
+               TORCH_CUDA_ARCH_LIST=os.environ.get("TORCH_CUDA_ARCH_LIST", "9.0"))
+    with open(log_dir / f"build_{name}.log", "w") as log:
+        rc = subprocess.run([sys.executable, "-m", "pip", "install", "--no-build-isolation", "--no-deps", "--target",
+                             f"/tmp/ab/{name}", "--upgrade", str(AB / name)], env=env, stdout=log,
+                            stderr=subprocess.STDOUT, timeout=600).returncode
+    return name, rc, time.perf_counter() - t0
+
+
+def _get(d: dict, path: tuple):
+    for k in path:
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d
+
+
+def run(args) -> int:
+    names = json.loads((AB / "order.json").read_text())
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with ThreadPoolExecutor(len(names)) as ex:
+        for name, rc, s in ex.map(lambda n: _build(n, out, args.device == "cuda"), names):
+            print(f"build {name}: rc {rc} in {s:.0f} s", flush=True)
+            if rc != 0:
+                return 1
+    results: dict[str, dict[str, list]] = {n: {"speed": [], "run": []} for n in names}
+    benches = {"speed": ["bench/bench_speed.py", "--device", args.device, "--no-reference", "--no-cpu",
+                         *args.speed_args.split()],
+               "run": ["bench/bench_run.py", "--device", args.device, *args.run_args.split()]}
+    for rnd in range(args.rounds):
+        for bench in args.benches:
+            for name in names:
+                src = AB / name
+                js = out / f"{bench}_{name}_{rnd}.json"
+                env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
+                t0 = time.perf_counter()
+                with open(out / f"{bench}_{name}_{rnd}.log", "w") as log:
+                    rc = subprocess.run([sys.executable, *benches[bench], "--json", str(js)], cwd=src, env=env,
+                                        stdout=log, stderr=subprocess.STDOUT, timeout=args.timeout).returncode
+                if rc == 0 and js.exists():
+                    results[name][bench].append(json.loads(js.read_text()))
+                print(f"round {rnd + 1} {bench} {name}: rc {rc} in {time.perf_counter() - t0:.0f} s", flush=True)
+    table = []
+    base = names[0]
+    print(f"\n{'figure':<44}" + "".join(f"{n:>16}" for n in names) + "".join(f"{n + '/' + base:>22}" for n in names[1:]))
+    for label, bench, path, lower, scale in FIGURES:
+        meds = {}
+        for n in names:
+            vals = [v for v in (_get(r, path) for r in results[n][bench]) if isinstance(v, (int, float))]
+            meds[n] = statistics.median(vals) * scale if vals else None
+        if all(v is None for v in meds.values()):
+            continue
+        ratios = {n: (meds[n] / meds[base] if meds[n] and meds[base] else None) for n in names[1:]}
+        table.append(dict(figure=label, lower_is_better=lower, medians=meds, ratios=ratios,
+                          rounds={n: [_get(r, path) for r in results[n][bench]] for n in names}))
+        print(f"{label:<44}" + "".join(f"{(meds[n] or float('nan')):>16.2f}" for n in names)
+              + "".join(f"{(ratios[n] or float('nan')):>22.3f}" for n in names[1:]))
+    (out / "ab_bench.json").write_text(json.dumps(dict(order=names, table=table), indent=1) + "\n")
+    return 0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("prepare", help="copy the sources of revisions into .ab/ (here, with git)")
+    p.add_argument("revs", nargs="+", help="git revisions; WORKTREE for the working tree as it is")
+    r = sub.add_parser("run", help="build and bench every prepared source (on a GPU host)")
+    r.add_argument("--out", default=os.environ.get("OUT", "/tmp/ab_out"))
+    r.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
+                   help="cpu: a smoke test of this script (CPU builds; give small --speed-args/--run-args)")
+    r.add_argument("--rounds", type=int, default=2)
+    r.add_argument("--benches", nargs="+", default=["speed", "run"], choices=["speed", "run"])
+    r.add_argument("--speed-args", default="--repeats 7 --seq-repeats 2")
+    r.add_argument("--run-args", default="--repeat 1")
+    r.add_argument("--timeout", type=int, default=200, help="seconds per bench run")
+    args = ap.parse_args()
+    if args.cmd == "prepare":
+        prepare(args.revs)
+    else:
+        sys.exit(run(args))
+
+
+if __name__ == "__main__":
+    main()
