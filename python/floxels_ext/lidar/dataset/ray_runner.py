@@ -182,7 +182,7 @@ def format_timeline(tl: dict) -> str:
     """A worker's start as 'name +s' steps in time order (s from the job's start; negative:
     before it, a warm worker)."""
     names = {"requested": "requested", "process": "process", "imported": "imported", "init": "init",
-             "init_done": "init done", "warm_imports": "imports", "cuda_context": "CUDA context",
+             "torch": "torch + ops", "init_done": "init done", "warm_imports": "imports", "cuda_context": "CUDA context",
              "warm_done": "warm-up done", "run": "run", "pipeline": "pipeline", "first_task": "first task",
              "first_output": "first output", "last_output": "last output", "end": "end"}
     order = list(names)
@@ -326,7 +326,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
                     except ray.exceptions.RayError as e:
                         on_death(slot, e)
             all_ended = len(ended) == len(todo_tasks)
-            for w in list(waiting):
+            for w in sorted(waiting, key=lambda w: len(w[0].leases)):  # a worker holding none first
                 slot, what = w
                 if queue:
                     k = queue.popleft()

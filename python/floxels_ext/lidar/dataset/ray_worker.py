@@ -29,7 +29,7 @@ import time
 
 __all__ = ["FloxelsWorker", "Channel", "worker_threads", "process_start_time", "OWNER_TIMEOUT"]
 
-_IMPORTED = time.time()  # Ray imports this module to load the actor class: after torch and floxels_ext
+_IMPORTED = time.time()  # Ray imports this module to load the actor class (torch comes in __init__)
 
 OWNER_TIMEOUT = 60.0  # s without a poll from the job's driver: it is gone
 
@@ -140,7 +140,11 @@ class FloxelsWorker:
 
     def __init__(self, cpus: float, device: str, keep_s: float | None = None, job: str | None = None) -> None:
         self.stamps = {"process": process_start_time(), "imported": _IMPORTED, "init": time.time()}
-        import torch
+        import torch  # (importing floxels_ext does not import torch; the compiled ops load with it)
+
+        import floxels_ext.ops  # noqa: F401
+
+        self.stamps["torch"] = time.time()
 
         self.device, self.keep_s = device, keep_s
         self.threads = worker_threads(cpus, device.startswith("cuda"))
