@@ -4,6 +4,8 @@ shaped like a real one (issue 32).
     python bench/bench_ray.py                               # CPU-sized (4 x 12 frames, 32 beams)
     python bench/bench_ray.py --device cuda                 # 1 GPU: long sequence, dataset local, dataset on Ray
     python bench/bench_ray.py --device cuda --gpus 1 2      # + Ray on 1 and 2 GPUs (one worker per GPU)
+    python bench/bench_ray.py --device cuda --gpus 1 2 4 --modes long ray --sequences 80 --ray-address auto \
+        --cold 4 --subset 16 --subset-gpus 2                # issue 44 (tools/gpu_ray_bench.sh)
 
 The dataset (``_kitti_dataset.py``): ``--sequences`` (default 16) sequences of ``--frames``
 (150) frames in the KITTI odometry layout (.bin scans in their sensor frames, poses/NN.txt),
@@ -13,14 +15,19 @@ reference is one long sequence holding the same frames (the distinct sequences o
 other), run by the plain ``floxels run`` in the same process, on the same GPU, in the same call.
 
 Rows (``--modes``): ``long`` (the plain run of the long sequence), ``local`` (``floxels run
-DATASET``: one pipeline for every sequence), ``ray`` (``--ray``, one worker per GPU; with
-``--gpus`` one row per count). Each is warmed up first on a tiny dataset. Columns: frames/s
-over the command's wall time; ``first s``: seconds until the first output file appeared (for
-Ray: the workers' start, process and CUDA context, is in it); frames/s from that moment on;
-the per-GPU rate against the long sequence's (target >= 0.9); the scaling efficiency over
-GPUs (frames/s / (k x the 1-GPU Ray row's)). The Ray outputs are compared with the local run's
-(two sequences, flow max |difference|). Prints a table and writes JSON
-(bench/results/bench_ray_<device>.json or --json).
+DATASET``: one pipeline for every sequence), ``rayK`` (``--ray``, one worker per GPU, one row
+per ``--gpus`` count). Each is warmed up first on a tiny dataset; for Ray that job leaves its
+workers in the warm pool (``--keep-workers``), so ``rayK`` rows measure warm workers (the
+steady state and a warm cluster's start). ``coldK`` rows (``--cold K``) run the dataset with
+fresh workers (``--keep-workers 0``: process, imports, CUDA context in the row), ``coldK/N`` and
+``rayK/N`` the first N sequences (``--subset N``, on ``--subset-gpus``) fresh and warm.
+Columns: frames/s over the command's wall time; ``first s``: seconds until the first output
+file appeared; ``all 1st``: the slowest worker's first output (its timeline); frames/s from the
+first output on; the per-GPU rate against the long sequence's (target >= 0.9); the scaling
+efficiency (frames/s / (K x the 1-GPU warm Ray row's)). Below the table, each worker's start
+timeline (from the job's ``ray_job_summary.json``: s from the driver's start of the job). The
+Ray outputs are compared with the local run's (two sequences, flow max |difference|). Prints a
+table and writes JSON (bench/results/bench_ray_<device>.json or --json).
 """
 
 from __future__ import annotations
@@ -96,6 +103,37 @@ def compare(out: Path, ref: Path, rels: list[str]) -> dict:
                 frac_over_1cm=float((d > 0.01).mean()) if d.size else 0.0, masks_equal=masks)
 
 
+def job_workers(out: Path) -> list[dict]:
+    """Each worker's start timeline etc. from the job's ray_job_summary.json (driver-written)."""
+    try:
+        info = json.loads((out / "ray_job_summary.json").read_text())
+    except (OSError, ValueError):
+        return []
+    keep = ("name", "host", "pid", "gpus", "warm", "claimed", "written", "streams", "timeline",
+            "threads", "warm_error")
+    return [{k: w.get(k) for k in keep} for w in info.get("workers", [])]
+
+
+def subset_list(data: Path, seqs: int, n: int) -> Path:
+    """A list file of the dataset's first ``n`` sequences (KITTI poses given per line)."""
+    n = min(n, seqs)
+    path = data / f"first{n}.txt"
+    path.write_text("".join(f"sequences/{i:02d}/velodyne --poses poses/{i:02d}.txt\n" for i in range(n)))
+    return path
+
+
+def retire_pool() -> None:
+    """The warm pool's idle workers exit (their GPUs free for whatever runs next)."""
+    import ray
+
+    for a in ray.util.list_named_actors(all_namespaces=True):
+        if a["namespace"] == "floxels":
+            try:
+                ray.get(ray.get_actor(a["name"], namespace="floxels").retire.remote(), timeout=10)
+            except (ValueError, ray.exceptions.RayError):
+                pass
+
+
 def start_ray(cpus: int, gpus: int, address: str | None) -> float:
     import ray
 
@@ -124,6 +162,12 @@ def main() -> None:
     ap.add_argument("--cpus", type=int, default=os.cpu_count(), help="CPUs for Ray (default: all)")
     ap.add_argument("--run-args", default="", help="extra floxels run arguments for every row (quoted)")
     ap.add_argument("--ray-address", help="a running cluster instead of a local one")
+    ap.add_argument("--cold", type=int, nargs="*", default=[], metavar="K",
+                    help="GPU counts of extra rows 'coldK': the dataset with fresh workers (--keep-workers 0), their "
+                         "start included (the 'rayK' rows take the warm workers a tiny job has just started)")
+    ap.add_argument("--subset", type=int, metavar="N", help="also run the first N sequences (a list file) with fresh "
+                    "workers ('coldK/N') and warm ones ('rayK/N') on each of --subset-gpus")
+    ap.add_argument("--subset-gpus", type=int, nargs="+", default=[2], metavar="K", help="default 2")
     ap.add_argument("--data", type=Path, help="dataset directory (made if missing or different; default: temporary)")
     ap.add_argument("--compare", type=int, default=2, help="sequences whose Ray outputs are compared (default 2)")
     ap.add_argument("--json", help="output JSON path")
@@ -147,7 +191,8 @@ def main() -> None:
     t0 = time.perf_counter()
     desc = make_kitti_dataset(data, seqs, frames, beams, az, cpus, args.distinct)
     warm = tmp / "warm"
-    make_kitti_dataset(warm, 2, 6, 16, 360, 2, 2)
+    # the warm-up jobs: a task per worker, so every worker of a Ray row starts (and stays in the pool)
+    make_kitti_dataset(warm, max([2, *(args.gpus or [1]), *args.cold, *args.subset_gpus]), 6, 16, 360, 2, 2)
     gen_s = time.perf_counter() - t0
     flags = ["--device", args.device, "-q", *args.run_args.split()]
     if args.max_iters or not cuda:
@@ -165,7 +210,7 @@ def main() -> None:
     def record(name, row, **kw):
         row.update(mode=name, **kw)
         rows.append(row)
-        print(f"  {name:<8} {row['wall_s']:8.2f} s  {row['fps']:8.2f} frames/s  rc {row['rc']}", flush=True)
+        print(f"  {name:<10} {row['wall_s']:8.2f} s  {row['fps']:8.2f} frames/s  rc {row['rc']}", flush=True)
         return row
 
     long = local = None
@@ -181,21 +226,45 @@ def main() -> None:
             torch.cuda.empty_cache()  # leave the GPU's memory to the Ray workers
         visible = os.environ.get("CUDA_VISIBLE_DEVICES")
         base = None
-        for k in gpus if cuda else [1]:
+        subset = subset_list(data, seqs, args.subset) if args.subset else None
+        counts = sorted(set(gpus + args.cold + (args.subset_gpus if subset else []))) if cuda else [1]
+        gpus = gpus if cuda else [1]
+        for k in counts:
             if cuda and not args.ray_address:  # Ray sees (and its workers use) the first k GPUs
                 os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(k))
             init_s = start_ray(cpus, k if cuda else 0, args.ray_address)
             extra = ["--ray", "--max-tasks", str(k), "--cpus-per-task", str(max(1, cpus // k))]
             extra += ["--gpus-per-task", "1"] if cuda else []
-            run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
-            out = tmp / f"out_ray{k}"
-            row = record(f"ray{k}", run_job(["run", str(data), *sel, *flags, *extra], out), gpus=k, ray_init_s=init_s)
-            if local is not None:
-                row.update(compare(out, tmp / "out_local", [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
-            shutil.rmtree(out, ignore_errors=True)
-            if base is None:
-                base = row
-            row["efficiency"] = row["fps"] / (k * base["fps"] / base["gpus"])
+            cold = ["--keep-workers", "0"]
+
+            def ray_row(name, argv, out, **kw):
+                row = record(name, run_job(argv, out), gpus=k, ray_init_s=init_s, **kw)
+                row["workers"] = job_workers(out)
+                return row
+
+            if k in args.cold:  # fresh workers: their whole start is in the row
+                ray_row(f"cold{k}", ["run", str(data), *sel, *flags, *extra, *cold], tmp / f"out_cold{k}", cold=True)
+                shutil.rmtree(tmp / f"out_cold{k}", ignore_errors=True)
+            if subset and k in args.subset_gpus:
+                name = f"cold{k}/{args.subset}"
+                ray_row(name, ["run", str(subset), *flags, *extra, *cold], tmp / "out_sub", cold=True, subset=args.subset)
+                shutil.rmtree(tmp / "out_sub", ignore_errors=True)
+                run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")  # fills the pool
+                ray_row(f"ray{k}/{args.subset}", ["run", str(subset), *flags, *extra], tmp / "out_sub", subset=args.subset)
+                shutil.rmtree(tmp / "out_sub", ignore_errors=True)
+            if k in gpus:  # warm workers (the pool the warm-up job filled): the steady state
+                run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
+                out = tmp / f"out_ray{k}"
+                row = ray_row(f"ray{k}", ["run", str(data), *sel, *flags, *extra], out)
+                if local is not None:
+                    row.update(compare(out, tmp / "out_local", [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
+                shutil.rmtree(out, ignore_errors=True)
+                if base is None:
+                    base = row
+        for r in rows:  # scaling efficiency against the 1-GPU warm row (cold rows too: their start counts)
+            if r["mode"].startswith(("ray", "cold")) and base is not None:
+                r["efficiency"] = r["fps"] / (r["gpus"] * base["fps"] / base["gpus"])
+        retire_pool()
         if visible is None:
             os.environ.pop("CUDA_VISIBLE_DEVICES", None)
         else:
@@ -204,8 +273,8 @@ def main() -> None:
 
         ray.shutdown()
 
-    print(f"\n{'mode':<8}{'GPUs':>5}{'wall s':>9}{'frames':>8}{'frames/s':>10}{'first s':>9}{'f/s after':>10}"
-          f"{'per GPU/long':>14}{'eff.':>6}{'max |dflow|':>13}{'>1 cm':>8}{'masks':>7}")
+    print(f"\n{'mode':<10}{'GPUs':>5}{'wall s':>9}{'frames':>8}{'frames/s':>10}{'first s':>9}{'all 1st':>8}"
+          f"{'f/s after':>10}{'per GPU/long':>14}{'eff.':>7}{'max |dflow|':>13}{'>1 cm':>8}{'masks':>7}")
     for r in rows:
         if long is not None:
             r["per_gpu_vs_long"] = r["fps"] / r["gpus"] / long["fps"]
@@ -216,8 +285,20 @@ def main() -> None:
         diff = f"{r['max_flow_diff']:.2e}" if "max_flow_diff" in r else "-"
         over = f"{100 * r['frac_over_1cm']:.2f}%" if "frac_over_1cm" in r else "-"
         masks = ("yes" if r["masks_equal"] else "NO") if "masks_equal" in r else "-"
-        print(f"{r['mode']:<8}{r['gpus']:>5}{r['wall_s']:>9.2f}{r['frames']:>8}{r['fps']:>10.2f}{first:>9}{after:>10}"
-              f"{ratio:>14}{eff:>6}{diff:>13}{over:>8}{masks:>7}")
+        # the slowest worker's first output, s from the driver's start of the job (its timeline)
+        firsts = [w["timeline"].get("first_output") for w in r.get("workers", []) if w.get("timeline")]
+        r["all_first_output_s"] = max(firsts) if firsts and None not in firsts else None
+        all1 = f"{r['all_first_output_s']:.2f}" if r["all_first_output_s"] is not None else "-"
+        print(f"{r['mode']:<10}{r['gpus']:>5}{r['wall_s']:>9.2f}{r['frames']:>8}{r['fps']:>10.2f}{first:>9}{all1:>8}"
+              f"{after:>10}{ratio:>14}{eff:>7}{diff:>13}{over:>8}{masks:>7}")
+    from floxels_ext.lidar.dataset.ray_runner import format_timeline
+
+    for r in rows:  # where each worker's start went (s from the job's start; negative: before it)
+        for w in r.get("workers", []):
+            kind = "warm" if w.get("claimed") else "fresh"
+            print(f"  {r['mode']:<10} {w['name'][-8:]} ({kind}, GPU {','.join(w.get('gpus') or []) or '-'}, "
+                  f"{w.get('written')} frames): {format_timeline(w['timeline'])}"
+                  + (f"; warm-up failed: {w['warm_error']}" if w.get("warm_error") else ""))
     for r in rows:
         if r["rc"] != 0:
             print(f"\n{r['mode']} failed (exit {r['rc']}):\n{r.get('stderr_tail', '')}")

@@ -1,22 +1,66 @@
 #!/usr/bin/env bash
-# One device call (kind nvidia-h100-x2): issue 32's dataset bench on 2 GPUs at a real split's size,
-# the Ray cluster started before the jobs (as on a real cluster). Ray is not on the device image:
-# .whl/ holds the stripped Ray wheel and its pure-Python dependencies (tools/strip_ray_wheel.py),
-# carried with the call. Logs and JSON under $OUT.   OUT=... LIMIT=590 tools/gpu_ray_bench.sh
+# One device call (a host of 4 GPUs: kind nvidia-h100-x4; any count works): the dataset bench on
+# Ray as issue 44 measures it, inside ~9 minutes. (a) builds with CUDA, (b) starts the Ray cluster
+# before the jobs (as on a real cluster), (c) samples the host (tools/host_sampler.py: CPU per
+# process and thread, GPU utilisation, page cache; py-spy dumps of saturated threads), (d) runs
+# bench/bench_ray.py on 1, 2 and 4 GPUs with warm workers (SEQS x 150 frames, default 80), fresh
+# workers on the largest count (their start in the row), and the first SUBSET sequences (16) on 2
+# GPUs with fresh and warm workers, (e) writes a compact summary. Files under $OUT (at most 8):
+#   summary.log      host, build, the bench table, each worker's start timeline, host load per row
+#   bench_ray.log    bench_ray.py's output        bench_ray.json  its rows (timelines included)
+#   host_summary.log host_sampler's per-row summary (busiest processes, their threads)
+#   spy.txt          py-spy dumps of busy processes (when py-spy is there)
+#   rest.tgz         raw samples, GPU utilisation, build log, Ray's logs
+# Ray is not on the device image: .whl/ holds the stripped Ray wheel, its pure-Python dependencies
+# (tools/strip_ray_wheel.py) and py-spy, carried with the call (carry [".whl"]).
+#   OUT=... [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] tools/gpu_ray_bench.sh
 set -u
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 TORCH_CUDA_ARCH_LIST=9.0
-T0=$SECONDS; S=$OUT/summary.log
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site
-nvidia-smi -L | tee $S; df -h /tmp /dev/shm | tee -a $S
-# outputs of a 120 x 150-frame dataset are ~80 GB: in RAM when /dev/shm can hold them (every row writes there, the long sequence too)
-shm=$(df -BG --output=avail /dev/shm | tail -1 | tr -dc 0-9); [ "${shm:-0}" -gt 100 ] && export TMPDIR=/dev/shm; echo "TMPDIR=${TMPDIR:-/tmp}" | tee -a $S
-tools/gpu_run.sh build > /dev/null 2>&1; tail -3 $S
-echo "build done at $((SECONDS-T0)) s" | tee -a $S
-python3 -m ray.scripts.scripts start --head --num-gpus 2 --num-cpus 32 --include-dashboard=false > $OUT/ray_start.log 2>&1
-echo "ray start rc=$? at $((SECONDS-T0)) s" | tee -a $S
-t=$((${LIMIT:-585} - (SECONDS - T0)))
-timeout $t python3 bench/bench_ray.py --device cuda --gpus 1 2 --modes long ray --sequences ${SEQS:-120} --ray-address auto \
-  --json $OUT/bench_ray.json > $OUT/bench_ray.log 2>&1
-echo "ray bench rc=$? at $((SECONDS-T0)) s" | tee -a $S; tail -12 $OUT/bench_ray.log
+T0=$SECONDS; LIMIT=${LIMIT:-540}; S=$OUT/summary.log; W=/tmp/gpu_ray_bench
+rm -rf $W; mkdir -p $W $OUT
+left() { echo $((LIMIT - (SECONDS - T0))); }
+log() { echo "[$((SECONDS - T0)) s] $*" | tee -a $S; }
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+  && export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
+NG=$(nvidia-smi -L | wc -l); NC=$(nproc); GPUS=${GPUS:-"1 2 $NG"}; GPUS=$(echo $GPUS | tr ' ' '\n' | awk -v n=$NG '$1<=n' | sort -nu | tr '\n' ' ')
+log "host: $NG x $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1), $NC cores, $(lscpu | grep -m1 'NUMA node(s)'), $(free -g | awk '/Mem/{print $2}') GiB"
+log "ray $(python3 -c 'import ray; print(ray.__version__)' 2>&1), torch $(python3 -c 'import torch; print(torch.__version__)'), py-spy: $(command -v py-spy || echo none)"
+# outputs of SEQS x 150 frames are ~2.5 MB a frame: in RAM when /dev/shm can hold them (every row deletes its own)
+shm=$(df -BG --output=avail /dev/shm | tail -1 | tr -dc 0-9); [ "${shm:-0}" -gt 100 ] && export TMPDIR=/dev/shm
+log "TMPDIR=${TMPDIR:-/tmp}"
+# (a)
+OUT=$W tools/gpu_run.sh build > /dev/null 2>&1; log "build: $(grep -h 'build rc\|cuda kernels' $W/summary.log | tr '\n' ' ')"
+# (b)
+python3 -m ray.scripts.scripts start --head --num-gpus $NG --num-cpus $NC --include-dashboard=false --disable-usage-stats \
+  > $W/ray_start.log 2>&1
+log "ray start rc=$?"
+# (c)
+python3 tools/host_sampler.py --out $W/hs --stop-file $W/hs/stop --interval 0.5 --spy 8 > $W/hs.log 2>&1 &
+HS=$!
+# (d)
+cold=$(echo $GPUS | awk '{print $NF}')
+t=$(( $(left) - 45 ))
+log "bench_ray: --gpus $GPUS --cold $cold --subset ${SUBSET:-16} --subset-gpus 2, limit $t s"
+timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --modes long ray --sequences ${SEQS:-80} \
+  --ray-address auto --cold $cold --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
+  > $OUT/bench_ray.log 2>&1
+log "bench_ray rc=$?"
+mkdir -p $W/hs; touch $W/hs/stop; wait $HS
 python3 -m ray.scripts.scripts stop > /dev/null 2>&1
+# (e)
+if [ -f $OUT/bench_ray.json ]; then
+  python3 tools/host_sampler.py --summarise $W/hs --windows $OUT/bench_ray.json > $OUT/host_summary.log 2>&1
+fi
+{ echo; echo "== bench (frames/s over the wall; per GPU / long sequence; scaling efficiency vs the 1-GPU warm row)"
+  sed -n '/^mode /,/^wrote /p' $OUT/bench_ray.log | grep -v '^wrote '
+  [ -s $OUT/bench_ray.log ] && grep -E 'failed \(exit|Traceback|Error' $OUT/bench_ray.log | head -5
+  echo; echo "== host per row (busiest 5 processes)"
+  awk '/^== /{n=0; print; next} {if (n++ < 5) print}' $OUT/host_summary.log 2>/dev/null
+} | tee -a $S
+for f in $W/hs/spy/*.txt; do [ -f "$f" ] && { cat "$f"; echo; }; done > $OUT/spy.txt 2>/dev/null
+[ -s $OUT/spy.txt ] || rm -f $OUT/spy.txt
+cp -r /tmp/ray/session_latest/logs $W/ray_logs 2>/dev/null
+find $W/ray_logs -name '*.log' -size +2M -delete 2>/dev/null
+tar czf $OUT/rest.tgz -C $W . 2>/dev/null
+log "done"

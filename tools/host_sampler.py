@@ -9,6 +9,10 @@ Runs beside a job and samples every ``--interval`` seconds, until ``--stop-file`
   than 0.2 / 0.8 of a core, its main thread's share (the thread that feeds the GPU);
 * every GPU: utilisation (%) and memory, from ``nvidia-smi --query-gpu`` (when present).
 
+With ``--spy N`` (and ``py-spy`` on the PATH), a process with a thread at >= 0.8 of a core for 6
+samples in a row gets one ``py-spy dump --native`` (all its threads' stacks) in
+``OUT/spy/<pid>.txt``, at most N processes: what a busy-looping or saturated thread runs.
+
 Writes every sample as JSON lines to ``OUT/samples.jsonl`` and, with ``--windows FILE`` (a
 JSON list of {"name", "t0", "t1"} in time.time() seconds, e.g. the rows bench_ray.py records),
 a per-window summary to ``OUT/summary.json`` and stdout. Measurement only: nothing of the
@@ -81,8 +85,22 @@ def _matching(pattern: re.Pattern) -> dict[int, str]:
     return out
 
 
-def sample(out: Path, interval: float, stop_file: Path | None, duration: float, match: str) -> None:
+def _spy(out: Path, pid: int, cmd: str) -> None:
+    """One py-spy dump of ``pid`` (all threads, native frames) into OUT/spy/<pid>.txt."""
+    (out / "spy").mkdir(exist_ok=True)
+    try:
+        r = subprocess.run(["py-spy", "dump", "--native", "--pid", str(pid)], capture_output=True, text=True, timeout=20)
+        text = r.stdout + r.stderr
+    except (OSError, subprocess.SubprocessError) as e:
+        text = f"py-spy failed: {e}"
+    (out / "spy" / f"{pid}.txt").write_text(f"# {time.time():.3f} pid {pid}: {cmd}\n{text}")
+
+
+def sample(out: Path, interval: float, stop_file: Path | None, duration: float, match: str, spy: int = 0) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    spy = spy if shutil.which("py-spy") else 0
+    hot: dict[int, int] = {}     # pid -> samples in a row with a thread >= 0.8 core
+    spied: set[int] = set()
     pattern = re.compile(match)
     smi = None
     if shutil.which("nvidia-smi"):
@@ -114,6 +132,10 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
                 rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), threads=len(cur),
                                       busy02=sum(v > 0.2 for v in d.values()), busy08=sum(v > 0.8 for v in d.values()),
                                       main=d.get(pid, 0.0), top=sorted(d.values(), reverse=True)[:6])
+                hot[pid] = hot.get(pid, 0) + 1 if max(d.values(), default=0.0) >= 0.8 else 0
+                if spy and hot[pid] >= 6 and pid not in spied and len(spied) < spy:
+                    spied.add(pid)
+                    _spy(out, pid, procs[pid])
             try:
                 load = os.getloadavg()[0]
             except OSError:
@@ -190,6 +212,7 @@ def main() -> None:
     ap.add_argument("--stop-file", type=Path)
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--match", default=DEFAULT_MATCH)
+    ap.add_argument("--spy", type=int, default=0, metavar="N", help="py-spy dumps of up to N busy processes")
     ap.add_argument("--summarise", type=Path, help="summarise an earlier sampling folder")
     ap.add_argument("--windows", type=Path, help="JSON list of {name, t0, t1}")
     args = ap.parse_args()
@@ -199,7 +222,7 @@ def main() -> None:
             windows = [dict(name=r["mode"], t0=r["t0"], t1=r["t1"]) for r in windows.get("rows", []) if "t0" in r]
         summarise(args.summarise, windows)
     else:
-        sample(args.out, args.interval, args.stop_file, args.duration, args.match)
+        sample(args.out, args.interval, args.stop_file, args.duration, args.match, args.spy)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,11 @@
 """``floxels run DATASET --ray`` on a local Ray cluster (2 CPUs, loopback only): the outputs equal the
-local run's; a worker actor killed mid-run (by its process id) hands its tasks to the other worker
-(or a replacement), or, when none is left, the frames not written are reported by file name, and a
-re-run writes only what is missing (nothing lost, nothing written twice, no temporary files left)."""
+local run's; a second job reuses the warm workers of the first (the same processes, the same
+outputs) and the pool empties itself after its idle timeout; a worker actor killed mid-run (by
+its process id) hands its tasks to the other worker (or a replacement), or, when none is left,
+the frames not written are reported by file name, and a re-run writes only what is missing
+(nothing lost, nothing written twice, no temporary files left)."""
 
+import json
 import os
 import signal
 import sys
@@ -18,6 +21,7 @@ ray = pytest.importorskip("ray")
 from floxels_ext import cli  # noqa: E402
 from floxels_ext.lidar.io.outputs import read_flow_output  # noqa: E402
 from floxels_ext.evaluation.seqio import save_sequence  # noqa: E402
+from ray_procs import cmdline, output_stamps, run_beside  # noqa: E402
 
 FLAGS = ["--device", "cpu", "--max-iters", "3", "--scans", "3", "--chunk", "1"]
 N_FRAMES = 4
@@ -71,14 +75,63 @@ def _assert_same(out: Path, ref: Path):
     assert not [p for p in out.rglob(".*.tmp")], "temporary files left"
 
 
-def test_ray_equals_local(cluster, dataset, tmp_path, capsys):
+def _pool() -> list[str]:
+    return [a["name"] for a in ray.util.list_named_actors(all_namespaces=True) if a["namespace"] == "floxels"]
+
+
+def _empty_pool(timeout: float = 20.0) -> None:
+    """Idle pooled workers of earlier tests exit (the kill tests must find only their job's)."""
+    for name in _pool():
+        try:
+            ray.get(ray.get_actor(name, namespace="floxels").retire.remote(), timeout=10)
+        except (ValueError, ray.exceptions.RayError):
+            pass
+    t = time.time()
+    while _pool() and time.time() - t < timeout:
+        time.sleep(0.1)
+    assert not _pool()
+
+
+def test_ray_equals_local_and_warm_pool(cluster, dataset, tmp_path, capsys):
     lst, local = dataset
+    _empty_pool()
     out = tmp_path / "ray"
     # tasks of 2 frames: each sequence is cut into 3 chunks that share its output directory
-    assert cli.main(["run", str(lst), "--out", str(out), "--ray", "--task-frames", "2", *FLAGS]) == 0
+    cmd = ["run", str(lst), "--out", str(out), "--ray", "--task-frames", "2", "--keep-workers", "30", "-v", *FLAGS]
+    assert cli.main(cmd) == 0
     err = capsys.readouterr().err
     assert "3 sequences, 12 frames, 0 already done, 12 to estimate in 6 task(s) on Ray" in err
     _assert_same(out, local)
+    first = json.loads((out / "ray_job_summary.json").read_text())
+    assert first["frames_written"] == 12 and first["tasks"]["done"] == 6
+    pids = {w["pid"] for w in first["workers"]}
+    assert len(pids) == 2 and not any(w["warm"] for w in first["workers"])
+    for w in first["workers"]:  # the start timeline, relative to the job's start, in its order
+        tl = w["timeline"]
+        assert tl["init"] <= tl["run"] <= tl["first_task"] <= tl["first_output"] <= tl["last_output"] <= tl["end"]
+        assert f"{w['name']} (" in err and "first output" in err
+    assert len(_pool()) == 2  # they wait for the next job
+    # the same job again, from scratch: the same (warm) processes take it, the outputs are the same
+    out2 = tmp_path / "ray2"
+    cmd[cmd.index(str(out))] = str(out2)
+    assert cli.main(cmd) == 0
+    assert "2 of them warm from the pool" in capsys.readouterr().err
+    second = json.loads((out2 / "ray_job_summary.json").read_text())
+    assert {w["pid"] for w in second["workers"]} == pids and all(w["warm"] for w in second["workers"])
+    assert all(w["timeline"]["init"] < 0 for w in second["workers"])  # started before this job
+    _assert_same(out2, local)
+    # a job with another pool setting retires the idle workers it cannot use; without a pool the
+    # workers stop with the job, and pooled ones exit after their idle timeout
+    out3 = tmp_path / "ray3"
+    assert cli.main(["run", str(lst), "--out", str(out3), "--ray", "--keep-workers", "0", "-q", *FLAGS]) == 0
+    assert not _pool()
+    assert cli.main(["run", str(lst), "--out", str(out3), "--ray", "--force", "--keep-workers", "1", "-q",
+                     *FLAGS]) == 0
+    assert _pool()
+    t = time.time()
+    while _pool() and time.time() - t < 20:
+        time.sleep(0.2)
+    assert not _pool(), "idle pooled workers did not exit"
 
 
 class _Killer(threading.Thread):
@@ -107,7 +160,7 @@ class _Killer(threading.Thread):
             self._watch()
             if self.killed is None:
                 pids = [int(p) for p in os.listdir("/proc")
-                        if p.isdigit() and _cmdline(p).startswith("ray::FloxelsWorker") and _ours(int(p))]
+                        if p.isdigit() and cmdline(p).startswith("ray::FloxelsWorker") and _ours(int(p))]
                 if pids and self.inodes:
                     os.kill(pids[0], signal.SIGKILL)
                     self.killed = pids[0]
@@ -130,33 +183,16 @@ def _ours(pid: int) -> bool:
     return False
 
 
-def _cmdline(pid: str) -> str:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().split(b"\0", 1)[0].decode(errors="replace")
-    except OSError:
-        return ""
-
-
-def _stamps(out: Path) -> dict:
-    return {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in out.rglob("*.npz")}
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the worker's process id in /proc")
 @pytest.mark.parametrize("workers,retries", [(2, 0), (2, 2), (1, 0)])
 def test_worker_killed_then_rerun(cluster, dataset, tmp_path, capsys, workers, retries):
     lst, local = dataset
     out = tmp_path / "ray"
     cmd = ["run", str(lst), "--out", str(out), "--ray", "--task-frames", "2", "--max-tasks", str(workers),
-           "--retries", str(retries), *FLAGS]
+           "--retries", str(retries), "--keep-workers", "0", *FLAGS]
+    _empty_pool()
     killer = _Killer(out)
-    killer.start()
-    try:
-        rc = cli.main(cmd)
-    finally:
-        killer.stop = True
-        killer.join()
-    err = capsys.readouterr().err
+    rc, err = run_beside(killer, cmd, capsys)
     assert killer.killed is not None, "no worker was killed"
     assert not killer.rewritten, f"written twice: {killer.rewritten}"
     assert "1 worker(s) lost" in err, err
@@ -167,12 +203,12 @@ def test_worker_killed_then_rerun(cluster, dataset, tmp_path, capsys, workers, r
         assert rc == 1 and "no worker left" in err and "failed:" in err, err
         assert "not written: " in err
     assert not list(out.rglob(".*.tmp"))
-    before = _stamps(out)
+    before = output_stamps(out)
     stale = out / "sim/s0" / ".000001.npz.4242.tmp"   # as if a writer had died without cleaning up
     stale.write_bytes(b"x")
     assert cli.main(cmd) == 0
     err = capsys.readouterr().err
     assert f"{len(before)} already done" in err
-    after = _stamps(out)
+    after = output_stamps(out)
     assert {p: after[p] for p in before} == before, "a frame was written twice"
     _assert_same(out, local)

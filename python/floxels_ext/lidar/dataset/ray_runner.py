@@ -1,33 +1,45 @@
 """The Ray driver of ``floxels run DATASET --ray``: one long-lived worker per GPU (or per
 ``--gpus-per-task`` share, or per ``--cpus-per-task`` CPUs on a CPU cluster).
 
-Each worker is a Ray actor (:class:`FloxelsWorker`) that keeps its process, its CUDA context,
-the loaded extension and one pipeline (``worker.run_tasks``: readers, writers and the
-method's stream) for the whole job, so Ray's and CUDA's start are paid once per worker, not
-per task. Workers pull tasks (``tasks.Task``: a sequence, or a frame range of a long one)
-from a :class:`Dispatcher` actor that the driver starts; a worker asks for the next task as
-its read-ahead reaches the end of the current one, so the pipeline never drains between
-tasks. Input and output must be on storage every node sees at the same path.
+Each worker is a Ray actor (``ray_worker.FloxelsWorker``) that keeps its process, its CUDA
+context, the loaded extension and one pipeline (``worker.run_tasks``: readers, writers and the
+method's stream) for the whole job, so Ray's and CUDA's start are paid once per worker, not per
+task, and, with the warm pool (``ray_pool``, ``--keep-workers``), once per cluster for the jobs
+that follow within the idle timeout. The driver asks for its workers first
+(:func:`early_workers`, before it lists and plans the dataset), so their start (process,
+imports, CUDA context, a tiny warm-up estimate) overlaps the driver's own work.
 
-The dispatcher leases each task to one worker at a time. When a worker (or its node) dies,
-the driver hands its unfinished leases back to the queue and, while ``--retries`` allows,
-starts a replacement; any worker may take them. Frames written before the death stay (the
-new holder's resume check skips them: nothing is written twice), frames in flight are
-estimated again (nothing is lost). A task left when no worker is left is reported with the
-names of the files it did not write; running the same command again writes only those.
-Progress is counted from the output files of the leased tasks; sequences done, skipped and
-failed from the dispatcher.
+The driver hands out the tasks (``tasks.Task``: a sequence, or a frame range of a long one)
+itself: each worker's pipeline asks for its next task as its read-ahead nears the end of the
+current one, through a long poll the driver always holds per worker (``ray_worker.Channel``),
+so the pipeline never drains between tasks and no dispatcher process sits between them. Input
+and output must be on storage every node sees at the same path.
+
+Each task is leased to one worker at a time. When a worker (or its node) dies, the driver puts
+its unfinished leases back in the queue and, while ``--retries`` allows, starts a replacement;
+any worker may take them. Frames written before the death stay (the new holder's resume check
+skips them: nothing is written twice), frames in flight are estimated again (nothing is lost).
+A task left when no worker is left is reported with the names of the files it did not write;
+running the same command again writes only those. Progress counts the frames the workers
+report; the final count, sequences done, skipped and failed come from the output files and the
+workers' reports. ``OUT/ray_job_summary.json`` records the job: counts, wall time and each
+worker's start timeline (``-v`` prints it).
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
 import os
 import sys
 import time
 from collections import deque
+from pathlib import Path
 
-__all__ = ["run_on_ray", "connect", "task_slots", "Dispatcher", "FloxelsWorker"]
+__all__ = ["run_on_ray", "early_workers", "connect", "task_slots", "format_timeline"]
+
+POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (the driver's heartbeat)
 
 
 def _ray():
@@ -142,117 +154,57 @@ def _missing_report(task, since: float | None, limit: int = 8) -> str:
     return f"{len(missing)} frame(s) not written: {shown}{more} (first input: {missing[0][1]})"
 
 
-class Dispatcher:
-    """The job's task queue (a Ray actor in the driver's node): leases each task to one worker
-    at a time and records how it ended."""
-
-    def __init__(self, tasks: list) -> None:
-        self.tasks = tasks
-        self.queue = deque(range(len(tasks)))
-        self.leases: dict[str, set[int]] = {}
-        self.ended: dict[int, tuple[str, list[str]]] = {}
-
-    def lease(self, worker: str):
-        """(task id, task) for ``worker``, or None when the queue is empty now."""
-        if not self.queue:
-            return None
-        k = self.queue.popleft()
-        self.leases.setdefault(worker, set()).add(k)
-        return k, self.tasks[k]
-
-    def finish(self, worker: str, k: int, outcome: str, lines: list[str]) -> None:
-        self.leases.get(worker, set()).discard(k)
-        self.ended[k] = (outcome, lines)
-
-    def requeue(self, worker: str) -> list[int]:
-        """A dead worker's unfinished tasks go back to the front of the queue."""
-        ks = sorted(self.leases.pop(worker, set()))
-        self.queue.extendleft(reversed(ks))
-        return ks
-
-    def state(self, worker: str | None = None) -> str:
-        """"work" (tasks queued), "wait" (none queued, some leased: a death may requeue them)
-        or "done"."""
-        if self.queue:
-            return "work"
-        return "wait" if any(self.leases.values()) else "done"
-
-    def status(self) -> dict:
-        return {"leased": {w: sorted(ks) for w, ks in self.leases.items()}, "ended": dict(self.ended),
-                "queued": len(self.queue)}
 
 
-def task_args(common: dict, device: str | None, threads: int | None):
-    """The run's namespace in a worker: the driver's common options, this worker's device and CPUs."""
-    from floxels_ext.cli import build_parser
+@contextlib.contextmanager
+def early_workers(args):
+    """Connects and asks for the job's workers before the driver lists the dataset (their start
+    overlaps its listing and planning); yields the ``ray_pool.Workers`` that ``run_on_ray``
+    uses and gives them back at the end (killed when the job failed or was interrupted)."""
+    from floxels_ext.lidar.dataset.ray_pool import Workers
 
-    ns = build_parser().parse_args(["run", "INPUT", "--out", "OUT"])
-    for k, v in common.items():
-        setattr(ns, k, v)
-    ns.device, ns.ray, ns.poses, ns.calib, ns.frames = device, None, None, None, None
-    ns.cpu_limit = threads  # the default reader count stays within the worker's CPUs
-    return ns
-
-
-class FloxelsWorker:
-    """A Ray actor: one pipeline for the whole job, fed by the dispatcher's tasks."""
-
-    def __init__(self, threads: int | None = None) -> None:
-        import torch
-
-        if threads:
-            torch.set_num_threads(int(threads))
-        self.threads = threads
-
-    def pid(self) -> int:
-        return os.getpid()
-
-    def run(self, dispatcher, name: str, common: dict, device: str | None) -> dict:
-        import socket
-
-        import ray
-
-        from floxels_ext.lidar.dataset.worker import run_tasks
-
-        args = task_args(common, device, self.threads)
-        log: list[str] = []
-        out = {"written": 0, "failed": [], "host": socket.gethostname(), "pid": os.getpid(), "streams": 0}
-
-        def report(msg: str) -> None:
-            if len(log) < 200:
-                log.append(msg)
-
-        def tasks():
-            while True:
-                got = ray.get(dispatcher.lease.remote(name))
-                if got is None:
-                    return
-                k, task = got
-                task.lease = k
-                yield task
-
-        def ended(task, outcome, job, lines) -> None:
-            dispatcher.finish.remote(name, task.lease, outcome, list(lines))
-
-        while True:
-            res = run_tasks(tasks(), args, report=report, on_sequence=ended)
-            out["streams"] += 1
-            out["written"] += res["written"]
-            out["failed"] += res["failed"]
-            out["stages"] = res["stages"]
-            # the queue is empty: wait while others hold tasks (a death puts theirs back)
-            while (state := ray.get(dispatcher.state.remote(name))) == "wait":
-                time.sleep(0.25)
-            if state == "done":
-                out["log"] = log[-30:]
-                return out
+    t0 = time.time()
+    ray = connect(args.ray)
+    gpus, cpus, device = _resources(ray, args)
+    cap = task_slots(_alive_nodes(ray), gpus, cpus)
+    n = cap if args.max_tasks is None else min(args.max_tasks, cap)
+    workers = Workers(ray, gpus, cpus, device, keep_s=args.keep_workers, t0=t0)
+    ok = False
+    try:
+        workers.start(max(1, n))
+        yield workers
+        ok = True
+    finally:
+        workers.close(ok)
 
 
-def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
+def format_timeline(tl: dict) -> str:
+    """A worker's start as 'name +s' steps in time order (s from the job's start; negative:
+    before it, a warm worker)."""
+    names = {"requested": "requested", "process": "process", "imported": "imported", "init": "init",
+             "torch": "torch + ops", "init_done": "init done", "warm_imports": "imports", "cuda_context": "CUDA context",
+             "warm_done": "warm-up done", "run": "run", "pipeline": "pipeline", "first_task": "first task",
+             "first_output": "first output", "last_output": "last output", "end": "end"}
+    order = list(names)
+    steps = sorted((v, order.index(k), k) for k, v in tl.items() if k in names and isinstance(v, (int, float)))
+    return ", ".join(f"{names[k]} {v:+.2f}" for v, _, k in steps)
+
+
+def _job_summary(path: Path, info: dict) -> None:
+    try:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(info, indent=1, default=str) + "\n")
+        os.replace(tmp, path)
+    except OSError as e:
+        print(f"floxels: warning: cannot write {path}: {e}", file=sys.stderr)
+
+
+def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
     from floxels_ext.lidar.pipeline.progress import DatasetProgress
 
+    ray = workers.ray
     verbosity = int(getattr(args, "verbosity", 0) or 0)
     out_dirs = sorted({t.out_dir for t in tasks})
     for d in out_dirs:  # temporaries of an interrupted job; none of ours is running yet
@@ -266,34 +218,34 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
         print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total} already done, nothing to "
               f"estimate", file=sys.stderr)
         return 0
-    ray = connect(args.ray)
-    gpus, cpus, device = _resources(ray, args)
     todo = sum(len(t.todo) for t in todo_tasks)
     # frames whose old output is recomputed (--force, inputs changed) count once written again
     since = time.time() - 1.0 if args.force or _rewrites(todo_tasks) else None
+    for slot in workers.slots[len(todo_tasks):]:  # more workers than tasks
+        workers.drop(slot)
     nodes = _alive_nodes(ray)
-    cap = task_slots(nodes, gpus, cpus)
-    n_workers = max(1, min(cap if args.max_tasks is None else min(args.max_tasks, cap), len(todo_tasks)))
+    warm = sum(s.claimed for s in workers.slots)
     if verbosity >= 0:
         print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done, {todo} to "
               f"estimate in {len(todo_tasks)} task(s) on Ray ({len(nodes)} node(s), "
               f"{sum(r.get('GPU', 0) for r in nodes):g} GPU, {sum(r.get('CPU', 0) for r in nodes):g} CPU): "
-              f"{n_workers} worker(s) of {gpus:g} GPU + {cpus:g} CPU", file=sys.stderr, flush=True)
-    threads = max(1, int(cpus))
-    dispatcher = ray.remote(Dispatcher).options(num_cpus=0).remote(todo_tasks)
-    worker_cls = ray.remote(FloxelsWorker).options(num_gpus=gpus, num_cpus=cpus, max_restarts=0)
-    workers: dict = {}   # run ObjectRef -> (name, actor)
-    made = 0
+              f"{len(workers.slots)} worker(s) of {workers.gpus:g} GPU + {workers.cpus:g} CPU"
+              + (f", {warm} of them warm from the pool" if warm else ""), file=sys.stderr, flush=True)
+    job, spec = workers.job, {"common": common, "device": workers.device, "t0": workers.t0}
+    runs: dict = {}    # run ObjectRef -> Slot
+    polls: dict = {}   # poll ObjectRef -> Slot
 
-    def start_worker() -> None:
-        nonlocal made
-        name = f"worker-{made}"
-        made += 1
-        actor = worker_cls.remote(threads)
-        workers[actor.run.remote(dispatcher, name, common, device)] = (name, actor)
+    def launch(slot) -> None:
+        slot.launched = True
+        runs[slot.actor.run.remote(job, spec)] = slot
+        polls[slot.actor.poll.remote(job, POLL_S)] = slot
 
-    for _ in range(n_workers):
-        start_worker()
+    for slot in list(workers.slots):
+        launch(slot)
+    queue = deque(range(len(todo_tasks)))
+    waiting: list = []     # (worker, "need" | "idle"): its stream asked for a task / has drained
+    ended: dict[int, tuple[str, list]] = {}
+    live: dict[int, int] = {}   # frames the workers reported for tasks not ended yet
     replacements = args.retries
     bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
     for _ in range(len(tasks) - len(todo_tasks)):
@@ -301,81 +253,137 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int) -> int:
     failures: list[str] = []
     deaths: list[str] = []
     results: list[dict] = []
-    ended_seen: set[int] = set()
-    done_frames = 0   # frames of tasks that ended
-    shown = 0
-    t0 = time.perf_counter()
+    done_frames = shown = 0
+
+    def on_poll(slot, events, frames) -> bool:
+        nonlocal done_frames
+        slot.alive = True
+        for k, n in frames.items():
+            if k not in ended:
+                live[k] = live.get(k, 0) + n
+        for ev in events:
+            if ev[0] in ("need", "idle"):
+                waiting.append((slot, ev[0]))
+            elif ev[0] == "ended":
+                _, k, outcome, lines = ev
+                slot.leases.discard(k)
+                ended[k] = (outcome, lines)
+                live.pop(k, None)
+                bar.sequence(outcome)
+                failures.extend(lines)
+                done_frames += _count_written(todo_tasks[k], since)
+            elif ev[0] == "closed":
+                return False
+        return True
+
+    def on_death(slot, e) -> None:
+        nonlocal replacements
+        if isinstance(getattr(e, "cause", None), CLIError):
+            raise e.cause from None  # a mistake in the common options: every worker would fail
+        if isinstance(getattr(e, "cause", None), ImportError):
+            raise CLIError(f"a Ray worker cannot import what it needs ({e.cause}); install the same floxels_ext "
+                           f"and its dependencies on every node") from None
+        back = sorted(slot.leases)
+        queue.extendleft(reversed(back))
+        slot.leases.clear()
+        for k in back:  # their next holder reports its own frames (resume skips the written ones)
+            live.pop(k, None)
+        workers.drop(slot, ok=False)
+        lines = str(e).strip().splitlines()
+        deaths.append(f"{slot.name}: {type(e).__name__}: {lines[-1] if lines else e}; {len(back)} task(s) handed "
+                      f"to the other workers")
+        if verbosity >= 0:
+            bar.message(f"floxels: warning: {deaths[-1]}")
+        if replacements > 0 and len(ended) < len(todo_tasks):
+            replacements -= 1
+            launch(workers.add())
+
     try:
-        while workers:
-            ready, _ = ray.wait(list(workers), num_returns=1, timeout=0.5)
+        while runs:
+            ready, _ = ray.wait(list(runs) + list(polls), num_returns=1, timeout=2.0)
+            if ready:  # everything else ready by now as well
+                rest = [r for r in list(runs) + list(polls) if r not in ready]
+                ready += ray.wait(rest, num_returns=len(rest), timeout=0)[0] if rest else []
             for ref in ready:
-                name, actor = workers.pop(ref)
-                try:
-                    results.append(ray.get(ref))
-                    ray.kill(actor)  # its GPU is free for the next job at once
-                except ray.exceptions.RayError as e:
-                    if isinstance(getattr(e, "cause", None), CLIError):
-                        raise e.cause from None  # a mistake in the common options: every worker would fail
-                    if isinstance(getattr(e, "cause", None), ImportError):
-                        raise CLIError(f"a Ray worker cannot import what it needs ({e.cause}); install the same "
-                                       f"floxels_ext and its dependencies on every node") from None
-                    back = ray.get(dispatcher.requeue.remote(name))
-                    lines = str(e).strip().splitlines()
-                    deaths.append(f"{name}: {type(e).__name__}: {lines[-1] if lines else e}; "
-                                  f"{len(back)} task(s) handed to the other workers")
-                    if verbosity >= 0:
-                        bar.message(f"floxels: warning: {deaths[-1]}")
-                    if replacements > 0:
-                        replacements -= 1
-                        start_worker()
-            st = ray.get(dispatcher.status.remote())
-            for k, (outcome, lines) in st["ended"].items():
-                if k not in ended_seen:
-                    ended_seen.add(k)
-                    bar.sequence(outcome)
-                    failures += lines
-                    done_frames += _count_written(todo_tasks[k], since)
-            if not workers and (st["queued"] or any(st["leased"].values())):
-                break  # no worker left: what is left is reported below
-            if st["queued"] == 0 and not any(st["leased"].values()) and len(ended_seen) == len(todo_tasks):
-                # all done: workers return now; one still waiting for resources (its node gone) is not needed
-                left, _ = ray.wait(list(workers), num_returns=len(workers), timeout=30.0)
-                for ref in left:
-                    results.append(ray.get(ref))
-                    ray.kill(workers.pop(ref)[1])
-                for ref, (_, actor) in list(workers.items()):
-                    ray.kill(actor)
-                workers.clear()
-            leased = [todo_tasks[k] for ks in st["leased"].values() for k in ks]
-            done = done_frames + sum(_count_written(t, since) for t in leased)
+                if ref in polls:
+                    slot = polls.pop(ref)
+                    try:
+                        events, frames = ray.get(ref)
+                    except ray.exceptions.RayError:
+                        continue  # its run's result says what happened
+                    if on_poll(slot, events, frames) and slot in runs.values():
+                        polls[slot.actor.poll.remote(job, POLL_S)] = slot
+                elif ref in runs:
+                    slot = runs.pop(ref)
+                    for r in [r for r, s in polls.items() if s is slot]:
+                        del polls[r]
+                    waiting[:] = [w for w in waiting if w[0] is not slot]
+                    try:
+                        res = ray.get(ref) | {"name": slot.name, "claimed": slot.claimed}
+                        res["timeline"]["requested"] = round(slot.requested - workers.t0, 3)
+                        results.append(res)
+                        workers.finished(slot)
+                    except ray.exceptions.RayError as e:
+                        on_death(slot, e)
+            all_ended = len(ended) == len(todo_tasks)
+            for w in sorted(waiting, key=lambda w: len(w[0].leases)):  # a worker holding none first
+                slot, what = w
+                if queue:
+                    k = queue.popleft()
+                    slot.leases.add(k)
+                    answer = (k, todo_tasks[k])
+                else:  # a stream asking drains now (its tasks end); a drained one waits for a death's
+                    answer = None if all_ended else "wait" if what == "need" else False
+                if answer is not False:
+                    slot.actor.offer.remote(job, answer)
+                    waiting.remove(w)
+            if all_ended:  # workers still starting (or waiting for resources: a lost node's) are not needed
+                for ref, slot in [(r, s) for r, s in runs.items() if not s.alive]:
+                    del runs[ref]
+                    for r in [r for r, s in polls.items() if s is slot]:
+                        del polls[r]
+                    workers.drop(slot)
+            if not runs:
+                break  # all done, or no worker left: what is left is reported below
+            done = done_frames + sum(live.values())
             if done > shown:
                 bar.frames(done - shown)
                 shown = done
     except BaseException:
-        for _, actor in workers.values():
-            ray.kill(actor)
+        workers.close(ok=False)
         bar.close()
         print("floxels: job stopped; running the same command again writes only the missing frames",
               file=sys.stderr)
         raise
     bar.close()
-    st = ray.get(dispatcher.status.remote())
-    unfinished = [todo_tasks[k] for k in range(len(todo_tasks)) if k not in st["ended"]]
+    unfinished = [todo_tasks[k] for k in range(len(todo_tasks)) if k not in ended]
     for t in unfinished:
         failures.append(f"{t.label}: no worker left to run it; {_missing_report(t, since)}")
-    ray.kill(dispatcher)
     left = sum(remove_temps(d) for d in out_dirs)  # from workers killed mid-write
-    wall = time.perf_counter() - t0
+    wall = time.time() - workers.t0  # from the job's start: the workers' start is in it
     counts = {o: 0 for o in ("done", "skipped", "failed")}
-    for outcome, _ in st["ended"].values():
+    for outcome, _ in ended.values():
         counts[outcome] += 1
     counts["skipped"] += len(tasks) - len(todo_tasks)
     counts["failed"] += len(unfinished)
+    written = done_frames
     print(f"done: {n_sequences} sequences in {len(tasks)} task(s) ({counts['done']} done, {counts['skipped']} skipped, "
-          f"{counts['failed']} failed), {shown} frame(s) written by {made} worker(s) in {wall:.1f} s "
-          f"({shown / wall if wall > 0 else 0:.2f} frames/s), {total - todo} skipped (already done), "
+          f"{counts['failed']} failed), {written} frame(s) written by {len(results) + len(deaths)} worker(s) in "
+          f"{wall:.1f} s ({written / wall if wall > 0 else 0:.2f} frames/s), {total - todo} skipped (already done), "
           f"{len(failures)} failure(s)" + (f"; {len(deaths)} worker(s) lost" if deaths else "")
           + (f"; removed {left} temporary file(s) of killed workers" if left else ""), file=sys.stderr)
+    if verbosity > 0:
+        for r in sorted(results, key=lambda r: r["timeline"].get("first_output", math.inf)):
+            kind = "warm, from the pool" if r["claimed"] else "started for this job"
+            print(f"  {r['name']} ({r['host']} pid {r['pid']}, {kind}; GPU {','.join(r['gpus']) or '-'}; "
+                  f"{r['written']} frames): {format_timeline(r['timeline'])}"
+                  + (f"; warm-up failed: {r['warm_error']}" if r.get("warm_error") else ""), file=sys.stderr)
+    _job_summary(Path(args.out) / "ray_job_summary.json", {
+        "input": str(args.input), "started": workers.t0, "wall_s": round(wall, 3), "frames_written": written,
+        "frames_per_s": round(written / wall, 3) if wall > 0 else None, "tasks": counts, "failures": len(failures),
+        "lost_workers": deaths, "pool": {"keep_s": workers.keep_s, "key": workers.key, "retired": workers.retired},
+        "resources": {"gpus": workers.gpus, "cpus": workers.cpus, "device": workers.device},
+        "workers": [{k: v for k, v in r.items() if k != "log"} for r in results]})
     if failures:
         print("failed:", file=sys.stderr)
         for f in failures:

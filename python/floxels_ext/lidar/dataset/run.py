@@ -18,14 +18,14 @@ and the Ray driver sweeps the rest before launching and after the last task.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 __all__ = ["add_dataset_arguments", "run_input", "common_options"]
 
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
-                "ray", "gpus_per_task", "cpus_per_task", "max_tasks", "task_frames", "retries", "sequences"}
+                "ray", "gpus_per_task", "cpus_per_task", "max_tasks", "task_frames", "retries", "sequences",
+                "keep_workers"}
 
 
 def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,6 +61,10 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--retries", type=int, default=3, metavar="N",
                    help="workers started in place of ones that died, at most (default 3); a dead worker's "
                         "tasks go to the others in any case")
+    g.add_argument("--keep-workers", type=finite_float, default=120.0, metavar="S",
+                   help="with --ray: the workers stay warm (process, CUDA context, kernels) for S seconds after "
+                        "the job, for the next job on the same cluster with the same options, then exit and free "
+                        "their GPUs (default 120); 0 = they stop with the job")
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
@@ -77,7 +81,8 @@ def _check_options(args, dataset: bool) -> None:
     if args.ray is None:
         used = [f for f, v, default in (("--gpus-per-task", args.gpus_per_task, None),
                                         ("--max-tasks", args.max_tasks, None), ("--cpus-per-task", args.cpus_per_task, None),
-                                        ("--task-frames", args.task_frames, 192), ("--retries", args.retries, 3))
+                                        ("--task-frames", args.task_frames, 192), ("--retries", args.retries, 3),
+                                        ("--keep-workers", args.keep_workers, 120.0))
                 if v != default]
         if used:
             raise CLIError(f"{', '.join(used)} only apply with --ray")
@@ -97,10 +102,22 @@ def _check_options(args, dataset: bool) -> None:
         raise CLIError("--task-frames must be >= 0 (0 = whole sequences)")
     if args.retries < 0:
         raise CLIError("--retries must be >= 0")
+    if args.keep_workers < 0:
+        raise CLIError(f"--keep-workers must be >= 0 seconds, got {args.keep_workers}")
 
 
 def run_input(args) -> int:
     """Runs INPUT: one sequence (here, or through Ray with ``--ray``) or a dataset."""
+    if args.ray is None or not args.input or not args.out or not Path(args.input).exists():
+        return _run_input(args, None)  # (a missing INPUT is reported without starting Ray)
+    from floxels_ext.lidar.dataset.ray_runner import early_workers
+
+    _check_options(args, dataset=False)
+    with early_workers(args) as workers:  # they start while the dataset is listed and planned
+        return _run_input(args, workers)
+
+
+def _run_input(args, workers) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
@@ -143,7 +160,7 @@ def run_input(args) -> int:
     if args.ray is not None:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
-        return run_on_ray(tasks, args, common, n_sequences=len(specs))
+        return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers)
     return run_dataset(tasks, args, n_sequences=len(specs))
 
 

@@ -1,0 +1,173 @@
+"""The workers of one Ray job: taken from the warm pool or started, and given back at the end.
+
+The warm pool (``--keep-workers SECONDS``, default 120; 0 turns it off): workers are detached
+named actors in the ``floxels`` namespace, named ``w-<key>-<id>`` where the key is a digest of
+the package (version and the sizes and times of its files, so an edited checkout never reuses
+old code), Ray's and Python's versions and the worker's resources and device. A job first
+claims idle workers of its key (``FloxelsWorker.claim``: one job at a time), then starts the
+rest; each worker waits ``keep_s`` seconds idle for the next job, then exits and frees its GPU.
+A job that starts workers first asks every idle pooled worker it did not claim (other options,
+other versions) to exit, so they never hold the resources it waits for. With the pool off,
+workers are plain actors of the job (they die with its driver) and are killed at its end.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["NAMESPACE", "Workers", "Slot", "pool_key"]
+
+NAMESPACE = "floxels"
+CLAIM_WAIT_S = 2.0  # a pooled worker answers a claim in milliseconds; one still starting is skipped
+
+
+def _code_stamp() -> str:
+    import floxels_ext
+
+    root = Path(floxels_ext.__file__).parent
+    h = hashlib.sha1(floxels_ext.__version__.encode())
+    for p in sorted(root.rglob("*")):
+        if p.suffix in (".py", ".so") and p.is_file():
+            st = p.stat()
+            h.update(f"{p.relative_to(root)}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()
+
+
+def pool_key(gpus: float, cpus: float, device: str) -> str:
+    """Which pooled workers a job may reuse: same code, Ray, Python, resources and device."""
+    import ray
+
+    raw = json.dumps([_code_stamp(), ray.__version__, list(sys.version_info[:2]), gpus, cpus, device])
+    return hashlib.sha1(raw.encode()).hexdigest()[:12]
+
+
+@dataclass
+class Slot:
+    """One worker of the job."""
+
+    name: str
+    actor: object
+    pooled: bool
+    requested: float                  # time.time() when the driver asked for it (or claimed it)
+    claimed: bool = False             # taken warm from the pool
+    alive: bool = False               # it has answered a poll
+    launched: bool = False            # run() was called
+    leases: set = field(default_factory=set)
+
+
+class Workers:
+    """The job's workers (module docstring). ``start(n)`` claims or starts n of them at once
+    (before the driver lists the dataset); ``add()`` starts a replacement; ``close(ok)`` gives
+    them back: pooled ones stay warm after a job that ended normally, everything else is killed."""
+
+    def __init__(self, ray, gpus: float, cpus: float, device: str, keep_s: float, t0: float) -> None:
+        self.ray, self.gpus, self.cpus, self.device = ray, gpus, cpus, device
+        self.keep_s = keep_s if keep_s and keep_s > 0 else None
+        self.t0 = t0
+        self.job = uuid.uuid4().hex[:12]
+        self.key = pool_key(gpus, cpus, device) if self.keep_s else None
+        self.slots: list[Slot] = []
+        self.made = 0
+        self.retired = 0
+
+    def _options(self, name: str | None):
+        from floxels_ext.lidar.dataset.ray_worker import FloxelsWorker
+
+        # threaded: run() holds one thread for the whole job; poll, offer and the pool's calls the others
+        opts = dict(num_gpus=self.gpus, num_cpus=self.cpus, max_restarts=0, max_concurrency=8)
+        if name is not None:
+            opts.update(name=name, namespace=NAMESPACE, lifetime="detached")
+        return self.ray.remote(FloxelsWorker).options(**opts)
+
+    def _pooled(self) -> list[str]:
+        try:
+            return [a["name"] for a in self.ray.util.list_named_actors(all_namespaces=True)
+                    if a.get("namespace") == NAMESPACE and a["name"].startswith("w-")]
+        except Exception:  # noqa: BLE001 - no pool then; the job starts its own workers
+            return []
+
+    def _handle(self, name: str):
+        try:
+            return self.ray.get_actor(name, namespace=NAMESPACE)
+        except ValueError:  # exited since it was listed
+            return None
+
+    def _claim(self, names: list[str], n: int) -> list[Slot]:
+        handles = {nm: h for nm in names if (h := self._handle(nm)) is not None}
+        refs = {h.claim.remote(self.job): nm for nm, h in handles.items()}
+        ready, _ = self.ray.wait(list(refs), num_returns=len(refs), timeout=CLAIM_WAIT_S) if refs else ([], [])
+        got = []
+        for ref in ready:
+            try:
+                ok = self.ray.get(ref)
+            except self.ray.exceptions.RayError:
+                continue
+            nm = refs[ref]
+            if ok and len(got) < n:
+                got.append(Slot(nm, handles[nm], True, time.time(), claimed=True))
+            elif ok:
+                handles[nm].release.remote(self.job)
+        # a claim answered too late is given back by the worker itself (OWNER_TIMEOUT)
+        return got
+
+    def start(self, n: int) -> None:
+        pooled = self._pooled() if self.keep_s else []
+        mine = [nm for nm in pooled if nm.startswith(f"w-{self.key}-")]
+        self.slots += self._claim(mine, n)
+        if len(self.slots) < n:
+            self._retire_idle({s.name for s in self.slots})
+        while len(self.slots) < n:
+            self.add()
+
+    def _retire_idle(self, keep: set[str]) -> None:
+        """Idle pooled workers this job does not use exit (they may hold the resources it needs)."""
+        for nm in self._pooled():
+            if nm not in keep and (h := self._handle(nm)) is not None:
+                h.retire.remote()
+                self.retired += 1
+
+    def add(self) -> Slot:
+        """Starts one more worker (its __init__ and warm-up begin as soon as Ray places it)."""
+        self.made += 1
+        name = f"w-{self.key}-{uuid.uuid4().hex[:8]}" if self.keep_s else f"worker-{self.made - 1}"
+        actor = self._options(name if self.keep_s else None).remote(self.cpus, self.device, self.keep_s, self.job)
+        slot = Slot(name, actor, bool(self.keep_s), time.time())
+        self.slots.append(slot)
+        return slot
+
+    def drop(self, slot: Slot, ok: bool = True) -> None:
+        """A worker the job does not need (fewer tasks than workers, or still starting when the
+        job is done; ``ok`` False: it failed and is killed)."""
+        if slot in self.slots:
+            self.slots.remove(slot)
+            self._give_back(slot, ok)
+
+    def finished(self, slot: Slot) -> None:
+        """Its run returned: a pooled worker has released itself; a job's own is killed now (its
+        GPU free at once)."""
+        if slot in self.slots:
+            self.slots.remove(slot)
+            if not slot.pooled:
+                self._give_back(slot, ok=False)
+
+    def _give_back(self, slot: Slot, ok: bool) -> None:
+        try:
+            if slot.pooled and ok and slot.launched:  # its run releases it (one still starting: at once)
+                slot.actor.offer.remote(self.job, None)
+            elif slot.pooled and ok and slot.claimed:  # taken from the pool, not needed: back to it
+                slot.actor.release.remote(self.job)
+            else:  # failed, not pooled, or started for this job and never used (no pool of extras)
+                self.ray.kill(slot.actor, no_restart=True)
+        except Exception:  # noqa: BLE001 - a dead worker needs nothing
+            pass
+
+    def close(self, ok: bool) -> None:
+        for slot in self.slots:
+            self._give_back(slot, ok)
+        self.slots = []

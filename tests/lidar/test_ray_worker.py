@@ -1,0 +1,76 @@
+"""The Ray worker's parts that need no cluster: the task hand-out between its pipeline and the
+driver (``ray_worker.Channel``), the CPU threads it takes from the CPUs Ray gave it
+(``worker_threads``) and the run options it builds from them (``task_args``)."""
+
+import threading
+import time
+
+from floxels_ext.lidar.dataset import ray_worker
+from floxels_ext.lidar.dataset.ray_worker import Channel, task_args, worker_threads
+
+
+def test_worker_threads_rule():
+    # a GPU worker: a few torch threads, readers leaving a core to the main thread and one to the rest
+    assert worker_threads(16, gpu=True) == {"cpus": 16, "torch": 4, "readers": 6, "writers": 2}
+    assert worker_threads(8, gpu=True) == {"cpus": 8, "torch": 4, "readers": 6, "writers": 2}
+    assert worker_threads(4, gpu=True) == {"cpus": 4, "torch": 4, "readers": 2, "writers": 2}
+    assert worker_threads(2, gpu=True) == {"cpus": 2, "torch": 2, "readers": 1, "writers": 2}
+    assert worker_threads(0.5, gpu=True)["readers"] == 1
+    # a CPU worker computes in torch's ops: all its CPUs
+    assert worker_threads(16, gpu=False) == {"cpus": 16, "torch": 16, "readers": 6, "writers": 2}
+    assert worker_threads(1, gpu=False) == {"cpus": 1, "torch": 1, "readers": 1, "writers": 2}
+
+
+def test_task_args_threads_and_user_settings():
+    common = {"method": "floxels", "workers": None, "writers": None, "scans": 3}
+    ns = task_args(common, "cuda", worker_threads(16, gpu=True))
+    assert (ns.device, ns.workers, ns.writers, ns.cpu_limit, ns.ray) == ("cuda", 6, 2, 16, None)
+    ns = task_args(dict(common, workers=3, writers=5), "cpu", worker_threads(2, gpu=False))
+    assert (ns.workers, ns.writers, ns.cpu_limit) == (3, 5, 2)  # the user's --workers/--writers win
+
+
+def test_channel_hand_out():
+    ch = Channel()
+    got = []
+
+    def pipeline():  # a stream: its tasks until "wait", then (drained) asks again as "idle"
+        got.append(list(ch.tasks()))
+        got.append(ch.ask("idle"))
+        got.append(list(ch.tasks(first=got[-1])))
+
+    t = threading.Thread(target=pipeline)
+    t.start()
+    answers = iter([(0, "a"), (1, "b"), "wait", (2, "c"), None])
+    seen = []
+    while t.is_alive() or ch.events:
+        events, _ = ch.poll(0.2)
+        for ev in events:
+            seen.append(ev[0])
+            if ev[0] in ("need", "idle"):
+                ch.answers.put(next(answers))
+        if not t.is_alive():
+            break
+    t.join(5)
+    assert got == [[(0, "a"), (1, "b")], (2, "c"), [(2, "c")]]
+    assert seen == ["need", "need", "need", "idle", "need"] and ch.over
+
+
+def test_channel_poll_reports_and_closes():
+    ch = Channel()
+    ch.count(3)
+    ch.count(3)
+    ch.count(5)
+    t = time.monotonic()
+    events, frames = ch.poll(0.3)  # nothing to say: returns after the timeout, with the frame counts
+    assert events == [] and frames == {3: 2, 5: 1} and time.monotonic() - t >= 0.25
+    ch.emit("ended", 3, "done", [])
+    assert ch.poll(5.0) == ([("ended", 3, "done", [])], {})
+    ch.close()
+    assert ch.poll(5.0) == ([("closed",)], {})
+
+
+def test_channel_gives_up_without_driver(monkeypatch):
+    monkeypatch.setattr(ray_worker, "OWNER_TIMEOUT", 0.3)
+    ch = Channel()
+    ch.seen -= 1.0  # the driver's last poll was long ago: it is gone
+    assert list(ch.tasks()) == [] and ch.ask("idle") is None
