@@ -154,11 +154,6 @@ TORCH_LIBRARY(floxels, m) {
   // clusters). Segments are cut every `tile` points. csrc/cpu/problem_setup.cpp.
   m.def("problem_setup(Tensor points, Tensor? labels, float[] origin, float spacing, int[] grid_shape, "
         "int tile) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int)");
-  // problem_setup of K targets with one host synchronisation: origins and grid_shapes hold 3
-  // values per target; returns the K results' 9 tensors each, flattened, and the K numbers of
-  // clusters.
-  m.def("problem_setup_many(Tensor[] points, Tensor?[] labels, float[] origins, float spacing, int[] grid_shapes, "
-        "int tile) -> (Tensor[], int[])");
 
   // --- host staging of scans (csrc/cpu/stage_cpu.cpp) ---
   // Copies each (N_k, 3) host scan into out[k] (N_k*3 float32, e.g. page-locked), a thread

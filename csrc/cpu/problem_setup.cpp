@@ -1,4 +1,4 @@
-// floxels::problem_setup (and problem_setup_many, K targets with one synchronisation): the per-target preparation of the optimiser in one op with one
+// floxels::problem_setup: the per-target preparation of the optimiser in one op with one
 // host synchronisation (it used to be ~60 Python-level torch calls with three: DBSCAN's
 // cluster count, torch.unique and torch.nonzero). Written with ATen calls, so the one
 // implementation serves every device; python/floxels_ext/reference/ops.py
@@ -63,18 +63,8 @@ constexpr int64_t kDenseFactor = 16;
 
 using Result = std::tuple<Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int64_t>;
 
-// What one target's set-up has queued before the host must know its sizes (the number of
-// touched vertices and of segments, of clusters, whether all points are finite): `sizes` is
-// a (4,) int64 tensor on the points' device; finish() builds the rest once it is on the host.
-struct Started {
-  int64_t n = 0, Y = 0, X = 0;
-  bool dense = true;
-  Tensor P, lab_s, order, Ps, inverse, w, flat_lin, vertices, is_new, seg_incl, sizes;
-  Result empty;  // n == 0: the whole result
-};
-
-Started start(const Tensor& points_in, const std::optional<Tensor>& labels_in, at::ArrayRef<double> origin,
-              double spacing, at::IntArrayRef grid_shape, int64_t tile) {
+Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& labels_in, at::ArrayRef<double> origin,
+                     double spacing, at::IntArrayRef grid_shape, int64_t tile) {
   FLX_CHECK(points_in.dim() == 2 && points_in.size(1) == 3, "floxels: problem_setup: points must be (N, 3), got ",
             points_in.sizes());
   FLX_CHECK(points_in.is_floating_point(), "floxels: problem_setup: points must be float32/float64, got ",
@@ -83,14 +73,11 @@ Started start(const Tensor& points_in, const std::optional<Tensor>& labels_in, a
   check_grid_shape(grid_shape);
   check_spacing(spacing);
   FLX_CHECK(tile >= 1, "floxels: problem_setup: tile must be >= 1, got ", tile);
-  Started st;
   const int64_t Z = grid_shape[0], Y = grid_shape[1], X = grid_shape[2];
-  st.Y = Y, st.X = X;
   const int64_t cells = Z * Y * X;
   FLX_CHECK(cells > 0 && cells < (int64_t(1) << 50), "floxels: problem_setup: grid of ", cells, " vertices");
   const Tensor P = points_in.contiguous();
   const int64_t n = P.size(0);
-  st.n = n, st.P = P;
   const auto dev = P.device();
   const auto i64 = P.options().dtype(at::kLong), i32 = P.options().dtype(at::kInt);
   Tensor lab;
@@ -101,10 +88,9 @@ Started start(const Tensor& points_in, const std::optional<Tensor>& labels_in, a
   }
   if (n == 0) {
     auto z1 = at::zeros({1}, i32);
-    st.empty = {at::empty({0}, i64), P.clone(), lab.defined() ? lab.clone() : at::empty({0}, i64),
-                at::empty({0, 8}, i32), at::empty({0, 8}, P.options()), at::empty({0}, i64), z1, z1.clone(),
-                at::empty({0}, i32), 0};
-    return st;
+    return {at::empty({0}, i64), P.clone(), lab.defined() ? lab.clone() : at::empty({0}, i64),
+            at::empty({0, 8}, i32), at::empty({0, 8}, P.options()), at::empty({0}, i64), z1, z1.clone(),
+            at::empty({0}, i32), 0};
   }
 
   // Lattice coordinates (p - o) / spacing clamped to [0, hi] in floating point before any
@@ -133,11 +119,8 @@ Started start(const Tensor& points_in, const std::optional<Tensor>& labels_in, a
     order = std::get<1>(stable_sort(key));
     if (lab.defined()) order = order.index_select(0, std::get<1>(stable_sort(lab.index_select(0, order))));
   }
-  st.order = order;
   const Tensor Ps = P.index_select(0, order);
-  st.Ps = Ps;
   const Tensor lab_s = lab.defined() ? lab.index_select(0, order) : Tensor();
-  st.lab_s = lab_s;
 
   // 2. corners and weights, as ops/corners.py compact_corners (same arithmetic, same dtype)
   const Tensor u = clamped(Ps, false);
@@ -152,117 +135,65 @@ Started start(const Tensor& points_in, const std::optional<Tensor>& labels_in, a
   const Tensor lin = idx.select(2, 2).mul(Y).add(idx.select(2, 1)).mul(X).add(idx.select(2, 0));  // (n, 8)
   const Tensor tt = t.unsqueeze(1);
   const Tensor wf = at::where(offs.to(at::kBool), tt, tt.neg().add(1));
-  st.w = wf.select(2, 0).mul(wf.select(2, 1)).mul(wf.select(2, 2)).contiguous();
+  const Tensor w = wf.select(2, 0).mul(wf.select(2, 1)).mul(wf.select(2, 2)).contiguous();
 
   // 3. compact vertex rows, in lattice order (= torch.unique(lin, sorted=True))
-  st.flat_lin = lin.reshape({-1});
-  Tensor num_vertices;
-  st.dense = cells <= kDenseFactor * 8 * n;
-  if (st.dense) {
+  const Tensor flat_lin = lin.reshape({-1});
+  Tensor inverse, vertices, num_vertices;
+  const bool dense = cells <= kDenseFactor * 8 * n;
+  if (dense) {
     auto mark = at::zeros({cells}, i32);
-    mark.index_fill_(0, st.flat_lin, 1);
+    mark.index_fill_(0, flat_lin, 1);
     const Tensor pos = mark.cumsum(0, at::kInt);  // inclusive: row + 1 at marked vertices
-    st.inverse = pos.index_select(0, st.flat_lin).sub(1).view({n, 8});
+    inverse = pos.index_select(0, flat_lin).sub(1).view({n, 8});
     num_vertices = pos.select(0, cells - 1).to(at::kLong);
   } else {
-    auto u2 = at::_unique2(st.flat_lin, /*sorted=*/true, /*return_inverse=*/true, /*return_counts=*/false);
-    st.vertices = std::get<0>(u2);
-    st.inverse = std::get<1>(u2).to(at::kInt).view({n, 8});
-    num_vertices = at::full_like(st.vertices.select(0, 0), st.vertices.size(0));
+    auto u2 = at::_unique2(flat_lin, /*sorted=*/true, /*return_inverse=*/true, /*return_counts=*/false);
+    vertices = std::get<0>(u2);
+    inverse = std::get<1>(u2).to(at::kInt).view({n, 8});
+    num_vertices = at::full_like(vertices.select(0, 0), vertices.size(0));
   }
 
   // 4. segment starts, as ops/solver.py _segments
-  st.is_new = at::ones({n}, P.options().dtype(at::kBool));
+  auto is_new = at::ones({n}, P.options().dtype(at::kBool));
   if (n > 1) {
-    Tensor diff = st.inverse.slice(0, 1).ne(st.inverse.slice(0, 0, n - 1)).any(1);
+    Tensor diff = inverse.slice(0, 1).ne(inverse.slice(0, 0, n - 1)).any(1);
     if (lab_s.defined()) diff = diff.logical_or(lab_s.slice(0, 1).ne(lab_s.slice(0, 0, n - 1)));
-    st.is_new.slice(0, 1).copy_(diff);
+    is_new.slice(0, 1).copy_(diff);
   }
-  st.is_new.slice(0, 0, n, tile).fill_(true);
-  st.seg_incl = st.is_new.cumsum(0, at::kLong);  // segment of each point + 1
+  is_new.slice(0, 0, n, tile).fill_(true);
+  const Tensor seg_incl = is_new.cumsum(0, at::kLong);  // segment of each point + 1
   const Tensor num_clusters = lab_s.defined() ? lab_s.max().add(1).clamp_min(0) : at::zeros({}, i64);
-  st.sizes = at::stack({num_vertices.reshape({}), st.seg_incl.select(0, n - 1), num_clusters.reshape({}),
-                        finite.to(at::kLong)});
-  return st;
-}
 
-// The rest of a target's set-up, `sizes` (its 4 values) on the host.
-Result finish(const Started& st, const int64_t* sizes) {
-  if (st.n == 0) return st.empty;
-  const int64_t n = st.n, M = sizes[0], S = sizes[1], ncl = sizes[2];
-  const auto i64 = st.P.options().dtype(at::kLong);
-  FLX_CHECK(sizes[3] == 1,
+  // the one host synchronisation: sizes of what follows
+  const Tensor sizes = at::stack({num_vertices.reshape({}), seg_incl.select(0, n - 1), num_clusters.reshape({}),
+                                  finite.to(at::kLong)})
+                            .cpu();
+  const int64_t M = sizes.data_ptr<int64_t>()[0], S = sizes.data_ptr<int64_t>()[1];
+  const int64_t ncl = sizes.data_ptr<int64_t>()[2];
+  FLX_CHECK(sizes.data_ptr<int64_t>()[3] == 1,
             "floxels: problem_setup: points must be finite (found NaN/inf coordinates); drop those rows first");
   FLX_CHECK(M < (int64_t(1) << 31), "floxels: problem_setup: too many touched voxel corners for int32 indexing");
-  Tensor vertices = st.vertices;
-  if (st.dense) {
+  if (dense) {
     vertices = at::empty({M}, i64);  // each row's lattice index (duplicates write the same value)
-    vertices.index_put_({st.inverse.reshape({-1}).to(at::kLong)}, st.flat_lin);
+    vertices.index_put_({inverse.reshape({-1}).to(at::kLong)}, flat_lin);
   }
   // first point of each segment (slot S collects the other points and is then overwritten)
-  const Tensor slot = at::where(st.is_new, st.seg_incl.sub(1), at::full_like(st.seg_incl, S));
+  const Tensor slot = at::where(is_new, seg_incl.sub(1), at::full_like(seg_incl, S));
   auto first = at::empty({S + 1}, i64);
   first.index_put_({slot}, at::arange(n, i64));
   first.select(0, S).fill_(n);
   const Tensor seg_ptr = first.to(at::kInt);
-  const Tensor flat = st.inverse.index_select(0, first.slice(0, 0, S)).reshape({-1}).to(at::kLong);  // (8S)
+  const Tensor flat = inverse.index_select(0, first.slice(0, 0, S)).reshape({-1}).to(at::kLong);  // (8S)
   const Tensor ent_order = std::get<1>(stable_sort(flat));
   const Tensor counts = at::zeros({M}, i64).index_add_(0, flat, at::ones_like(flat));
   const Tensor vtx_ptr = at::cat({at::zeros({1}, i64), counts.cumsum(0)}).to(at::kInt);
-  return {st.order, st.Ps, st.lab_s.defined() ? st.lab_s : at::empty({0}, i64), st.inverse.contiguous(), st.w,
-          vertices, seg_ptr, vtx_ptr, ent_order.to(at::kInt), ncl};
-}
-
-Result problem_setup(const Tensor& points, const std::optional<Tensor>& labels, at::ArrayRef<double> origin,
-                     double spacing, at::IntArrayRef grid_shape, int64_t tile) {
-  const Started st = start(points, labels, origin, spacing, grid_shape, tile);
-  if (st.n == 0) return st.empty;
-  const Tensor sizes = st.sizes.cpu();  // the one host synchronisation: sizes of what follows
-  return finish(st, sizes.data_ptr<int64_t>());
-}
-
-// problem_setup of K targets with ONE host synchronisation: every target's work up to its
-// sizes is queued first, then the K sizes come back together. In a pipelined sequence the
-// preparing stream's kernels run between the optimiser's, each behind the GPU's current
-// work; a synchronisation per target made the host wait that out K times a batch.
-// Returns the K results' tensors flattened (9 per target, as problem_setup's) and the K
-// numbers of clusters. grid_shapes: 3 per target; origins: 3 per target.
-std::tuple<std::vector<Tensor>, std::vector<int64_t>> problem_setup_many(
-    at::TensorList points, const c10::List<std::optional<Tensor>>& labels, at::ArrayRef<double> origins,
-    double spacing, at::IntArrayRef grid_shapes, int64_t tile) {
-  const int64_t K = int64_t(points.size());
-  FLX_CHECK(int64_t(labels.size()) == K && int64_t(origins.size()) == 3 * K && int64_t(grid_shapes.size()) == 3 * K,
-            "floxels: problem_setup_many: ", K, " targets need as many labels, and 3 origin values and 3 grid "
-            "sizes per target; got ", int64_t(labels.size()), ", ", int64_t(origins.size()), ", ",
-            int64_t(grid_shapes.size()));
-  std::vector<Started> started;
-  std::vector<Tensor> live_sizes;
-  started.reserve(size_t(K));
-  for (int64_t k = 0; k < K; ++k) {
-    started.push_back(start(points[size_t(k)], labels.get(size_t(k)), origins.slice(size_t(3 * k), 3), spacing,
-                            grid_shapes.slice(size_t(3 * k), 3), tile));
-    if (started.back().n > 0) live_sizes.push_back(started.back().sizes);
-  }
-  Tensor host;
-  if (!live_sizes.empty()) host = at::stack(live_sizes).cpu();  // the one host synchronisation
-  std::vector<Tensor> out;
-  std::vector<int64_t> ncl;
-  out.reserve(size_t(9 * K));
-  int64_t live = 0;
-  for (const Started& st : started) {
-    const Result r = st.n == 0 ? st.empty : finish(st, host.data_ptr<int64_t>() + 4 * live++);
-    out.insert(out.end(), {std::get<0>(r), std::get<1>(r), std::get<2>(r), std::get<3>(r), std::get<4>(r),
-                           std::get<5>(r), std::get<6>(r), std::get<7>(r), std::get<8>(r)});
-    ncl.push_back(std::get<9>(r));
-  }
-  return {out, ncl};
+  return {order, Ps, lab_s.defined() ? lab_s : at::empty({0}, i64), inverse.contiguous(), w, vertices, seg_ptr,
+          vtx_ptr, ent_order.to(at::kInt), ncl};
 }
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(floxels, CompositeExplicitAutograd, m) {
-  m.impl("problem_setup", &problem_setup);
-  m.impl("problem_setup_many", &problem_setup_many);
-}
+TORCH_LIBRARY_IMPL(floxels, CompositeExplicitAutograd, m) { m.impl("problem_setup", &problem_setup); }
 
 }  // namespace floxels

@@ -10,7 +10,6 @@ from floxels_ext import Floxels, FloxelsConfig, ops
 from floxels_ext.reference import ops as reference
 
 F = torch.ops.floxels
-DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
 
 
 def _cloud(n, seed, labels=True, extent=(10.0, 6.0, 2.0), dtype=torch.float32):
@@ -190,40 +189,3 @@ def test_staging_buffers_are_reused_by_size():
         torch.empty = orig
     assert len(made) <= 2, f"{len(made)} page-locked buffers for {len(sizes)} uploads"
     assert all(b.numel() >= 1 << 18 for b, _ in stager.free[S._index(dev)])
-
-
-@pytest.mark.parametrize("device", DEVICES)
-def test_problem_setup_many_equals_one_by_one(device):
-    """problem_setup_many (one synchronisation for K targets) gives each target exactly what
-    problem_setup gives it alone: empty targets, targets without labels, sparse lattices."""
-    g = torch.Generator().manual_seed(3)
-    pts = [torch.rand(n, 3, generator=g) * 6 - 3 for n in (200, 0, 57, 300)]
-    labs = [torch.randint(-1, 5, (len(p),), generator=g) for p in pts]
-    labs[2] = None
-    origins = [[-3.0, -3.0, -3.0], [0.0, 0.0, 0.0], [-3.5, -3.0, -3.0], [-3.0, -3.0, -3.0]]
-    shapes = [[13, 13, 13], [2, 2, 2], [14, 13, 13], [400, 400, 400]]  # the last one sparse
-    d = torch.device(device)
-    many = ops.problem_setup_many([p.to(d) for p in pts], [None if lab is None else lab.to(d) for lab in labs],
-                                  origins, 0.5, shapes, 32)
-    assert len(many) == len(pts)
-    for k, st in enumerate(many):
-        one = ops.problem_setup(pts[k].to(d), None if labs[k] is None else labs[k].to(d), origins[k], 0.5, shapes[k], 32)
-        assert st.num_clusters == one.num_clusters
-        assert (st.labels is None) == (one.labels is None)
-        pairs = [(st.order, one.order), (st.points, one.points), (st.corners.corner_idx, one.corners.corner_idx),
-                 (st.corners.corner_w, one.corners.corner_w), (st.corners.vertices, one.corners.vertices),
-                 *zip(st.segments, one.segments)]
-        if st.labels is not None:
-            pairs.append((st.labels, one.labels))
-        for a, b in pairs:
-            assert a.device.type == d.type and torch.equal(a, b)
-
-
-def test_problem_setup_many_refuses_bad_input():
-    p = torch.rand(10, 3)
-    with pytest.raises(RuntimeError, match="finite"):
-        bad = p.clone()
-        bad[3, 1] = float("nan")
-        ops.problem_setup_many([p, bad], [None, None], [[0.0] * 3] * 2, 0.5, [[4, 4, 4]] * 2, 32)
-    with pytest.raises(RuntimeError, match="3 origin values"):
-        F.problem_setup_many([p], [None], [0.0, 0.0], 0.5, [4, 4, 4], 32)

@@ -25,7 +25,7 @@ from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.solver_run import SolverRun
 from floxels_ext.estimator.schedule import EdtStreams, GpuMarks, PrepareSchedule, receive
 from floxels_ext.ops.grid import grid_from_bounds, point_bounds
-from floxels_ext.ops.setup import problem_setup_many
+from floxels_ext.ops.setup import problem_setup
 from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
 
 __all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack", "problem_evidence"]
@@ -152,32 +152,30 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
     timings["dbscan"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    live = [k for k, (prep, _) in enumerate(items) if prep.points[prep.target].shape[0] > 0]
-    grid = {k: grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size, max_cells=1 << 40) for k in live}
-    # One op, one host synchronisation for the whole group: points sorted by (cluster, voxel)
-    # (neighbouring points touch neighbouring memory, a block of points meets few clusters, and
-    # the solver's segments, one cluster inside one cell, are long runs), their compact corners
-    # and the solver's segment tables (built here, while the EDTs run, rather than when
-    # packing), and the number of clusters. (floxels run's optimiser thread spent 42 % of its
-    # time in the per-target calls, py-spy, bench/RESULTS.md "Where floxels run waits".)
-    if poll is not None:
-        poll()
-    sts = dict(zip(live, problem_setup_many([items[k][0].points[items[k][0].target] for k in live],
-                                            [labels[k] for k in live], [grid[k][0] for k in live], cfg.voxel_size,
-                                            [grid[k][1] for k in live], SEGMENT_TILE)))
     problems, orders, grids = [], [], []
-    for k, ((prep, _), (dts, origins, offsets, weights, sights)) in enumerate(zip(items, supports)):
-        if k not in sts:
+    for (prep, _), lab, (dts, origins, offsets, weights, sights) in zip(items, labels, supports):
+        if poll is not None:
+            poll()  # keeps the solver's queue topped up while the device optimises the batch before
+        P = prep.points[prep.target]
+        if P.shape[0] == 0:
             problems.append(None)
             orders.append(None)
             grids.append(None)
             continue
-        st = sts[k]
+        g_origin, g_shape = grid_from_bounds(*next(target_bounds), cfg.voxel_size, cfg.voxel_size,
+                                             max_cells=1 << 40)
+        # One op, one host synchronisation: points sorted by (cluster, voxel) (neighbouring
+        # points touch neighbouring memory, a block of points meets few clusters, and the
+        # solver's segments, one cluster inside one cell, are long runs), their compact
+        # corners and the solver's segment tables (built here, while the EDTs run, rather
+        # than when packing), and the number of clusters. (One synchronisation for a whole
+        # group was tried and measured no faster: bench/RESULTS.md "Where floxels run waits".)
+        st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
         problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
                                       cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments,
                                       sights))
         orders.append(st.order)
-        grids.append(grid[k][0])
+        grids.append(g_origin)
     timings["setup"] = time.perf_counter() - t0
     return labels, problems, orders, grids
 

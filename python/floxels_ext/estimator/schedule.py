@@ -316,9 +316,13 @@ class _ReadBack:
                 best = k
         if best is not None:
             return self.pool[best]
-        t = torch.empty(max(1 << 20, 1 << max(numel - 1, 0).bit_length()), dtype=torch.float32, pin_memory=True)
+        keep = len(self.pool) < self.KEEP
+        # a pooled buffer rounded up (later groups, a little larger, fit it); one that is not
+        # pooled (its arrays are kept) of the size asked, as a plain page-locked allocation
+        size = max(1 << 20, 1 << max(numel - 1, 0).bit_length()) if keep else numel
+        t = torch.empty(size, dtype=torch.float32, pin_memory=True)
         entry = (t, t.numpy())
-        if len(self.pool) < self.KEEP:
+        if keep:
             self.pool.append(entry)
         return entry
 

@@ -16,7 +16,7 @@ from floxels_ext.ops.lidar import frame_flow, lidar_keep_mask, lidar_point_class
 from floxels_ext.ops.nearest import nearest_neighbor
 from floxels_ext.ops.rigid_lm import rigid_lm
 from floxels_ext.ops.velocity_search import velocity_search
-from floxels_ext.ops.setup import ProblemSetup, problem_setup, problem_setup_many, stage_points
+from floxels_ext.ops.setup import ProblemSetup, problem_setup, stage_points
 from floxels_ext.ops.trilinear import trilinear_gather, trilinear_scatter
 
 __all__ = [
@@ -29,7 +29,7 @@ __all__ = [
     "cluster_mean", "cluster_consistency_loss", "cluster_consistency_fwd_bwd",
     "corner_gather", "corner_scatter", "compact_corners", "CompactCorners",
     "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",
-    "problem_setup", "problem_setup_many", "ProblemSetup", "stage_points",
+    "problem_setup", "ProblemSetup", "stage_points",
     "nearest_neighbor",
     "lidar_keep_mask", "lidar_point_classes", "rigid_transform", "lidar_select", "frame_flow",
 ]

@@ -26,16 +26,6 @@ def _setup_fake(points, labels, origin, spacing, grid_shape, tile):
             ctx.new_dynamic_size())
 
 
-@torch.library.register_fake("floxels::problem_setup_many")
-def _setup_many_fake(points, labels, origins, spacing, grid_shapes, tile):
-    out, ncl = [], []
-    for k, (p, lab) in enumerate(zip(points, labels)):
-        r = _setup_fake(p, lab, origins[3 * k:3 * k + 3], spacing, grid_shapes[3 * k:3 * k + 3], tile)
-        out += list(r[:9])
-        ncl.append(r[9])
-    return out, ncl
-
-
 @torch.library.register_fake("floxels::stage_points")
 def _stage_fake(points, out):
     return torch.empty((len(points), 7), dtype=torch.float64)
@@ -66,30 +56,6 @@ def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Seq
     return ProblemSetup(order, ps, lab if labels is not None else None,
                         CompactCorners(idx, w, verts, [int(s) for s in grid_shape]),
                         (seg_ptr, vtx_ptr, vtx_entry), int(ncl))
-
-
-def problem_setup_many(points: Sequence[torch.Tensor], labels: Sequence[torch.Tensor | None],
-                       origins: Sequence[Sequence[float]], spacing: float, grid_shapes: Sequence[Sequence[int]],
-                       tile: int) -> list[ProblemSetup]:
-    """:func:`problem_setup` of several targets with ONE host synchronisation for all (each
-    result equals the single call's): every target's work up to its sizes is queued, then
-    the sizes come back together. Used for a batch of targets prepared while the device
-    optimises another batch (estimator/group.py)."""
-    if len(points) == 0:
-        return []
-    require_tensors(**{f"points[{k}]": p for k, p in enumerate(points)})
-    for k, lab in enumerate(labels):
-        if lab is not None:
-            require_tensors(**{f"labels[{k}]": lab})
-    shapes = [[int(s) for s in g] for g in grid_shapes]
-    flat, ncl = ops_ns.problem_setup_many(list(points), list(labels), [v for o in origins for v in as_origin(o)],
-                                          as_spacing(spacing), [s for g in shapes for s in g], int(tile))
-    out = []
-    for k, lab in enumerate(labels):
-        order, ps, lab_s, idx, w, verts, seg_ptr, vtx_ptr, vtx_entry = flat[9 * k:9 * k + 9]
-        out.append(ProblemSetup(order, ps, lab_s if lab is not None else None,
-                                CompactCorners(idx, w, verts, shapes[k]), (seg_ptr, vtx_ptr, vtx_entry), int(ncl[k])))
-    return out
 
 
 def stage_points(points: Sequence[torch.Tensor], out: Sequence[torch.Tensor]) -> list[tuple]:
