@@ -3,14 +3,14 @@
 // registrations live in python/floxels_ext/ops/*.py. (Exception: has_profiling, which takes
 // no tensor and has one device-independent kernel, registered with its schema below.)
 //
-// Conventions shared by all ops (see README "Op reference"):
+// Conventions shared by all ops (see docs/ops.md):
 //  * points are (N, 3) float32/float64 in (x, y, z) order;
 //  * a grid is a regular lattice of SAMPLES: sample (iz, iy, ix) sits at
 //    origin + (ix, iy, iz) * spacing; dense grids are stored (C, Z, Y, X) or (Z, Y, X);
 //  * origin lists are [x0, y0, z0];
 //  * non-finite points (a NaN/inf coordinate) give NaN gather rows and NaN losses, are ignored
-//    by scatters and occupancy, and are refused by dbscan and problem_setup (README "Op
-//    reference", tests/ops/test_ops_nonfinite.py); bad host scalars are refused (common/check.h).
+//    by scatters and occupancy, and are refused by dbscan and problem_setup (docs/ops.md,
+//    tests/ops/test_ops_nonfinite.py); bad host scalars are refused (common/check.h).
 #include <Python.h>
 #include <torch/library.h>
 

@@ -15,6 +15,10 @@ sub-sections; its commands are the lines of its fenced code blocks (``\\`` conti
   its path arguments exist.
 
 Paths given to ``floxels`` itself are the user's data (``flow/00``), not checked.
+
+Also: CI (``.ci/run``) runs the quick start's set-up and test commands, the README links every
+file of docs/, stays a ten-minute read (at most 300 lines), and no heading of the README or of
+docs/ names an issue number (a reader does not know them).
 """
 
 from __future__ import annotations
@@ -121,7 +125,14 @@ def quick_start_commands(path: Path = README) -> list[str]:
         if in_code:
             block.append(line)
     pending = ""
+    heredoc = None  # the end word of a here-document whose body is not a command
     for line in block:
+        if heredoc is not None:
+            heredoc = None if line.strip() == heredoc else heredoc
+            continue
+        m = re.search(r"<<-?\s*['\"]?(\w+)['\"]?", line)
+        if m:
+            heredoc = m.group(1)
         if line.rstrip().endswith("\\"):
             pending += line.rstrip()[:-1] + " "
             continue
@@ -223,3 +234,56 @@ def test_the_checks_catch_mistakes(tmp_path):
     assert _links(md) == ["#quick-start", "#nowhere", "missing.md"]
     assert _anchors(md) == {"quick-start", "sub", "next"}
     assert _slug("Beyond the paper: the `accurate` preset (v2)") == "beyond-the-paper-the-accurate-preset-v2"
+    heredoc = tmp_path / "h.md"  # a here-document's body is not a command
+    heredoc.write_text("# Quick start\n```\npython - <<'PY'\nimport os\nPY\nfloxels demo\n```\n")
+    assert quick_start_commands(heredoc) == ["python - '<<PY'", "floxels demo"]
+
+
+# ----------------------------------------------------------------------------- the rest
+def _ci_commands() -> list[str]:
+    """The commands .ci/run runs after its "README" markers, as the README writes them: without
+    pip's ``-q`` and without leading ``VAR=value`` assignments."""
+    commands, on = [], False
+    for line in (ROOT / ".ci" / "run").read_text().splitlines():
+        if line.startswith("# --- README"):
+            on = True
+            continue
+        if not on or not line.strip() or line.lstrip().startswith("#"):
+            continue
+        words = shlex.split(line, comments=True)
+        while words and re.match(r"^[A-Z_][A-Z0-9_]*=", words[0]):
+            words = words[1:]
+        if words[:2] == ["pip", "install"]:
+            words = [w for w in words if w != "-q"]
+        elif words[:3] == ["python", "-m", "pytest"]:
+            pass
+        else:
+            continue
+        commands.append(shlex.join(words))
+    return commands
+
+
+def test_ci_runs_the_readme_commands():
+    ci = _ci_commands()
+    assert len(ci) >= 3, f".ci/run: expected the set-up (pip) and test (pytest) commands after its README markers, got {ci}"
+    readme = quick_start_commands()
+    missing = [c for c in ci if c not in readme]
+    assert not missing, f".ci/run runs commands the README's quick start does not show: {missing}"
+
+
+def test_readme_links_every_doc():
+    linked = {(README.parent / t.partition("#")[0]).resolve() for t in _links(README) if t.partition("#")[0]}
+    missing = [p.name for p in sorted((ROOT / "docs").glob("*.md")) if p.resolve() not in linked]
+    assert not missing, f"README.md does not link docs/{missing}"
+
+
+def test_readme_is_short():
+    n = len(README.read_text(encoding="utf-8").splitlines())
+    assert n <= 300, f"README.md has {n} lines; move detail into docs/ (at most 300)"
+
+
+@pytest.mark.parametrize("doc", _markdown_files(), ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_no_heading_names_an_issue(doc):
+    bad = [line for line, fenced in _markdown_lines(doc)
+           if not fenced and _HEADING.match(line) and re.search(r"\bissues?\s*#?\d", line, re.I)]
+    assert not bad, f"{doc.name}: headings that name an issue number: {bad}"

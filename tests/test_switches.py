@@ -1,6 +1,6 @@
 """One place for the runtime switches: every FLOXELS_* name used anywhere in the sources is
-listed in floxels_ext.switches and in the README's table, and nothing is listed that no
-source uses any more."""
+listed in floxels_ext.switches and in the table of docs/switches.md, and nothing is listed that
+no source uses any more."""
 
 from __future__ import annotations
 
@@ -37,10 +37,20 @@ def test_every_switch_is_listed():
     assert not listed - used, f"listed in floxels_ext/switches.py but used nowhere: {sorted(listed - used)}"
 
 
-def test_readme_table_lists_every_switch():
-    readme = (ROOT / "README.md").read_text()
-    missing = [s.name for s in SWITCHES if f"`{s.name}`" not in readme]
-    assert not missing, f"README.md's switch table lacks {missing}"
+def _table_names() -> list[str]:
+    """The variables of docs/switches.md's table: its rows' first cells."""
+    text = (ROOT / "docs" / "switches.md").read_text(encoding="utf-8")
+    return re.findall(r"^\|\s*`(FLOXELS_[A-Z0-9_]+)`\s*\|", text, flags=re.M)
+
+
+def test_docs_table_lists_every_switch():
+    rows = _table_names()
+    listed = [s.name for s in SWITCHES]
+    missing = [n for n in listed if n not in rows]
+    assert not missing, f"docs/switches.md's table lacks {missing}"
+    extra = [n for n in rows if n not in listed]
+    assert not extra, f"docs/switches.md's table lists {extra}, which floxels_ext/switches.py does not"
+    assert len(rows) == len(set(rows)), "docs/switches.md's table lists a variable twice"
 
 
 @pytest.mark.parametrize("value,default_on,expected", [(None, True, True), ("0", True, False), ("1", True, True),

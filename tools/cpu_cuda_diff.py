@@ -1,8 +1,8 @@
 """Issue 31: how far the CUDA flow is from the CPU flow on the same input (p50, p99.9, max
 of |flow_cpu - flow_cuda| per point), on a simulated frame and on the Argoverse 2 pair, with
 each path's accuracy against the ground truth, and a check that CUDA gives the same bytes
-twice. Both paths are deterministic; what remains between them is explained in the README
-("Determinism"): contracted arithmetic (fused multiply-adds on the GPU) and the order of
+twice. Both paths are deterministic; what remains between them is explained in docs/determinism.md
+("CPU against CUDA"): contracted arithmetic (fused multiply-adds on the GPU) and the order of
 float sums, which Adam's sign-like first steps amplify into slightly different trajectories.
 
     python tools/cpu_cuda_diff.py                          # GPU host: simulator + AV2 pair

@@ -6,7 +6,7 @@
 // only, per-chunk partial sums in double, chunks summed in order), so the result does
 // not depend on the number of threads. Nothing is allocated besides the outputs.
 // A row whose point or flow has a NaN/inf coordinate makes the loss NaN and gets a zero
-// gradient row (README "Op reference"); the solver, which calls dt_loss::point_loss on
+// gradient row (docs/ops.md); the solver, which calls dt_loss::point_loss on
 // rows that are finite by construction, does not pay for that test.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>

@@ -18,7 +18,7 @@ FLX_HD bool valid_label(int64_t label, int64_t K) { return label >= 0 && label <
 
 // d = f - mean (C values); writes u = d / ||d|| (or 0) and returns ||d||. A non-finite flow
 // (or mean) gives a NaN (or inf) norm, so the loss shows it, and u = 0: returning `sq`
-// instead of 0 costs nothing (README "Op reference", non-finite input).
+// instead of 0 costs nothing (docs/ops.md, non-finite input).
 template <typename T>
 FLX_HD T residual_unit(const T* f, const T* mean, int64_t C, T* u) {
   T sq = T(0);

@@ -1,4 +1,4 @@
-// Finite-ness tests for the ops' non-finite input contract (README "Op reference"), shared by
+// Finite-ness tests for the ops' non-finite input contract (docs/ops.md), shared by
 // the CPU and CUDA kernels. Plain comparisons on values the kernel has already loaded: no
 // function call, no extra pass. (NaN compares false; the build never uses -ffast-math /
 // finite-math-only, which would fold these tests away.)

@@ -5,7 +5,7 @@
 // align_corners=True): the value is that of the nearest border point, and a coordinate gets
 // a gradient only when it lies strictly inside (0, size - 1).
 //
-// Non-finite points (a NaN or +-inf coordinate; README "Op reference"): the gather gives a
+// Non-finite points (a NaN or +-inf coordinate; docs/ops.md): the gather gives a
 // NaN row and a zero points-gradient row, the scatter (and the gather's grid gradient)
 // skips the point. Huge finite coordinates clamp like any outside point: the clamp is done
 // in floating point before the conversion to an index, so no float -> int cast ever sees a

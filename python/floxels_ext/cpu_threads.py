@@ -6,7 +6,7 @@ when other processes keep the cores busy every region waits for its slowest, des
 thread. Measured on the 2-core development machine (``python bench/bench_threads.py``,
 bench/RESULTS.md, "CPU threads"): with the machine loaded by other jobs (load average 12-14)
 the demo frame took 55-58 s with 2 threads and 23 s with 1; on the idle machine 2 threads are
-the faster (2.7 s a frame, README). Results do not depend on the thread count.
+the faster (docs/benchmarks.md, "CPU threads"). Results do not depend on the thread count.
 
 The rule: as many threads as cores the 1-minute load average leaves free (rounded), at least
 1; ``OMP_NUM_THREADS`` set by the user wins, and the library API never changes torch's

@@ -5,7 +5,7 @@ or which kernel runs; results stay the same (to float tolerance), except where a
 otherwise, and those exist in profiling builds only. Python reads its runtime switches with
 :func:`flag` when the work starts (so tests and benchmarks may set them per run); the C++
 ones are read in ``csrc/common/env_switches.h``. ``tests/test_switches.py`` checks that every
-``FLOXELS_*`` name in the sources is listed here and in the README's table.
+``FLOXELS_*`` name in the sources is listed here and in the table of docs/switches.md.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ from floxels_ext import Floxels, FloxelsConfig
 from floxels_ext.estimator.config import PRESETS
 from synthetic_boxes import box_sides
 
-# README "Beyond the paper": the preset's table (issue 33; bench/RESULTS.md measures each entry)
+# docs/accurate.md: the preset's table (issue 33; bench/RESULTS.md measures each entry)
 ACCURATE = {"num_scans": 11, "evidence": "zero", "rigid_refine": True, "refine_max_supports": 2,
             "refine_sided": True, "refine_search": True, "range_mask": True, "visibility": True}
 
@@ -30,7 +30,7 @@ def test_accurate_preset_fields_are_pinned():
     changed = {f.name: getattr(acc, f.name) for f in dataclasses.fields(acc)
                if getattr(acc, f.name) != getattr(paper, f.name)}
     assert changed == ACCURATE  # every other field is the paper's
-    assert acc.velocity_search is False  # measured and left out (README)
+    assert acc.velocity_search is False  # measured and left out (docs/accurate.md)
     assert FloxelsConfig.preset("paper") == paper and PRESETS["paper"] == {}
     assert FloxelsConfig.preset("accurate", num_scans=5).num_scans == 5  # a preset with changes
 
@@ -76,7 +76,7 @@ def test_visibility_stops_static_barriers_following_the_sensor(highway):
 def test_range_mask_rejects_walls_cut_by_each_scans_range():
     """Walls beside a moving sensor, each scan cropped to 3-15 m around its own sensor (the
     street of test_sight.py). Next to ``visibility`` the range band changes nothing here (the
-    range images see the crop too: README), so it is tested in the preset without it: the
+    range images see the crop too: docs/accurate.md), so it is tested in the preset without it: the
     walls keep the sensor's motion unless the band is on."""
     from test_sight import street
 

@@ -27,7 +27,7 @@ def test_paper_settings_are_the_defaults():
     c = FloxelsConfig()
     # Sec. 3.1 "Voxel grid instead of MLP": "a voxel size of 0.5 meters"
     assert c.voxel_size == 0.5
-    # not in the paper: the DT sample spacing of the brief (README: "DT cell 0.1 m")
+    # not in the paper: the DT sample spacing of the brief (docs/api.md: "DT cell 0.1 m")
     assert c.dt_cell == 0.1
     # Sec. 3.2 "Multi-scan distance transform loss": "reject distance transform values beyond 5 meters"
     assert c.truncation == 5.0

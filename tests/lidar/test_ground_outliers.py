@@ -126,7 +126,7 @@ def test_slopes_with_outliers(grade):
 def test_ramp_and_curb():
     """Flat road, a 3 % ramp starting 10 m ahead (1.1 m up at 48 m), a 0.15 m curb on the left.
     (The plane cap bounds the surface at the scene's trimmed plane + 0.5 m: a 6 % ramp from
-    10 m loses ~7 % of its ground, the far end of the ramp; README, "Real data".)"""
+    10 m loses ~7 % of its ground, the far end of the ramp; docs/user-guide.md, "Preprocessing".)"""
     def terrain(x, y):
         return np.where(x > 10, 0.03 * (x - 10), 0.0) + np.where(y > 6, 0.15, 0.0)
 

@@ -3,7 +3,7 @@ argument broken at a time (wrong shape, dtype, device, length; NaN/inf/huge valu
 mismatched tensors; absurd scalars), through the public wrappers and the raw
 ``torch.ops.floxels`` ops. Every call must either raise a clear exception (RuntimeError /
 ValueError / TypeError naming the problem) or return a result that keeps the op's documented
-properties (README "Op reference", non-finite input). Never a crash."""
+properties (docs/ops.md, "Non-finite and extreme input"). Never a crash."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The raw ops' contract for non-finite and extreme input (README "Op reference"): op against
+"""The raw ops' contract for non-finite and extreme input (docs/ops.md, "Non-finite and extreme input"): op against
 reference on NaN / +inf / -inf / +-1e30 coordinates, on CPU and (marked cuda) on CUDA against
 the CPU op; bad host scalars (origin, spacing, ...) raise naming the argument."""
 

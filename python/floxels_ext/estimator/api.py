@@ -142,7 +142,7 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     ``"m/s"`` (needs ``times`` or ``frame_period``). Returns (N_target, 3): numpy float32 for
     numpy input, else a tensor of the input's dtype on the input's device. Rows with NaN/inf
     coordinates are dropped (with a warning) and get NaN flow. ``preset``: ``"paper"`` (the
-    default configuration) or ``"accurate"`` (README "Beyond the paper"), instead of ``config``.
+    default configuration) or ``"accurate"`` (docs/accurate.md), instead of ``config``.
     ``sensor_origins``: each scan's sensor position (x, y, z) in the scans' frame (an (n, 3)
     array, e.g. the translations of the poses that compensated the ego-motion); used by
     ``range_mask`` and ``visibility`` (both on in ``"accurate"``), which without them are skipped

@@ -104,7 +104,7 @@ class FloxelsConfig:
     @classmethod
     def preset(cls, name: str, **changes) -> "FloxelsConfig":
         """A named configuration: ``"paper"`` (the paper's settings, the defaults) or
-        ``"accurate"`` (beyond the paper, README "Beyond the paper"); ``changes`` override
+        ``"accurate"`` (beyond the paper, docs/accurate.md); ``changes`` override
         fields of it."""
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")

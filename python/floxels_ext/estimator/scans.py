@@ -1,6 +1,6 @@
 """Validation and normalisation of the scans handed to the estimators.
 
-Policy for bad input (documented in the README):
+Policy for bad input (documented in docs/bad-input.md):
 * fewer than 2 scans, a target index out of range, scans of different dtypes or kinds
   (numpy vs tensor), or arrays that are not (N, 3) floats: ``ValueError``/``TypeError``;
 * ``times`` (seconds, one per scan, finite, strictly increasing): the scans need not be

@@ -55,7 +55,7 @@ def add_parser(sub) -> None:
     p.add_argument("--preset", default="paper",
                    help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
                         "11 scans, motion evidence judged where each scan could see, rigid refinement of moving "
-                        "clusters from their flow and their searched velocity; README 'Beyond the paper')")
+                        "clusters from their flow and their searched velocity; docs/accurate.md)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
                    "neighbours outside still serve as support scans")

@@ -3,7 +3,7 @@
 The wrappers refuse NaN/inf points with a ValueError. That check costs a reduction (and a
 host sync on CUDA) that the optimiser's hot loop, which calls ``torch.ops.floxels`` directly
 on already-validated tensors, must not pay every iteration; the raw ops instead follow the
-non-finite contract of README "Op reference" (NaN gather rows, scatters ignore the point,
+non-finite contract of docs/ops.md (NaN gather rows, scatters ignore the point,
 losses become NaN), tested in tests/ops/test_ops_nonfinite.py.
 """
 

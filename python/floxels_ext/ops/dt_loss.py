@@ -96,7 +96,7 @@ def dt_loss(points: torch.Tensor, flow: torch.Tensor, dts: Sequence[torch.Tensor
     Each ``dts[k]`` is a float32 (Z, Y, X) distance transform whose sample (0,0,0) sits at
     ``origins[3k:3k+3]``; values interpolated to ``>= truncation`` count as 0 with no gradient.
     NaN/inf points or flows raise ``ValueError`` here; with the raw op such a row makes the
-    loss NaN and gets a zero gradient row (README "Op reference", non-finite input).
+    loss NaN and gets a zero gradient row (docs/ops.md, non-finite input).
 
     Speed: the kernels gather 8 DT samples per point and scan; ordering the points
     spatially (e.g. by voxel index, once per frame) lets neighbouring points share cache

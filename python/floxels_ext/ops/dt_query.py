@@ -6,7 +6,7 @@ No gradient flows through these ops: a backward through one of them raises (they
 evaluation and the rigid refinement's Levenberg-Marquardt loop, which takes its Jacobians from
 ``dt_sample``'s gradients). The wrappers refuse NaN/inf rows (a reduction and, on CUDA, a host
 synchronisation); hot loops call ``torch.ops.floxels.*`` directly on validated tensors, where a
-non-finite row gives NaN (README "Op reference").
+non-finite row gives NaN (docs/ops.md).
 """
 
 from __future__ import annotations

@@ -78,8 +78,8 @@ def trilinear_gather(grid: torch.Tensor, points: torch.Tensor, origin: Sequence[
     Sample (iz, iy, ix) sits at ``origin + (ix, iy, iz) * spacing``. Points outside the
     lattice are clamped to its border like ``grid_sample(padding_mode="border",
     align_corners=True)``: border value, zero gradient for the clamped coordinate.
-    NaN/inf points raise ``ValueError`` here; the raw op gives them a NaN row (README
-    "Op reference", non-finite input).
+    NaN/inf points raise ``ValueError`` here; the raw op gives them a NaN row (docs/ops.md,
+    non-finite input).
     """
     points = as_points(points)
     _check_grid(grid, points)

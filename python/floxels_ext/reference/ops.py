@@ -11,7 +11,7 @@ outside the lattice is clamped to its border, exactly like
 ``grid_sample(padding_mode="border", align_corners=True)``: the value is that of the
 nearest border point and the gradient with respect to the clamped coordinate is zero.
 
-Non-finite input (README "Op reference"): a point with a NaN or +-inf coordinate gives a NaN
+Non-finite input (docs/ops.md): a point with a NaN or +-inf coordinate gives a NaN
 gather row (a constant: zero gradient), is ignored by scatters and occupancy, makes
 ``dt_loss`` NaN (zero gradient row); a non-finite flow makes ``cluster_consistency_loss``
 non-finite; ``dbscan`` and ``problem_setup`` refuse such points. Huge finite coordinates

@@ -1,7 +1,7 @@
 """``floxels export RUN --format opensceneflow OUT``: pseudo-labels in the files OpenSceneFlow's
 trainers read as they are (DeFlow, SeFlow, FastFlow3D with ZeroFlow's distillation loss).
 
-Why this format (README, "Exporting the flow"): it is the one of the three frameworks read for
+Why this format (docs/export.md): it is the one of the three frameworks read for
 this (ZeroFlow, SceneFlowZoo, OpenSceneFlow) whose files carry their own points, ground mask and
 poses. ZeroFlow's pseudo-labels (``<log>/<index>.npz`` with ``flow`` and ``valid_idxes``) index
 into the points left after *its* map-based ground removal of the raw Argoverse 2 files, and
