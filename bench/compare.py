@@ -125,6 +125,7 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
     seq = simulate_sequence(scene, num_frames=num_frames, seed=seed, small=(lidar == "small"), **sim_options)
     rng = np.random.default_rng([seed, 7])
     scans, truth, sensors, grounds = [], [], [], []
+    poses = [fr.pose.astype(np.float64) for fr in seq.frames]
     for fr in seq.frames:
         grounds.append(np.ascontiguousarray(
             fr.points[protocol_mask(fr.points, fr.pose[:3, 3], max_range=max_range) & fr.ground.astype(bool)],
@@ -136,13 +137,14 @@ def load_sim_scene(scene, seed, num_frames, lidar, max_range, max_points, sim_op
         truth.append({"flow": fr.flow[idx].astype(np.float32), "classes": fr.classes[idx].astype(np.int64),
                       "dynamic": fr.dynamic[idx].astype(bool)})
         sensors.append(fr.pose[:3, 3].astype(np.float64))
-    return scans, truth, _sight(sensors, grounds)
+    return scans, truth, _sight(sensors, grounds, poses)
 
 
-def _sight(sensors, grounds) -> dict:
-    """What the Floxels sights read besides the scans: ``sensors`` (each scan's sensor position)
-    and ``ground`` (each scan's removed ground returns, in the scans' frame)."""
-    return {"sensors": sensors, "ground": grounds}
+def _sight(sensors, grounds, poses=None) -> dict:
+    """What the Floxels sights read besides the scans: ``sensors`` (each scan's sensor position),
+    ``ground`` (each scan's removed ground returns, in the scans' frame) and, where known,
+    ``poses`` (each scan's (4, 4) world-from-sensor matrix, for callers of ``poses=``)."""
+    return {"sensors": sensors, "ground": grounds, "poses": poses}
 
 
 def project_ground(points):
@@ -192,7 +194,7 @@ def load_av2_pair(path, max_points=0):
         s0, truth = s0[i0], {k: v[i0] for k, v in truth.items()}
         s1 = s1[np.sort(rng.choice(len(s1), min(max_points, len(s1)), replace=False))]
     return ([np.ascontiguousarray(s0), np.ascontiguousarray(s1)], [truth, None],
-            _sight([np.zeros(3), T[:3, 3].copy()], grounds))
+            _sight([np.zeros(3), T[:3, 3].copy()], grounds, [np.eye(4), T.copy()]))
 
 
 def _sync(dev: str) -> None:

@@ -24,6 +24,7 @@ import torch
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DistanceTransform, EarlyDts
 from floxels_ext.estimator.group import fit_group
+from floxels_ext.estimator.poses import resolve_sensors
 from floxels_ext.estimator.result import HOST_PARTS, FloxelsResult
 from floxels_ext.estimator.scans import check_ground, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
 from floxels_ext.estimator.schedule import serial_stages
@@ -54,14 +55,17 @@ class Floxels:
     def fit(self, scans: Sequence, target: int | None = None,
             dt_cache: dict[int, DistanceTransform | None] | None = None, *,
             times: Sequence[float] | None = None, frame_period: float | None = None,
-            sensor_origins: Sequence | None = None, ground_points: Sequence | None = None) -> FloxelsResult:
+            sensor_origins: Sequence | None = None, ground_points: Sequence | None = None,
+            poses: Sequence | None = None) -> FloxelsResult:
         """Estimate the flow of ``scans[target]`` (default: the middle scan), per frame period.
 
         ``dt_cache`` maps scan index -> distance transform and is filled in place, so that
         callers optimising several targets over the same scans build each DT once.
-        ``times``/``frame_period``/``sensor_origins``/``ground_points``: see :func:`estimate_flow`.
+        ``times``/``frame_period``/``sensor_origins``/``ground_points``/``poses``: see
+        :func:`estimate_flow`.
         """
         t0 = time.perf_counter()
+        sensor_origins = _sensors(scans, sensor_origins, poses)
         cache = dt_cache if dt_cache is not None else {}
         early = EarlyDts(self.config, cache)
         warn_if_no_sensors(self.config, sensor_origins)
@@ -112,6 +116,15 @@ def warn_diverged(cfg: FloxelsConfig, results: list[tuple[str, FloxelsResult]], 
                   DivergedWarning)
 
 
+def _sensors(scans, sensor_origins, poses):
+    """The sensor positions of ``sensor_origins=`` or ``poses=`` (estimator/poses.py)."""
+    if poses is None:
+        return sensor_origins
+    if not hasattr(scans, "__len__"):
+        raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, got {type(scans).__name__}")
+    return resolve_sensors(sensor_origins, poses, len(scans))
+
+
 def _config_of(config: FloxelsConfig | None, preset: str | None) -> FloxelsConfig:
     """The configuration of ``config=`` or ``preset=`` (one of them; neither: the paper's)."""
     if config is not None and not isinstance(config, FloxelsConfig):
@@ -129,7 +142,7 @@ def _config_of(config: FloxelsConfig | None, preset: str | None) -> FloxelsConfi
 def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsConfig | None = None, device=None,
                   *, times: Sequence[float] | None = None, frame_period: float | None = None,
                   flow_unit: str = "frame", preset: str | None = None, sensor_origins: Sequence | None = None,
-                  ground_points: Sequence | None = None):
+                  ground_points: Sequence | None = None, poses: Sequence | None = None):
     """Flow of every point of ``scans[target]``.
 
     ``scans``: 2 to 13 (N_i, 3) float arrays/tensors in one ego-motion-compensated frame;
@@ -143,10 +156,12 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     numpy input, else a tensor of the input's dtype on the input's device. Rows with NaN/inf
     coordinates are dropped (with a warning) and get NaN flow. ``preset``: ``"paper"`` (the
     default configuration) or ``"accurate"`` (docs/accurate.md), instead of ``config``.
-    ``sensor_origins``: each scan's sensor position (x, y, z) in the scans' frame (an (n, 3)
-    array, e.g. the translations of the poses that compensated the ego-motion); used by
-    ``range_mask`` and ``visibility`` (both on in ``"accurate"``), which without them are skipped
-    with a warning. ``ground_points``: each scan's ground returns that preprocessing removed
+    ``poses``: each scan's pose, the (4, 4) world-from-sensor matrix that brought it into the
+    scans' frame (an (n, 4, 4) array; None for an unknown one); ``"accurate"`` derives from them
+    what it needs (the sensor positions, their translations). Or ``sensor_origins``: each scan's
+    sensor position (x, y, z) in the scans' frame (an (n, 3) array). Both only where they agree.
+    Used by ``range_mask`` and ``visibility`` (both on in ``"accurate"``), which without them are
+    skipped with a warning. ``ground_points``: each scan's ground returns that preprocessing removed
     (one (m, 3) array or None per scan, in the scans' frame): ``visibility``'s range images
     count them as returns (a road return behind a place shows it empty); ignored without
     ``visibility`` or without the scan's sensor.
@@ -159,7 +174,7 @@ def estimate_flow(scans: Sequence, target: int | None = None, config: FloxelsCon
     frame_period_of(None, frame_period)  # checks it
     to_unit = _unit_factor(flow_unit, None if times is None else check_times(times, len(scans)), frame_period)
     flow = Floxels(config, device).fit(scans, target, times=times, frame_period=frame_period,
-                                       sensor_origins=sensor_origins, ground_points=ground_points).flow
+                                       sensor_origins=sensor_origins, ground_points=ground_points, poses=poses).flow
     return flow if to_unit == 1.0 else flow * to_unit
 
 
@@ -199,7 +214,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
                       batch_size: int | None = None, *, times: Sequence[float] | None = None,
                       frame_period: float | None = None, flow_unit: str = "frame",
                       preset: str | None = None, sensor_origins: Sequence | None = None,
-                      ground_points: Sequence | None = None) -> list:
+                      ground_points: Sequence | None = None, poses: Sequence | None = None) -> list:
     """Flow of every frame of a sequence (or of ``frames``) with a sliding window of
     ``config.num_scans`` scans. Each scan's distance transform is built once and reused by
     every window that needs it (and freed once no later window does).
@@ -218,8 +233,9 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     Returns a list with one flow per requested frame (numpy float32 for numpy input).
     ``callback(frame, result)`` is called after each frame (e.g. to write it to disk), with
     ``result.flow`` in ``flow_unit``. ``preset``: a named configuration instead of ``config``
-    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 11-scan windows). ``sensor_origins``,
-    ``ground_points``: each scan's sensor position and removed ground, as in :func:`estimate_flow`.
+    (:meth:`FloxelsConfig.preset`; ``"accurate"`` uses 11-scan windows). ``poses`` (or
+    ``sensor_origins``), ``ground_points``: each scan's pose (or sensor position) and removed
+    ground, as in :func:`estimate_flow`.
     """
     cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:
@@ -233,6 +249,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
         raise ValueError(f"a sequence needs at least 2 scans, got {n}")
     if times is not None:
         times = check_times(times, n)
+    sensor_origins = resolve_sensors(sensor_origins, poses, n)
     if sensor_origins is not None and len(sensor_origins) != n:
         check_sensors(sensor_origins, n)  # raises, naming the counts
     if ground_points is not None and len(ground_points) != n:

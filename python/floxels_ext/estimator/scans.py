@@ -310,8 +310,8 @@ def warn_if_no_sensors(cfg, sensors) -> None:
     """The warning that ``range_mask``/``visibility`` are skipped: no ``sensor_origins``."""
     if (cfg.range_mask or cfg.visibility) and sensors is None:
         warn_user("range_mask and visibility (on in the 'accurate' preset) need sensor_origins= (each scan's "
-                  "sensor position, e.g. its pose's translation); without them every support scan counts "
-                  "everywhere in the evidence test, as without these options")
+                  "sensor position) or poses= (each scan's (4, 4) world-from-sensor pose); without them every "
+                  "support scan counts everywhere in the evidence test, as without these options")
 
 
 def _finite_rows(scans: list[torch.Tensor], dev: torch.device, indices: list[int], is_target: list[bool],
