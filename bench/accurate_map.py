@@ -96,7 +96,7 @@ class Runner:
     def __init__(self, args):
         self.args, self.dev = args, args.device
         self.cache = None if args.no_cache else Path(args.cache)
-        self.code = source_hash()
+        self.code = args.code_tag or source_hash()
         self.warm: set[str] = set()
 
     def key(self, case, label, cfg, frame) -> str:
@@ -256,6 +256,8 @@ def parse_args(argv=None):
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per computed case (median)")
     ap.add_argument("--cache", default=str(HERE / "results" / "accurate_map_cache"))
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--code-tag", default=None, help="cache key of the code of rows other than paper (default: a "
+                    "hash of the estimator's and ops' sources)")
     ap.add_argument("--json", default=str(HERE / "results" / "accurate_map.json"))
     args = ap.parse_args(argv)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
