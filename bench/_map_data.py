@@ -60,10 +60,20 @@ def scored_frames(length: int, spec: str) -> list[int]:
 
 
 def sim_case(scene: str, seed: int, beams: int, length: int, frames_spec: str, max_range: float = 50.0,
-             azimuth: int = 2048) -> Case:
-    """A simulated sequence: ``beams`` x ``azimuth`` lidar, the paper's protocol crop."""
-    scans, truth, sight = load_sim_scene(scene, seed, length, "full", max_range, 0,
-                                         {"beams": beams, "azimuth_steps": azimuth})
+             azimuth: int = 2048, cache: Path | None = None) -> Case:
+    """A simulated sequence: ``beams`` x ``azimuth`` lidar, the paper's protocol crop. ``cache``: a
+    directory keeping each simulated sequence (a pickle; the simulator is deterministic)."""
+    import pickle
+
+    path = None if cache is None else Path(cache) / f"sim_{scene}_{seed}_{beams}_{length}_{azimuth}_{max_range:g}.pkl"
+    if path is not None and path.exists():
+        scans, truth, sight = pickle.loads(path.read_bytes())
+    else:
+        scans, truth, sight = load_sim_scene(scene, seed, length, "full", max_range, 0,
+                                             {"beams": beams, "azimuth_steps": azimuth})
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(pickle.dumps((scans, truth, sight)))
     frames = scored_frames(length, frames_spec)
     return Case(f"sim/b{beams}/L{length}/{scene}/s{seed}", scans, sight["sensors"], sight["poses"], sight["ground"],
                 frames, {"source": "sim", "beams": beams, "length": length, "scene": scene, "seed": seed},

@@ -101,7 +101,8 @@ class Runner:
 
     def key(self, case, label, cfg, frame) -> str:
         paper = cfg.replace(max_iters=FloxelsConfig.max_iters) == FloxelsConfig()
-        blob = json.dumps([case.key, frame, dataclasses.asdict(cfg), self.args.pass_, self.dev.split(":")[0],
+        changed = {k: v for k, v in dataclasses.asdict(cfg).items() if v != getattr(FloxelsConfig, k)}
+        blob = json.dumps([case.key, frame, changed, self.args.pass_, self.dev.split(":")[0],
                            None if paper else self.code], default=str, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:20]
 
@@ -292,7 +293,8 @@ def main(argv=None) -> int:
         print(f"  {case.key}: frames {case.frames} [{time.perf_counter() - t_all:.0f} s]", flush=True)
 
     for sc, sd, b, n in specs:
-        run(sim_case(sc, sd, b, n, args.frames, args.max_range, args.azimuth))
+        run(sim_case(sc, sd, b, n, args.frames, args.max_range, args.azimuth,
+                     None if args.no_cache else Path(args.cache) / "sim"))
     if "av2" in args.real:
         run(av2_case())
     if "kitti" in args.real:

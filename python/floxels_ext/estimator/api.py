@@ -282,7 +282,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     for b in _batches(frames, batch_size, ramp=pipelined and flag("FLOXELS_RAMP")):
         batches.append([])
         for f in b:
-            start, stop = window_for(f, n, cfg.num_scans)
+            start, stop = window_for(f, n, cfg.num_scans, cfg.max_offset)
             batches[-1].append(Window(f, start, stop, None if times is None else times[start:stop], period))
     # the lowest scan a later window reads (frames may come in any order): DTs below it are freed
     low = [math.inf] * (len(batches) + 1)

@@ -35,6 +35,9 @@ class FloxelsConfig:
     truncation: float = 5.0          # DT values >= this count as 0 (no gradient)
     # multi-scan loss
     num_scans: int = 5               # window length used by estimate_sequence (target + supports)
+    max_offset: int = 0              # estimate_sequence: support scans at most this many frames from
+                                     # the target (0: any); the windows at a sequence's ends, shifted
+                                     # inwards, are then shorter (issue 47)
     time_weight_power: float = 2.0   # w(t) = 1 / |t|^power  (paper: 1/t^2)
     lambda_d: float = 1.0
     # regularisers
@@ -44,7 +47,8 @@ class FloxelsConfig:
     lambda_g_start: float = 0.1
     lambda_g_end: float = 0.01
     lambda_g_decay_iters: int = 100
-    reg_scale: str = "support"       # "support" (S) or "paper" (2m - 1)
+    reg_scale: str = "support"       # "support" (S), "paper" (2m - 1) or "weights" (the window's summed
+                                     # time weights, 4 for the paper's centred 5 scans; issue 47)
     # clustering (DBSCAN on the target scan)
     dbscan_eps: float = 0.5
     dbscan_min_samples: int = 4
@@ -78,6 +82,11 @@ class FloxelsConfig:
     evidence_margin: float = 0.02    # metres of mean DT residual the flow must remove (lidar range
                                      # noise: a smaller gain is no evidence)
     evidence_ratio: float = 0.05     # and this share of the zero-flow residual (far, sparse groups)
+    # With the sights (range_mask / visibility, issue 47; evidence.seen_evidence): each group judged
+    # on the support scans that saw its points (their weighted mean residual, not a share of all
+    # scans' weights), and groups no support scan saw keep their flow (no evidence either way)
+    evidence_seen_mean: bool = False
+    evidence_keep_unseen: bool = False
 
     # ---- beyond the paper (issue 33; the "accurate" preset, estimator/refine.py) ----------
     # Off in the paper's configuration (results bit for bit as before).
@@ -100,6 +109,11 @@ class FloxelsConfig:
     refine_search: bool = False      # ... started also from each moving cluster's searched velocity
                                      # (the velocity search over the refined clusters), keeping the
                                      # lower-cost motion: the loop is local (refine.rigid_refine)
+    refine_level: bool = False       # ... also solved with no vertical velocity, the lower cost kept
+                                     # (refine.rigid_refine; issue 47)
+    refine_spread: float = 0.0       # m: the accepted rigid motions offered to the points within this
+                                     # distance of their clusters (the rest of a far or sparse object:
+                                     # estimator/spread.py; 0: off; issue 47)
 
     @classmethod
     def preset(cls, name: str, **changes) -> "FloxelsConfig":
@@ -133,6 +147,10 @@ class FloxelsConfig:
             v = getattr(self, n)
             if v < 1:
                 raise ValueError(f"FloxelsConfig.{n} must be a positive integer, got {v!r}")
+        if self.max_offset < 0:
+            raise ValueError(f"FloxelsConfig.max_offset must be an integer >= 0 (0: any offset), got {self.max_offset!r}")
+        if not (math.isfinite(self.refine_spread) and 0 <= self.refine_spread <= 10):
+            raise ValueError(f"FloxelsConfig.refine_spread must lie in [0, 10] m (0: off), got {self.refine_spread!r}")
         if self.refine_max_supports < 0:
             raise ValueError(f"FloxelsConfig.refine_max_supports must be an integer >= 0 (0: every window), "
                              f"got {self.refine_max_supports!r}")
@@ -141,8 +159,8 @@ class FloxelsConfig:
                              f"got {self.lambda_g_decay_iters!r}")
         if not 2 <= self.num_scans <= 13:
             raise ValueError(f"FloxelsConfig.num_scans must be in [2, 13], got {self.num_scans}")
-        if self.reg_scale not in ("support", "paper"):
-            raise ValueError(f"FloxelsConfig.reg_scale must be 'support' or 'paper', got {self.reg_scale!r}")
+        if self.reg_scale not in ("support", "paper", "weights"):
+            raise ValueError(f"FloxelsConfig.reg_scale must be 'support', 'paper' or 'weights', got {self.reg_scale!r}")
         self._check_readings()
         b1, b2 = self.adam_betas
         if not (0 <= b1 < 1 and 0 <= b2 < 1):
@@ -202,9 +220,20 @@ class FloxelsConfig:
         unequally spaced scans give non-integer offsets)."""
         return 1.0 / abs(t) ** self.time_weight_power
 
-    def regulariser_scale(self, num_support: int) -> float:
+    def regulariser_scale(self, num_support: int, offsets=None) -> float:
+        """The regularisers' factor for a window of ``num_support`` support scans at time
+        offsets ``offsets`` (frame periods; read by ``reg_scale="weights"`` only)."""
         if self.reg_scale == "support":
             return float(num_support)
+        if self.reg_scale == "weights":
+            # the paper scales the regularisers "similarly" to the data term, which sums the time
+            # weights: with 1/t^2 the 11-scan window's data term is 1.17x the 5-scan one's, not
+            # 2.5x, and a count over-regularised it (a parking lot: no flow at all, bench/RESULTS.md
+            # issue 47). Normalised so that the paper's centred 5-scan window gets its 4.
+            if offsets is None:
+                raise ValueError("reg_scale='weights' needs the window's time offsets")
+            ref = sum(self.time_weight(t) for t in (-2, -1, 1, 2))
+            return 4.0 * sum(self.time_weight(t) for t in offsets) / ref
         # paper: (2m - 1) with 2m support scans
         return float(max(num_support - 1, 1))
 

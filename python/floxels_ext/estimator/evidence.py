@@ -147,13 +147,19 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
 def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
                  dts: Sequence[torch.Tensor], origins: Sequence[Sequence[float]], offsets: Sequence[float],
                  weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.02,
-                 ratio: float = 0.05, observed: torch.Tensor | None = None) -> MotionEvidence:
+                 ratio: float = 0.05, observed: torch.Tensor | None = None, seen_mean: bool = False,
+                 keep_unseen: bool = False, occluded: torch.Tensor | None = None) -> MotionEvidence:
     """:func:`motion_evidence` for groups that are runs of consecutive points: equal ``labels``
     (DBSCAN, (N,) int32/int64) and, for label -1 (or ``labels`` None), equal ``cells`` ((N,)
     int32/int64, any stride: e.g. the compact index of each point's lower flow-grid corner) --
     the groups of :func:`group_ids` on points in the solver's (cluster, cell) order, without
     computing the ids. One ``floxels::dt_evidence`` call (no input checks here: the estimator's
-    points are validated, at most 32 support scans)."""
+    points are validated, at most 32 support scans).
+
+    With ``observed`` (the sights): ``seen_mean`` judges each group on the support scans that saw
+    its points (:func:`seen_evidence`), ``keep_unseen`` keeps the flow of groups no support scan
+    saw because something stood in front of them (``occluded``: the sights' bits of the scans
+    with a nearer return; no evidence either way)."""
     n = points.shape[0]
     dev = points.device
     if n == 0 or not dts:
@@ -164,4 +170,59 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
         points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells, list(dts),
         [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
         [float(w) / wsum for w in weights], float(truncation), float(margin), float(ratio), observed)
+    if observed is not None and (seen_mean or keep_unseen):
+        return seen_evidence(score, explained, rf, rz, labels, cells, observed, [float(w) / wsum for w in weights],
+                             margin=margin, ratio=ratio, seen_mean=seen_mean, keep_unseen=keep_unseen,
+                             occluded=occluded)
+    return MotionEvidence(score, explained, rf, rz)
+
+
+def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *, margin: float, ratio: float,
+                  seen_mean: bool, keep_unseen: bool, occluded: torch.Tensor | None = None) -> MotionEvidence:
+    """The evidence of :func:`run_evidence` judged on what the support scans saw.
+
+    ``floxels::dt_evidence`` sums each point's residual over the scans that saw it, weighted
+    by the loss weights normalised over *all* support scans: a point seen only by far scans (low
+    weight) gets a residual, and a gain, a fraction of one seen by the nearest scans, and cannot
+    pass the margin (a car approaching from behind, at the first frame of a sequence: its old
+    place is hidden by the car itself in every later scan, only the edges seen). ``seen_mean``:
+    the group's residuals divided by its points' mean weight share of the scans that saw them
+    (a weighted mean over what was seen); the test as before on those. ``keep_unseen``: a group
+    that no support scan saw, most of whose points some scan shows hidden behind a nearer return
+    (``occluded`` bits; every group no scan saw without them), keeps its flow (the optimiser's: no
+    evidence for or against it; zeroed before, which took the motion of such cars). Not a group
+    out of the beams' reach: the visible band of a barrier that follows the sensor lies between
+    a 32-beam lidar's rings in the other scans (empty directions), and keeping its flow raised the
+    highway's static EPE tenfold. ``weights``: the op's (normalised) weights. Groups are runs (as
+    the op's); float64 prefix sums differenced at the run ends, so the same bits on every run."""
+    n = rf.shape[0]
+    k = len(weights)
+    bits = (observed[:, None] >> torch.arange(k, dtype=torch.int32, device=observed.device)) & 1
+    share = bits.to(torch.float64) @ torch.tensor(weights, dtype=torch.float64, device=observed.device)
+    lab = labels.long() if labels is not None else torch.full((n,), -1, dtype=torch.long, device=rf.device)
+    same = (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | (cells[1:].long() == cells[:-1].long()))
+    one = torch.ones(min(n, 1), dtype=torch.bool, device=rf.device)
+    idx = torch.arange(n, device=rf.device)
+    # each point's run [first, last] (no host synchronisation: running maxima and minima)
+    first = torch.cummax(torch.where(torch.cat([one, ~same]), idx, torch.zeros_like(idx)), 0).values
+    last = torch.cummin(torch.where(torch.cat([~same, one]), idx, torch.full_like(idx, n)).flip(0), 0).values.flip(0)
+    count = (last - first + 1).to(torch.float64)
+
+    def run_mean(v: torch.Tensor) -> torch.Tensor:  # each point's group mean of v (float64)
+        cs = torch.cumsum(v, 0)
+        return (cs[last] - torch.where(first > 0, cs[(first - 1).clamp_min(0)], torch.zeros_like(v))) / count
+
+    mean_share = run_mean(share)
+    seen = mean_share > 0
+    if seen_mean:
+        div = torch.where(seen, mean_share, torch.ones_like(mean_share))
+        rf = (rf.to(torch.float64) / div).to(rf.dtype)
+        rz = (rz.to(torch.float64) / div).to(rz.dtype)
+        score = rz - rf
+        explained = score > torch.clamp(rz * ratio, min=margin)
+    if keep_unseen:
+        hidden = ~seen
+        if occluded is not None:
+            hidden &= run_mean((occluded != 0).to(torch.float64)) >= 0.5
+        explained = explained | hidden
     return MotionEvidence(score, explained, rf, rz)

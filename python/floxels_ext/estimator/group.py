@@ -17,11 +17,10 @@ import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import build_dt
-from floxels_ext.estimator.evidence import MotionEvidence, run_evidence
-from floxels_ext.estimator.refine import cluster_velocity_search, rigid_refine, supports_of, vertex_init
+from floxels_ext.estimator.post import after_optimisation, problem_evidence, problem_observed
+from floxels_ext.estimator.refine import cluster_velocity_search, supports_of, vertex_init
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
-from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.solver_run import SolverRun
 from floxels_ext.estimator.schedule import EdtStreams, GpuMarks, PrepareSchedule, receive
 from floxels_ext.ops.grid import grid_from_bounds, point_bounds
@@ -172,7 +171,7 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
         # group was tried and measured no faster: bench/RESULTS.md "Where floxels run waits".)
         st = problem_setup(P, lab, g_origin, cfg.voxel_size, g_shape, SEGMENT_TILE)
         problems.append(SolverProblem(st.points, st.corners, st.labels, dts, origins, offsets, weights,
-                                      cfg.regulariser_scale(len(prep.supports)), st.num_clusters, st.segments,
+                                      cfg.regulariser_scale(len(prep.supports), prep.offsets), st.num_clusters, st.segments,
                                       sights))
         orders.append(st.order)
         grids.append(g_origin)
@@ -232,23 +231,12 @@ class Solving:
                 continue
             p = pr.problems[k]
             flow_s = F.corner_gather(solved[k], p.corners.corner_idx, p.corners.corner_w)
+            flow_s, ev = after_optimisation(cfg, p, flow_s)  # the evidence test, the refinement
             if evidence is not None:
-                ev = problem_evidence(cfg, p, flow_s)
-                if cfg.evidence == "zero":
-                    flow_s = ev.apply(flow_s)
                 ev_k = torch.empty(len(flow_s), 2, dtype=torch.float32, device=flow_s.device)
                 ev_k[pr.orders[k], 0] = ev.score
                 ev_k[pr.orders[k], 1] = ev.explained.to(torch.float32)
                 evidence.append(ev_k)
-            # after the evidence test: the refinement must not revive a group the scans gave no
-            # evidence of motion (static structure seen in a band that moves with the sensor is
-            # fitted *better* by a rigid motion: simulated highway, static EPE 0.52 -> 0.99 when
-            # the test judged the refined flow); the verdict stays the optimiser flow's
-            short = cfg.refine_max_supports <= 0 or len(p.dts) <= cfg.refine_max_supports
-            if cfg.rigid_refine and (short or cfg.refine_sided):
-                flow_s = rigid_refine(p.points, flow_s, p.labels,
-                                      supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell),
-                                      num_clusters=p.num_clusters, sided=not short, search=cfg.refine_search)
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
             flows.append(flow)
@@ -295,23 +283,6 @@ class Solving:
             for res, (score, explained) in zip(results, ev_outs):
                 res.evidence, res.explained = score, explained
         return results
-
-
-def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Tensor) -> MotionEvidence:
-    """:func:`~floxels_ext.estimator.evidence.motion_evidence` of one solved problem (rows in
-    the solver's order: sorted by (cluster, flow-grid cell), so the groups, clusters and the
-    unclustered points' cells, are runs), on the distance transforms its loss used: one
-    ``floxels::dt_evidence`` call (:func:`~floxels_ext.estimator.evidence.run_evidence`)."""
-    # cells: the compact index of each point's lower flow-grid corner (one per cell)
-    return run_evidence(problem.points, flow, problem.labels, problem.corners.corner_idx[:, 0], problem.dts,
-                        problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
-                        truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
-                        observed=problem_observed(problem))
-
-
-def problem_observed(problem: SolverProblem) -> torch.Tensor | None:
-    """(n,) int32 observed bits of a problem's points (estimator/sight.py), or None."""
-    return None if problem.sights is None else observed_bits(problem.points, problem.sights)
 
 
 def _groups(live: list[int], problems: list) -> list[list[int]]:

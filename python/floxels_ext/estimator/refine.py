@@ -33,7 +33,8 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Support", "supports_of", "robust_residual", "cluster_velocity_search", "vertex_init", "rigid_refine"]
+__all__ = ["Support", "supports_of", "robust_residual", "cluster_velocity_search", "vertex_init", "rigid_refine",
+           "RigidMotions"]
 
 F = torch.ops.floxels
 
@@ -240,9 +241,57 @@ def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor
                          None if observed is None else observed.contiguous())
 
 
+class _LevenbergMarquardt:
+    """``floxels::rigid_lm`` on the sample rows ``q`` (grouped by cluster ``cid``, C clusters); with
+    ``level`` every cluster is solved twice in one call, with its vertical velocity and with none
+    (its rows repeated as cluster C + c), and the lower cost kept."""
+
+    def __init__(self, q, rel, cid, C: int, packed, tau: float, iters: int, level: bool):
+        self.C, self.packed, self.tau, self.iters, self.level = C, packed, float(tau), int(iters), level
+        if level:
+            q, rel, cid = torch.cat([q, q]), torch.cat([rel, rel]), torch.cat([cid, cid + C])
+        self.q, self.rel, self.segments = q, rel, _segments(cid, 2 * C if level else C)
+
+    def solve(self, start: torch.Tensor, vz: torch.Tensor):
+        """(theta (C, 3), cost (C,), vertical velocity (C,)) from ``start`` (C, 3)."""
+        dts, origins, spacing, ts, wn = self.packed
+        if not self.level:
+            theta, cur = F.rigid_lm(self.q, self.rel, self.segments, start, vz, dts, origins, spacing, ts, wn,
+                                    self.tau, self.iters)
+            return theta, cur, vz
+        C = self.C
+        theta, cur = F.rigid_lm(self.q, self.rel, self.segments, torch.cat([start, start]),
+                                torch.cat([vz, torch.zeros_like(vz)]), dts, origins, spacing, ts, wn, self.tau,
+                                self.iters)
+        flat = cur[C:] < cur[:C]
+        return (torch.where(flat[:, None], theta[C:], theta[:C]), torch.where(flat, cur[C:], cur[:C]),
+                torch.where(flat, torch.zeros_like(vz), vz))
+
+
+@dataclass
+class RigidMotions:
+    """What :func:`rigid_refine` kept: per cluster (C rows) whether its rigid motion was accepted,
+    the motion (vx, vy, yaw rate) about its sample points' centroid ``cen`` with vertical velocity
+    ``vz``; its sample rows ``q`` (grouped by cluster ``cid``); per point, ``take``: the point's
+    flow is its cluster's accepted rigid motion."""
+
+    accept: torch.Tensor
+    theta: torch.Tensor
+    cen: torch.Tensor
+    vz: torch.Tensor
+    q: torch.Tensor
+    cid: torch.Tensor
+    take: torch.Tensor
+
+    def motion_at(self, points: torch.Tensor, cluster: torch.Tensor) -> torch.Tensor:
+        """Per-point motion (m, 3) of the rigid motions of clusters ``cluster`` (m,) at ``points``."""
+        return _planar(self.theta[cluster], points - self.cen[cluster], self.vz[cluster])
+
+
 def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, supports: list[Support],
                  tau: float = TAU, min_speed: float = REFINE_MIN_SPEED, iters: int = REFINE_ITERS,
-                 num_clusters: int | None = None, sided: bool = False, search: bool = False) -> torch.Tensor:
+                 num_clusters: int | None = None, sided: bool = False, search: bool = False,
+                 motions: bool = False, level: bool = False):
     """The flow (n, 3) with every moving cluster (mean flow >= ``min_speed`` m/frame)
     replaced by its best planar rigid motion (horizontal translation v and yaw rate w about
     the cluster's centroid c: u(p) = v + w z x (p - c) per frame, the vertical velocity kept
@@ -272,20 +321,27 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     Every cluster is solved at once by ``floxels::rigid_lm`` (kernels/rigid_lm.h: per step the
     clusters' normal equations from one look-up per support scan, sums in a fixed order, and a
     closed-form 3 x 3 solve; on CUDA one launch for every cluster and step); the only host
-    synchronisation is the number of sample points (plus ``labels.max()`` without ``num_clusters``)."""
+    synchronisation is the number of sample points (plus ``labels.max()`` without ``num_clusters``).
+
+    ``motions``: return ``(flow, RigidMotions or None)`` (what was kept, for
+    estimator/spread.py). ``level`` (``FloxelsConfig.refine_level``): each start is also solved
+    with no vertical velocity, and the lower cost kept: the optimiser's mean vertical flow of a
+    fast, far mover can be off by decimetres a frame (a highway truck: 0.47 m/frame), which no
+    horizontal motion then fits."""
+    none = (flow, None) if motions else flow
     if labels is None or points.shape[0] == 0 or not supports:
-        return flow
+        return none
     lab = labels.to(torch.int64)
     C = int(num_clusters) if num_clusters is not None else (int(lab.max()) + 1 if lab.numel() else 0)
     if C <= 0:
-        return flow
+        return none
     dev, dt = points.device, points.dtype
     mean_flow, size = _cluster_means(flow, lab, C)
     sel = (mean_flow[:, :2].norm(dim=1) >= min_speed) & (size >= MIN_CLUSTER_POINTS)
     lab = torch.where((lab >= 0) & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
     rows = _subsample(lab, C, torch.where(sel, size, torch.zeros_like(size)).to(torch.int64), REFINE_POINTS)
     if rows.numel() == 0:  # (the one host synchronisation)
-        return flow
+        return none
     q, cid = points[rows], lab[rows]
     segments = _segments(cid, C)
     n = segments.diff().clamp_min(1).to(dt)  # sample points per cluster
@@ -301,13 +357,15 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     dts, origins, spacing, ts, ws = _packed(supports)
     wn = [w / wsum for w in ws]
     rel, vz = rel.contiguous(), vz.contiguous()
-    theta, cur = F.rigid_lm(q, rel, segments, theta, vz, dts, origins, spacing, ts, wn, float(tau), int(iters))
+    lm = _LevenbergMarquardt(q, rel, cid, C, (dts, origins, spacing, ts, wn), tau, iters, level)
+    theta, cur, vz = lm.solve(theta, vz)
     if search:  # the second start: the searched velocity (the search of cluster_velocity_search)
         best = _search(q, segments, None, supports, tau)[0]
         start = torch.cat([best[:, :2].to(dt), torch.zeros(C, 1, device=dev, dtype=dt)], 1)
-        theta_s, cur_s = F.rigid_lm(q, rel, segments, start, vz, dts, origins, spacing, ts, wn, float(tau), int(iters))
+        theta_s, cur_s, vz_s = lm.solve(start, mean_flow[:, 2].contiguous())
         lower = sel & (cur_s < cur)
         theta, cur = torch.where(lower[:, None], theta_s, theta), torch.where(lower, cur_s, cur)
+        vz = torch.where(lower, vz_s, vz)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
     zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
@@ -321,4 +379,5 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     cl = lab.clamp_min(0)
     take = (lab >= 0) & accept[cl]
     rigid = _planar(theta[cl], points - cen[cl], vz[cl])
-    return torch.where(take[:, None], rigid, flow)
+    out = torch.where(take[:, None], rigid, flow)
+    return (out, RigidMotions(accept, theta, cen, vz, q, cid, take)) if motions else out

@@ -89,16 +89,22 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
     return Sight(s, b, img)
 
 
-def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Tensor:
+def observed_bits(points: torch.Tensor, sights: list[Sight | None], occluded: bool = False):
     """(n,) int32: bit k set where support scan k could see the point's position (a scan
     without a sight counts everywhere); the ``observed`` of ``floxels::dt_evidence`` /
     ``dt_residual``. The scans are tested together, a few at a time (CHUNK_ELEMENTS): one scan
     at a time, the ~20 small launches per scan (120-240 a window of the accurate preset) kept
     the optimiser thread busy while the GPU idled (``floxels run``, bench/RESULTS.md). Each
-    element's arithmetic is that of one scan alone: the same bits."""
+    element's arithmetic is that of one scan alone: the same bits.
+
+    ``occluded``: also (second of a pair) the bits of the scans whose range image has a return
+    *nearer* than the point in its direction (something stood in front of the place: it was
+    hidden, not out of the beams' reach), from the same look-ups (issue 47: a group that no scan
+    saw because each showed something in front of it keeps its flow)."""
     p = points.to(torch.float32)
     n = p.shape[0]
     bits = torch.zeros(n, dtype=torch.int32, device=p.device)
+    hidden = torch.zeros(n, dtype=torch.int32, device=p.device)
     for k, s in enumerate(sights):
         if s is None:  # (bit 31 wraps to the sign bit, as the kernels read it)
             bits |= torch.ones(n, dtype=torch.int32, device=p.device) << k
@@ -106,15 +112,19 @@ def observed_bits(points: torch.Tensor, sights: list[Sight | None]) -> torch.Ten
     step = max(1, CHUNK_ELEMENTS // max(n, 1))
     for c in range(0, len(have), step):
         ks = have[c:c + step]
-        bits |= _seen(p, [sights[k] for k in ks], ks)
-    return bits
+        seen, front = _seen(p, [sights[k] for k in ks], ks)
+        bits |= seen
+        hidden |= front
+    return (bits, hidden) if occluded else bits
 
 
-def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> torch.Tensor:
-    """(n,) int32 with bit ks[j] set where sights[j] saw the point (see :func:`observed_bits`)."""
+def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n,) int32 with bit ks[j] set where sights[j] saw the point (see :func:`observed_bits`),
+    and (n,) int32 with it set where its range image has a nearer return in the point's direction."""
     n, K = p.shape[0], len(sights)
     rel = p[None] - torch.stack([s.sensor for s in sights])[:, None]  # (K, n, 3)
     ok = torch.ones(K, n, dtype=torch.bool, device=p.device)
+    front = torch.zeros(K, n, dtype=torch.bool, device=p.device)
     band = [j for j, s in enumerate(sights) if s.band is not None]
     if band:
         lim = torch.stack([sights[j].band for j in band])  # (B, 2)
@@ -125,6 +135,11 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> torch.Tensor:
         imgs = torch.stack([sights[j].image for j in image])  # (I, bins)
         idx, rr = _bins(rel[image].reshape(-1, 3))
         idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
-        ok[image] &= imgs.view(-1)[idx] >= rr.view(len(image), n) - SEEN_MARGIN
+        ret = imgs.view(-1)[idx]
+        near = rr.view(len(image), n) - SEEN_MARGIN
+        ok[image] &= ret >= near
+        front[image] = (ret >= 0) & (ret < near)
     shifts = device_values(ks, torch.int32, p.device)[:, None]
-    return (ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32)  # distinct bits: the sum is their OR
+    # distinct bits: the sums are their ORs
+    return ((ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32),
+            (front.to(torch.int32) << shifts).sum(0, dtype=torch.int32))

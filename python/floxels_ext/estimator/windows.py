@@ -66,19 +66,23 @@ class Window:
     segment: int = 0  # windows of one segment share one re-centring shift (its first scan index)
 
 
-def window_for(frame: int, num_frames: int, num_scans: int) -> tuple[int, int]:
+def window_for(frame: int, num_frames: int, num_scans: int, max_offset: int = 0) -> tuple[int, int]:
     """[start, stop) of the window of ``num_scans`` scans used for ``frame``: centred on it,
-    shifted inwards at the ends of the sequence (so the target may be the first/last scan)."""
+    shifted inwards at the ends of the sequence (so the target may be the first/last scan);
+    ``max_offset`` > 0: cut to the scans at most that many frames from ``frame``."""
     w = min(num_scans, num_frames)
     start = min(max(frame - w // 2, 0), num_frames - w)
+    if max_offset > 0:
+        return max(start, frame - max_offset), min(start + w, frame + max_offset + 1)
     return start, start + w
 
 
-def segment_window(frame: int, seg: Segment, num_scans: int, period: float | None = None) -> Window:
+def segment_window(frame: int, seg: Segment, num_scans: int, period: float | None = None,
+                   max_offset: int = 0) -> Window:
     """The window of stream index ``frame`` within its segment (as over the segment alone)."""
     if not seg.lo <= frame < seg.hi:
         raise IndexError(f"target {frame} is outside its segment [{seg.lo}, {seg.hi})")
-    s, e = window_for(frame - seg.lo, seg.hi - seg.lo, num_scans)
+    s, e = window_for(frame - seg.lo, seg.hi - seg.lo, num_scans, max_offset)
     times = None if seg.times is None else list(seg.times[s:e])
     if times is not None and period is None:
         period = frame_period_of(list(seg.times))
@@ -197,7 +201,7 @@ def estimate_stream(scans: Sequence, targets: Iterable[tuple[int, Segment]], con
             if seg.times is not None and seg not in periods:
                 periods.clear()  # one segment at a time: its period computed once
                 periods[seg] = frame_period_of(list(seg.times))
-            yield segment_window(frame, seg, cfg.num_scans, periods.get(seg))
+            yield segment_window(frame, seg, cfg.num_scans, periods.get(seg), cfg.max_offset)
 
     batches = _stream_batches(windows(), batch_size, ramp=pipelined and flag("FLOXELS_RAMP"))
     warn_if_no_sensors(cfg, sensors)

@@ -93,7 +93,7 @@ def reference_estimate_flow(scans: Sequence, target: int | None = None, config: 
     g_origin, g_shape = grid_for_points(P, cfg.voxel_size, cfg.voxel_size, max_cells=1 << 31)
     grid = torch.nn.Parameter(torch.zeros(1, 3, *g_shape, device=dev))
     opt = torch.optim.Adam([grid], lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps)
-    scale = cfg.regulariser_scale(len(prep.supports))
+    scale = cfg.regulariser_scale(len(prep.supports), prep.offsets)
     if labels is not None:
         keep = labels >= 0
         lab = labels[keep]

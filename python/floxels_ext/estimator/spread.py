@@ -1,0 +1,80 @@
+"""Spreading the refined rigid motions to the rest of their objects (``FloxelsConfig.refine_spread``,
+the ``accurate`` preset; issue 47).
+
+DBSCAN (eps 0.5 m, the paper's) splits a far or sparsely sampled vehicle: a 32-beam lidar's rings
+lie 0.6 m apart at 40 m, so a car there is a few clusters and unclustered points. The rigid
+refinement (estimator/refine.py) fixes the clusters it accepts, but the object's other points keep
+the optimiser's flow, which for fast movers stops short (a highway car at 2.7 m/frame: 1.2), or
+lose it in the evidence test (the flow of a small cluster pointing the wrong way explains nothing).
+
+Each point near an accepted cluster (within ``radius`` of its sample points' box), outside any
+accepted cluster, is offered the rigid motion of its nearest accepted sample point's cluster (for
+a DBSCAN cluster: every point of it, each the motion of its own nearest). A group (a DBSCAN cluster,
+or an unclustered point alone) takes the offered motion where it explains the support scans better
+than its flow and clearly better than zero flow (robust DT residuals, ``min(DT, tau)``, the loss's
+weights, counting only the scans that saw each point where the sights are known): a static point
+beside a passing car is where the scans show it, so the car's motion explains them worse.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from floxels_ext.estimator.refine import SEARCH_GAIN, TAU, RigidMotions, Support, _segment_sum, _weighted_residual
+
+__all__ = ["spread_rigid", "BOX_CHUNK"]
+
+F = torch.ops.floxels
+
+BOX_CHUNK = 64  # accepted clusters tested against every point at once (memory: points x chunk x 3)
+
+
+def spread_rigid(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor, supports: list[Support],
+                 motions: RigidMotions, radius: float, tau: float = TAU,
+                 observed: torch.Tensor | None = None) -> torch.Tensor:
+    """``flow`` with the groups near accepted rigid motions that one of them explains better (the
+    module's test). ``labels``: the DBSCAN labels of ``points`` (-1: none); ``observed``: (n,) int32
+    sight bits (estimator/sight.py) or None. Host synchronisations: three (the accepted sample
+    rows, the accepted clusters, the offered points)."""
+    m = motions
+    ref_rows = m.accept[m.cid]
+    ref, ref_c = m.q[ref_rows], m.cid[ref_rows]
+    if ref.shape[0] == 0:
+        return flow
+    acc = torch.nonzero(m.accept).squeeze(1)
+    C = m.accept.shape[0]
+    inf = torch.full((C, 3), float("inf"), dtype=points.dtype, device=points.device)
+    lo = inf.scatter_reduce(0, ref_c[:, None].expand(-1, 3), ref, "amin")[acc] - radius
+    hi = (-inf).scatter_reduce(0, ref_c[:, None].expand(-1, 3), ref, "amax")[acc] + radius
+    near = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    for a in range(0, acc.shape[0], BOX_CHUNK):
+        inside = (points[:, None] >= lo[None, a:a + BOX_CHUNK]) & (points[:, None] <= hi[None, a:a + BOX_CHUNK])
+        near |= inside.all(dim=2).any(dim=1)
+    lab = labels.to(torch.int64)
+    free = ~m.take
+    offered = near & free
+    # a DBSCAN cluster touched by an offered point is offered whole (one motion test per cluster)
+    touched = torch.zeros(C, dtype=torch.bool, device=points.device)
+    touched[lab[offered & (lab >= 0)]] = True
+    offered |= free & (lab >= 0) & touched[lab.clamp_min(0)]
+    idx = torch.nonzero(offered).squeeze(1)
+    if idx.numel() == 0:
+        return flow
+    p = points[idx]
+    j = F.nearest_neighbor(p.contiguous(), ref.contiguous())
+    close = (p - ref[j]).norm(dim=1) <= radius
+    u = m.motion_at(p, ref_c[j])
+    ob = None if observed is None else observed[idx]
+    r_u = _weighted_residual(supports, p, u, tau, False, ob)
+    r_f = _weighted_residual(supports, p, flow[idx], tau, False, ob)
+    r_0 = _weighted_residual(supports, p, torch.zeros_like(p), tau, False, ob)
+    # groups: a DBSCAN cluster, or an unclustered point alone (only if within the radius)
+    li = lab[idx]
+    key = torch.where(li >= 0, li, C + torch.arange(idx.shape[0], device=points.device))
+    rows = C + idx.shape[0]
+    s_u, s_f, s_0 = (_segment_sum(rows, key, r) for r in (r_u, r_f, r_0))
+    better = (s_u < s_f) & (s_u < (1 - SEARCH_GAIN) * s_0)
+    take = better[key] & ((li >= 0) | close)
+    out = flow.clone()
+    out[idx] = torch.where(take[:, None], u.to(flow.dtype), flow[idx])
+    return out
