@@ -63,12 +63,15 @@ class MotionEvidence:
     """Per point (rows of the points given): ``score`` float32, metres of distance-transform
     residual the group's flow removes compared with zero flow (its ``gain``; negative: the
     flow explains the scans worse than zero); ``explained`` bool, the group passes the test;
-    ``residual_flow`` / ``residual_zero``: the group's R_flow and R_zero (metres)."""
+    ``residual_flow`` / ``residual_zero``: the group's R_flow and R_zero (metres); ``hidden``
+    (``keep_unseen``, else None): explained only because no support scan saw the group, each
+    showing something in front of it (a verdict the rigid refinement must confirm)."""
 
     score: torch.Tensor
     explained: torch.Tensor
     residual_flow: torch.Tensor
     residual_zero: torch.Tensor
+    hidden: torch.Tensor | None = None
 
     def apply(self, flow: torch.Tensor) -> torch.Tensor:
         """``flow`` with the rows of unexplained groups set to (+)0, the others unchanged."""
@@ -141,7 +144,8 @@ def motion_evidence(points: torch.Tensor, flow: torch.Tensor, groups: torch.Tens
         out[order] = x
         return out
 
-    return MotionEvidence(back(ev.score), back(ev.explained), back(ev.residual_flow), back(ev.residual_zero))
+    return MotionEvidence(back(ev.score), back(ev.explained), back(ev.residual_flow), back(ev.residual_zero),
+                          None if ev.hidden is None else back(ev.hidden))
 
 
 def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None, cells: torch.Tensor,
@@ -224,5 +228,6 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
         hidden = ~seen
         if occluded is not None:
             hidden &= run_mean((occluded != 0).to(torch.float64)) >= 0.5
-        explained = explained | hidden
+        hidden &= ~explained
+        return MotionEvidence(score, explained | hidden, rf, rz, hidden)
     return MotionEvidence(score, explained, rf, rz)

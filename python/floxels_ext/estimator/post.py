@@ -39,12 +39,21 @@ def after_optimisation(cfg: FloxelsConfig, problem: SolverProblem,
     # evidence of motion (static structure seen in a band that moves with the sensor is
     # fitted *better* by a rigid motion: simulated highway, static EPE 0.52 -> 0.99 when
     # the test judged the refined flow); the verdict stays the optimiser flow's
+    motions = None
     if refine:
         supports = supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell)
         flow, motions = rigid_refine(p.points, flow, p.labels, supports, num_clusters=p.num_clusters, sided=not short,
                                      search=cfg.refine_search, motions=True, level=cfg.refine_level)
-        if motions is not None and cfg.refine_spread > 0:
-            flow = spread_rigid(p.points, flow, p.labels, supports, motions, cfg.refine_spread, observed=observed)
+    if ev is not None and ev.hidden is not None and cfg.evidence == "zero":
+        # a group kept only because no scan saw it (something in front of it each time) keeps its
+        # flow where a rigid motion explains the scans (all of them) clearly better than zero flow
+        # (a car approaching from behind, at a sequence's first frame); static structure hidden
+        # behind passing traffic is seen around the hidden part: zero flow fits it, and it keeps
+        # no arbitrary flow
+        keep = motions.fits if motions is not None else torch.zeros_like(ev.hidden)
+        flow = torch.where((ev.hidden & ~keep)[:, None], torch.zeros_like(flow), flow)
+    if motions is not None and cfg.refine_spread > 0:
+        flow = spread_rigid(p.points, flow, p.labels, supports, motions, cfg.refine_spread, observed=observed)
     return flow, ev
 
 

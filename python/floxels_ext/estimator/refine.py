@@ -273,7 +273,8 @@ class RigidMotions:
     """What :func:`rigid_refine` kept: per cluster (C rows) whether its rigid motion was accepted,
     the motion (vx, vy, yaw rate) about its sample points' centroid ``cen`` with vertical velocity
     ``vz``; its sample rows ``q`` (grouped by cluster ``cid``); per point, ``take``: the point's
-    flow is its cluster's accepted rigid motion."""
+    flow is its cluster's accepted rigid motion, ``fits``: its cluster's rigid motion passed the
+    test against zero flow (accepted or not by the sides' test)."""
 
     accept: torch.Tensor
     theta: torch.Tensor
@@ -282,6 +283,7 @@ class RigidMotions:
     q: torch.Tensor
     cid: torch.Tensor
     take: torch.Tensor
+    fits: torch.Tensor
 
     def motion_at(self, points: torch.Tensor, cluster: torch.Tensor) -> torch.Tensor:
         """Per-point motion (m, 3) of the rigid motions of clusters ``cluster`` (m,) at ``points``."""
@@ -370,6 +372,7 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     # better than zero flow (the same test as the search); else the cluster keeps its flow
     zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
+    fits = accept.clone()
     if sided:
         u = _planar(theta[cid], rel, vz[cid])
         for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):
@@ -380,4 +383,5 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     take = (lab >= 0) & accept[cl]
     rigid = _planar(theta[cl], points - cen[cl], vz[cl])
     out = torch.where(take[:, None], rigid, flow)
-    return (out, RigidMotions(accept, theta, cen, vz, q, cid, take)) if motions else out
+    fits = (lab >= 0) & fits[cl]
+    return (out, RigidMotions(accept, theta, cen, vz, q, cid, take, fits)) if motions else out
