@@ -12,13 +12,13 @@ import pytest
 import torch
 
 from floxels_ext.estimator import FloxelsConfig, estimate_sequence
-from floxels_ext.estimator.evidence import seen_evidence
+from floxels_ext.estimator.evidence import seen_evidence, sensor_velocity
 from floxels_ext.evaluation.protocol import protocol_mask
 from floxels_ext.evaluation.sim import Scene, Track, simulate_sequence
 from floxels_ext.evaluation.sim.scene import BACKGROUND, CAR
 
 
-def test_seen_evidence_divides_by_the_seen_weight_and_keeps_unseen_groups():
+def test_seen_evidence_rescues_partly_seen_groups_unless_they_follow_the_sensor():
     # groups (runs of labels): 0 (two points seen by scan 1 only), 1 (seen by none), 2 (all)
     labels = torch.tensor([0, 0, 1, 1, 2])
     cells = torch.zeros(5, dtype=torch.int64)
@@ -27,16 +27,34 @@ def test_seen_evidence_divides_by_the_seen_weight_and_keeps_unseen_groups():
     rz = torch.tensor([0.006, 0.006, 0.0, 0.0, 0.1])  # the op's group means (normalised over all scans)
     rf = torch.tensor([0.001, 0.001, 0.0, 0.0, 0.09])
     score, explained = rz - rf, (rz - rf) > torch.clamp(rz * 0.05, min=0.02)
-    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, margin=0.02, ratio=0.05,
-                       seen_mean=True, keep_unseen=True)
-    # group 0: judged on scan 1 alone: residuals / 0.2 -> gain 0.025 > 0.02 (before: 0.005)
-    assert torch.allclose(ev.residual_zero[:2], torch.tensor([0.03, 0.03]))
-    assert torch.allclose(ev.score[:2], torch.tensor([0.025, 0.025]))
+    kw = dict(margin=0.02, ratio=0.05)
+    # group 0 judged on scan 1 alone: residuals / 0.2 -> gain 0.025 > 0.02 (as given: 0.005, failed)
+    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, seen_mean=True, keep_unseen=True, **kw)
     assert ev.explained.tolist() == [True, True, True, True, False]
-    # without the options: the op's verdicts
-    ev0 = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, margin=0.02, ratio=0.05,
-                        seen_mean=False, keep_unseen=False)
-    assert ev0.explained.tolist() == explained.tolist()
+    assert ev.hidden.tolist() == [False, False, True, True, False]  # no occluded bits given: every unseen group
+    assert torch.equal(ev.score, score) and torch.equal(ev.residual_zero, rz)
+    # ... unless its flow is the sensors' own velocity (structure whose visible part follows the sensor)
+    flow = torch.tensor([[2.5, 0.0, 0.0]] * 5)
+    for v, rescued in (([2.4, 0.1, 0.0], False), ([0.5, 0.0, 0.0], True)):
+        ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, seen_mean=True, keep_unseen=False,
+                           flow=flow, sensor_velocity=torch.tensor(v), **kw)
+        assert ev.explained[:2].tolist() == [rescued] * 2 and ev.hidden is None
+    # hidden needs most points behind a nearer return where the occluded bits are given
+    occ = torch.tensor([0, 0, 0b01, 0, 0], dtype=torch.int32)
+    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, seen_mean=False, keep_unseen=True,
+                       occluded=occ, **kw)
+    assert ev.hidden.tolist() == [False, False, True, True, False]  # 1 of 2 points: half
+    occ = torch.tensor([0, 0, 0, 0, 0], dtype=torch.int32)
+    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, seen_mean=False, keep_unseen=True,
+                       occluded=occ, **kw)
+    assert not ev.hidden.any() and ev.explained.tolist() == explained.tolist()
+
+
+def test_sensor_velocity_is_the_least_squares_line():
+    s = [torch.tensor([2.0 * t, 1.0, 0.5]) for t in (-2, -1, 1, 2)]
+    assert torch.allclose(sensor_velocity(s, [-2, -1, 1, 2]), torch.tensor([2.0, 0.0, 0.0], dtype=torch.float64))
+    assert sensor_velocity([s[0], None], [-2, -1]) is None
+    assert torch.allclose(sensor_velocity([s[0], None, s[3]], [-2, -1, 2]), torch.tensor([2.0, 0, 0], dtype=torch.float64))
 
 
 def _behind(n=6):

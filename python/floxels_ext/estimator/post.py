@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
-from floxels_ext.estimator.evidence import MotionEvidence, run_evidence
+from floxels_ext.estimator.evidence import MotionEvidence, run_evidence, sensor_velocity
 from floxels_ext.estimator.refine import rigid_refine, supports_of
 from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.spread import spread_rigid
@@ -72,7 +72,8 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
                         problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
                         truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
                         observed=observed, seen_mean=cfg.evidence_seen_mean, keep_unseen=cfg.evidence_keep_unseen,
-                        occluded=occluded)
+                        occluded=occluded, sensor_velocity=None if problem.sights is None else sensor_velocity(
+                            [None if s is None else s.sensor for s in problem.sights], problem.time_offsets))
 
 
 def problem_observed(problem: SolverProblem) -> torch.Tensor | None:
