@@ -3,10 +3,17 @@ sequence lengths (windows at the sequence ends included), scene types and object
 simulator, and the shared real scans (the AV2 pair with labels; the KITTI sweeps label-free).
 
     python bench/accurate_map.py [--device cpu|cuda] [--beams 32 64 128] [--lengths 5 11 40]
-                                 [--scenes urban crossing highway parking] [--seeds 0]
+                                 [--scenes urban crossing highway parking] [--seeds 60 61 62]
                                  [--frames ends|all|0,5,-1] [--real av2 kitti | --no-sim]
-                                 [--variant LABEL=PRESET[,FIELD=VALUE...]] [--pass origins|poses|none]
-                                 [--repeat N] [--cache DIR | --no-cache] [--json PATH]
+                                 [--variant LABEL=PRESET[,FIELD=VALUE...]] [--today]
+                                 [--pass origins|poses|none] [--repeat N] [--budget SECONDS]
+                                 [--sim-workers N] [--cache DIR | --no-cache] [--json PATH] [--md PATH]
+
+On an H100 the whole map (3 beams x 3 lengths x 4 scenes x 3 seeds, 3 frames each, the real
+data, three rows) is a few minutes: ``--device cuda --sim-workers 12 --budget 480`` (the
+simulation runs in worker processes first, cached; a case not started within the budget is left
+out and the tables say so). A run writes its JSON and markdown after every case, so a run cut
+short keeps what it did; a second run with the same cache computes only what is missing.
 
 Each case is estimated as an API user does it: ``estimate_sequence`` over the whole sequence
 (scans in one world frame) for the scored frames, with each scan's sensor (``--pass``: its
@@ -24,8 +31,9 @@ sweep supports no better than zero flow (bench_evidence.py's check; lower is bet
 
 Predictions are cached (``--cache``, default bench/results/accurate_map_cache) by case, frame,
 configuration, ``--pass`` and device; rows other than ``paper`` also by the estimator's source
-(``paper`` is pinned by tests). Times come from the runs that computed (none on a full cache
-hit): on CUDA pass ``--no-cache --repeat 3`` (median of 3 synchronised runs after a warm-up).
+(``paper`` is pinned by tests), with the time per frame of the run that computed them (on CUDA
+synchronised, after one warm-up per row; ``--repeat N``: the median of N runs). ``--today``
+adds the row ``accurate_today``: the preset as it was before issue 47's changes (TODAY below).
 """
 
 from __future__ import annotations
@@ -45,13 +53,17 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _map_data import SCENES, SPEED_BUCKETS, av2_case, kitti_case, label_free_metrics, labelled_metrics, sim_case  # noqa: E402
+from _map_data import SCENES, av2_case, kitti_case, label_free_metrics, sim_case  # noqa: E402
+from _map_report import group_rows, speed_table, table  # noqa: E402
 from compare_rows import clean  # noqa: E402
 
 from floxels_ext import FloxelsConfig, estimate_sequence  # noqa: E402
 
 PKG = HERE.parent / "python" / "floxels_ext"
-TOL = 5e-4  # a row loses where its EPE exceeds paper's by more than this (rounding of the tables)
+# the accurate preset before issue 47 (the row --today adds): the fields issue 47 changed, back
+TODAY = ("accurate_today=accurate,reg_scale=support,max_offset=0,evidence_seen_mean=false,"
+         "evidence_keep_unseen=false")
+HELD_OUT = [60, 61, 62]  # seeds no setting of the accurate preset was chosen on (tuning: 0 1 2)
 
 
 def source_hash() -> str:
@@ -107,16 +119,19 @@ class Runner:
         return hashlib.sha1(blob.encode()).hexdigest()[:20]
 
     def flows(self, case, label, cfg) -> tuple[dict, float | None]:
-        """({frame: flow}, seconds per computed frame or None)."""
-        out, todo = {}, []
+        """({frame: flow}, seconds per frame or None: the mean over the frames that have one)."""
+        out, todo, secs = {}, [], []
         for f in case.frames:
             p = self.cache / f"{self.key(case, label, cfg, f)}.npz" if self.cache else None
             if p is not None and p.exists():
-                out[f] = np.load(p)["flow"]
+                z = np.load(p)
+                out[f] = z["flow"]
+                if "seconds" in z.files and np.isfinite(z["seconds"]):
+                    secs.append(float(z["seconds"]))
             else:
                 todo.append(f)
         if not todo:
-            return out, None
+            return out, float(np.mean(secs)) if secs else None
         kw = sensor_kwargs(case, cfg, self.args.pass_)
         if self.dev.startswith("cuda") and label not in self.warm:  # every path the row takes, initialised
             estimate_sequence(case.scans, cfg, device=self.dev, frames=todo[:1], **kw)
@@ -131,108 +146,14 @@ class Runner:
             sync(self.dev)
             runs.append(time.perf_counter() - t0)
             got = got or res
+        per_frame = float(np.median(runs)) / len(todo)
         for f, flow in got.items():
             out[f] = flow
             if self.cache:
                 self.cache.mkdir(parents=True, exist_ok=True)
-                np.savez(self.cache / f"{self.key(case, label, cfg, f)}.npz", flow=flow)
-        return out, float(np.median(runs)) / len(todo)
-
-
-def group_rows(records, labels) -> list[tuple[str, str, dict]]:
-    """(group, name, {label: metrics}) rows of the table from the per-case records."""
-    sim = [r for r in records if r["attrs"]["source"] == "sim"]
-    groups: list[tuple[str, str, list]] = []
-    for b in sorted({r["attrs"]["beams"] for r in sim}):
-        for n in sorted({r["attrs"]["length"] for r in sim}):
-            sel = [(r, None) for r in sim if r["attrs"]["beams"] == b and r["attrs"]["length"] == n]
-            if sel:
-                groups.append(("beams x length", f"{b} beams, {n} frames", sel))
-    for sc in SCENES:
-        sel = [(r, None) for r in sim if r["attrs"]["scene"] == sc]
-        if sel:
-            groups.append(("scene", sc, sel))
-    for pos in ("first", "mid", "last"):
-        sel = [(r, pos) for r in sim]
-        groups.append(("position", pos, sel))
-    if sim:
-        groups.append(("all", "all simulated frames", [(r, None) for r in sim]))
-    for r in records:
-        if r["attrs"]["source"] != "sim":
-            groups.append(("real", r["attrs"]["scene"], [(r, None)]))
-    rows = []
-    for g, name, sel in groups:
-        row = {}
-        for lab in labels:
-            P, G, secs, nsec = [], [], 0.0, 0
-            free = None
-            for r, pos in sel:
-                frames = [f for f in r["frames"] if pos is None or r["positions"][f] == pos]
-                if r["truth"] is None:
-                    free = r["label_free"][lab]
-                    continue
-                P += [r["preds"][lab][f] for f in frames]
-                G += [r["truth"][f] for f in frames]
-                if r["seconds"].get(lab) is not None:
-                    secs, nsec = secs + r["seconds"][lab] * len(r["frames"]), nsec + len(r["frames"])
-            if free is not None:
-                row[lab] = {**free, "s_per_frame": secs / nsec if nsec else None}
-            elif P:
-                row[lab] = {**labelled_metrics(P, G), "s_per_frame": secs / nsec if nsec else None}
-        if row:
-            rows.append((g, name, row))
-    return rows
-
-
-def fmt(v, d=3):
-    return "n/a" if v is None else f"{v:.{d}f}"
-
-
-def table(rows, labels) -> str:
-    base, others = labels[0], labels[1:]
-    head = ["group", "cell"] + [f"{c} {lab}" for lab in labels for c in ("dyn norm", "static")]
-    head += [f"fast dyn {lab}" for lab in labels] + [f"s/frame {lab}" for lab in labels] + ["verdict"]
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
-    for g, name, row in rows:
-        if base not in row:
-            continue
-        if "unsupported" in row[base]:  # label-free
-            cells = [f"{100 * row[lab]['unsupported']:.1f} % unsupported" if lab in row else "" for lab in labels]
-            cells = [c for lab in labels for c in (cells[labels.index(lab)], "")]
-            verdict = ", ".join(f"{lab}: LOSS" for lab in others if lab in row
-                                and row[lab]["unsupported"] > row[base]["unsupported"] + TOL) or "ok"
-            lines.append(f"| {g} | {name} | " + " | ".join(cells + [""] * len(labels))
-                         + " | " + " | ".join(fmt(row[lab].get("s_per_frame")) for lab in labels) + f" | {verdict} |")
-            continue
-        cells = []
-        for lab in labels:
-            m = row.get(lab, {})
-            cells += [fmt(m.get("dyn_norm")), fmt(m.get("static"))]
-        cells += [fmt(row[lab]["speed"][f"{SPEED_BUCKETS[-1][0]:g}-inf"]["epe"]) if lab in row else "" for lab in labels]
-        cells += [fmt(row[lab].get("s_per_frame")) if lab in row else "" for lab in labels]
-        bad = []
-        for lab in others:
-            if lab not in row:
-                continue
-            for k in ("dyn_norm", "static"):
-                a, b = row[lab].get(k), row[base].get(k)
-                if a is not None and b is not None and a > b + TOL:
-                    bad.append(f"{lab} {k}")
-        lines.append(f"| {g} | {name} | " + " | ".join(cells) + f" | {'LOSS: ' + ', '.join(bad) if bad else 'ok'} |")
-    return "\n".join(lines)
-
-
-def speed_table(rows, labels) -> str:
-    all_row = next((row for g, _, row in rows if g == "all"), None)
-    if all_row is None:
-        return ""
-    lines = ["| true speed (m/frame) | points | " + " | ".join(f"dyn EPE {lab}" for lab in labels) + " |",
-             "|" + " --- |" * (2 + len(labels))]
-    for lo, hi in SPEED_BUCKETS:
-        k = f"{lo:g}-{hi:g}"
-        pts = all_row[labels[0]]["speed"][k]["points"]
-        lines.append(f"| {k} | {pts} | " + " | ".join(fmt(all_row[lab]["speed"][k]["epe"]) for lab in labels) + " |")
-    return "\n".join(lines)
+                np.savez(self.cache / f"{self.key(case, label, cfg, f)}.npz", flow=flow, seconds=per_frame)
+        secs += [per_frame] * len(todo)
+        return out, float(np.mean(secs))
 
 
 def parse_args(argv=None):
@@ -241,8 +162,8 @@ def parse_args(argv=None):
     ap.add_argument("--beams", nargs="+", type=int, default=[32, 64, 128])
     ap.add_argument("--lengths", nargs="+", type=int, default=[5, 11, 40])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0], help="simulator seeds, each for every scene "
-                    "(tuned on 0 1 2; issue 47's held-out table: 60 61)")
+    ap.add_argument("--seeds", nargs="+", type=int, default=HELD_OUT, help="simulator seeds, each for every scene "
+                    "(default: the held-out 60 61 62; the preset was tuned on 0 1 2)")
     ap.add_argument("--frames", default="ends", help="scored frames: ends (first, middle, last), all, or 0,5,-1")
     ap.add_argument("--azimuth", type=int, default=2048, help="simulated lidar azimuth steps")
     ap.add_argument("--max-range", type=float, default=50.0)
@@ -251,36 +172,108 @@ def parse_args(argv=None):
     ap.add_argument("--kitti-frames", default="ends")
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=PRESET[,FIELD=VALUE...]",
                     help="rows besides paper (default: accurate=accurate)")
+    ap.add_argument("--today", action="store_true", help=f"also the row {TODAY.split('=')[0]} (the accurate "
+                    "preset before issue 47), after the --variant rows")
     ap.add_argument("--pass", dest="pass_", choices=("origins", "poses", "none"), default="origins",
                     help="what the API gets besides the scans: sensor_origins=, poses= or nothing")
     ap.add_argument("--iters", type=int, default=None, help="max_iters of every row (smoke runs only)")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per computed case (median)")
+    ap.add_argument("--budget", type=float, default=0.0, help="seconds: no case is started after this (0: none); "
+                    "the seeds are the outer loop, so a cut run has every cell of its first seeds")
+    ap.add_argument("--sim-workers", type=int, default=0, help="simulate the cases in this many processes first "
+                    "(0: each when it is reached)")
     ap.add_argument("--cache", default=str(HERE / "results" / "accurate_map_cache"))
     ap.add_argument("--no-cache", action="store_true")
     ap.add_argument("--code-tag", default=None, help="cache key of the code of rows other than paper (default: a "
                     "hash of the estimator's and ops' sources)")
     ap.add_argument("--json", default=str(HERE / "results" / "accurate_map.json"))
+    ap.add_argument("--md", default=None, help="the markdown tables (default: the --json path with .md)")
     args = ap.parse_args(argv)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         ap.error("--device cuda requested but no CUDA device is available")
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
+    if args.budget < 0 or args.sim_workers < 0:
+        ap.error("--budget and --sim-workers must be >= 0")
+    args.md = args.md or str(Path(args.json).with_suffix(".md"))
     return args
+
+
+def _simulate(spec):
+    """Worker: one simulated case into the cache (its sequence only)."""
+    sc, sd, b, n, frames, max_range, azimuth, cache = spec
+    sim_case(sc, sd, b, n, frames, max_range, azimuth, cache)
+    return f"sim/b{b}/L{n}/{sc}/s{sd}"
+
+
+def presimulate(specs, args) -> None:
+    """Every simulated sequence into the cache, ``--sim-workers`` at a time (the CPU's share of a
+    map on CUDA: at 128 beams ~0.3 s a frame on one core)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    cache = Path(args.cache) / "sim"
+    t0 = time.perf_counter()
+    jobs = [(sc, sd, b, n, args.frames, args.max_range, args.azimuth, cache) for sc, sd, b, n in specs]
+    with ProcessPoolExecutor(args.sim_workers) as pool:
+        for k, key in enumerate(pool.map(_simulate, jobs), 1):
+            if k % 12 == 0 or k == len(jobs):
+                print(f"  simulated {k}/{len(jobs)} ({key}) [{time.perf_counter() - t0:.0f} s]", flush=True)
+
+
+def write_report(args, argv, runner, variants, records, skipped, t_all, final: bool) -> None:
+    """The JSON and the markdown tables of the cases done so far (after every case)."""
+    labels = [lab for lab, _ in variants]
+    rows = group_rows(records, labels)
+    dev = torch.cuda.get_device_name() if args.device.startswith("cuda") else args.device
+    cmd = "python bench/accurate_map.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    head = (f"## accurate map ({dev}, seeds {args.seeds}, --pass {args.pass_}, {len(records)} cases"
+            + (f", {len(skipped)} left out by --budget" if skipped else "") + ("" if final else ", in progress") + ")")
+    md = (f"{head}\n\n`{cmd}`\n\n{table(rows, labels)}\n\nDynamic EPE by true speed, all simulated frames:\n\n"
+          f"{speed_table(rows, labels)}\n")
+    if skipped:
+        md += "\nLeft out by --budget: " + ", ".join(skipped) + "\n"
+    out = {"command": cmd, "device": args.device, "gpu": dev if args.device.startswith("cuda") else None,
+           "host": platform.node(), "threads": torch.get_num_threads(), "code": runner.code, "final": final,
+           "variants": {lab: dataclasses.asdict(cfg) for lab, cfg in variants},
+           "rows": [{"group": g, "cell": name, "metrics": row} for g, name, row in rows],
+           "cases": [{k: r[k] for k in ("key", "attrs", "frames", "positions", "seconds")} for r in records],
+           "skipped": skipped, "total_seconds": time.perf_counter() - t_all}
+    for path, text in ((args.json, json.dumps(clean(out), indent=1, default=str)), (args.md, md)):
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        tmp = path + ".tmp"
+        with open(tmp, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    if final:
+        print("\n" + md)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    variants = [("paper", FloxelsConfig())] + [parse_variant(v) for v in (args.variant or ["accurate=accurate"])]
+    specs_v = (args.variant or ["accurate=accurate"]) + ([TODAY] if args.today else [])
+    variants = [("paper", FloxelsConfig())] + [parse_variant(v) for v in specs_v]
     if args.iters:
         variants = [(lab, cfg.replace(max_iters=args.iters)) for lab, cfg in variants]
-    labels = [lab for lab, _ in variants]
     runner = Runner(args)
     t_all = time.perf_counter()
-    specs = [] if args.no_sim else [(sc, sd, b, n) for b in args.beams for n in args.lengths
-                                    for sc in args.scenes for sd in args.seeds]
-    records = []
-
-    def run(case):
+    # seeds outermost: a run cut by --budget has every cell of its first seeds
+    specs = [] if args.no_sim else [(sc, sd, b, n) for sd in args.seeds for b in args.beams for n in args.lengths
+                                    for sc in args.scenes]
+    cases = [("sim", s) for s in specs] + [(r, None) for r in ("av2", "kitti") if r in args.real]
+    if args.sim_workers and specs and not args.no_cache:
+        presimulate(specs, args)
+    records, skipped = [], []
+    for i, (kind, spec) in enumerate(cases, 1):
+        if args.budget and time.perf_counter() - t_all > args.budget:
+            skipped += ["/".join(map(str, s)) if s else k for k, s in cases[i - 1:]]
+            print(f"  --budget {args.budget:g} s spent: {len(skipped)} case(s) left out", flush=True)
+            break
+        if kind == "sim":
+            sc, sd, b, n = spec
+            case = sim_case(sc, sd, b, n, args.frames, args.max_range, args.azimuth,
+                            None if args.no_cache else Path(args.cache) / "sim")
+        else:
+            case = av2_case() if kind == "av2" else kitti_case(args.kitti_frames)
         rec = {"key": case.key, "attrs": case.attrs, "frames": case.frames, "positions": case.positions,
                "truth": case.truth and {f: case.truth[f] for f in case.frames}, "preds": {}, "seconds": {},
                "label_free": {}}
@@ -290,31 +283,12 @@ def main(argv=None) -> int:
             if case.truth is None:
                 rec["label_free"][lab] = label_free_metrics(case, preds)
         records.append(rec)
-        print(f"  {case.key}: frames {case.frames} [{time.perf_counter() - t_all:.0f} s]", flush=True)
-
-    for sc, sd, b, n in specs:
-        run(sim_case(sc, sd, b, n, args.frames, args.max_range, args.azimuth,
-                     None if args.no_cache else Path(args.cache) / "sim"))
-    if "av2" in args.real:
-        run(av2_case())
-    if "kitti" in args.real:
-        run(kitti_case(args.kitti_frames))
-    rows = group_rows(records, labels)
-    print(f"\n## accurate map ({args.device}, seeds {args.seeds}, --pass {args.pass_})\n")
-    print(table(rows, labels))
-    print("\nDynamic EPE by true speed, all simulated frames:\n")
-    print(speed_table(rows, labels))
-    out = {"command": "python bench/accurate_map.py " + " ".join(sys.argv[1:] if argv is None else argv),
-           "device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
-           "host": platform.node(), "threads": torch.get_num_threads(), "code": runner.code,
-           "variants": {lab: dataclasses.asdict(cfg) for lab, cfg in variants},
-           "rows": [{"group": g, "cell": name, "metrics": row} for g, name, row in rows],
-           "cases": [{k: r[k] for k in ("key", "attrs", "frames", "positions", "seconds")} for r in records],
-           "total_seconds": time.perf_counter() - t_all}
-    os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-    with open(args.json, "w") as fh:
-        json.dump(clean(out), fh, indent=1, default=str)
-    print(f"\nwrote {args.json} [{time.perf_counter() - t_all:.0f} s]")
+        times = " ".join(f"{lab} {s:.3f}" for lab, s in rec["seconds"].items() if s is not None)
+        print(f"  [{i}/{len(cases)}] {case.key}: frames {case.frames}, s/frame {times or 'cached'} "
+              f"[{time.perf_counter() - t_all:.0f} s]", flush=True)
+        write_report(args, argv, runner, variants, records, skipped, t_all, final=False)
+    write_report(args, argv, runner, variants, records, skipped, t_all, final=True)
+    print(f"wrote {args.json} and {args.md} [{time.perf_counter() - t_all:.0f} s]")
     return 0
 
 

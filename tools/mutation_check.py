@@ -71,6 +71,7 @@ SCANS = "python/floxels_ext/estimator/scans.py"
 WINDOWS = "python/floxels_ext/estimator/windows.py"
 RECENTRE = "python/floxels_ext/estimator/recentre.py"
 GROUP = "python/floxels_ext/estimator/group.py"
+POST = "python/floxels_ext/estimator/post.py"
 EVIDENCE = "python/floxels_ext/estimator/evidence.py"
 SIGHT_PY = "python/floxels_ext/estimator/sight.py"
 REFINE_PY = "python/floxels_ext/estimator/refine.py"
@@ -185,10 +186,8 @@ MUTATIONS = [
     ("accurate refines every window plainly (refine_max_supports 0)", CFG, '"refine_max_supports": 2,',
      '"refine_max_supports": 0,', [ACC]),
     ("accurate windows 11 -> 9 scans", CFG, '"accurate": {"num_scans": 11,', '"accurate": {"num_scans": 9,', [ACC]),
-    ("long windows refined without the sides' test", GROUP, "sided=not short, search=cfg.refine_search)",
-     "sided=False, search=cfg.refine_search)", [ACC, SIDED]),
-    ("refinement never searched", GROUP, "sided=not short, search=cfg.refine_search)", "sided=not short, search=False)",
-     [ACC, SEARCH]),
+    ("long windows refined without the sides' test", POST, "sided=not short,", "sided=False,", [ACC, SIDED]),
+    ("refinement never searched", POST, "search=cfg.refine_search,", "search=False,", [ACC, SEARCH]),
     # refine.py
     ("the sided check looks at the past only (46)", REFINE_PY,
      "for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):",
@@ -212,14 +211,14 @@ MUTATIONS = [
      [EVT]),
     ("evidence_margin default 0.02 -> 0.01", CFG, "evidence_margin: float = 0.02", "evidence_margin: float = 0.01",
      [EVT]),
-    ("all unclustered points in one evidence group (46)", GROUP, "problem.labels, problem.corners.corner_idx[:, 0],",
+    ("all unclustered points in one evidence group (46)", POST, "problem.labels, problem.corners.corner_idx[:, 0],",
      "problem.labels, torch.zeros_like(problem.corners.corner_idx[:, 0]),", [EVT]),
     ("group_ids: unclustered points keyed by x only", EVIDENCE,
      "key = (ic[:, 2] << (2 * _AXIS_BITS)) | (ic[:, 1] << _AXIS_BITS) | ic[:, 0]", "key = ic[:, 0]", [EVT, EVID]),
-    ("estimator's evidence margin not the config's", GROUP, "margin=cfg.evidence_margin,", "margin=0.02,", [EVT, ACC]),
-    ("estimator's evidence ratio not the config's", GROUP, "ratio=cfg.evidence_ratio,", "ratio=0.05,", [EVT, ACC]),
-    ("evidence weights not normalised", EVIDENCE, "[float(w) / wsum for w in weights]", "[float(w) for w in weights]",
-     [EVT]),
+    ("estimator's evidence margin not the config's", POST, "margin=cfg.evidence_margin,", "margin=0.02,", [EVT, ACC]),
+    ("estimator's evidence ratio not the config's", POST, "ratio=cfg.evidence_ratio,", "ratio=0.05,", [EVT, ACC]),
+    ("evidence weights not normalised", EVIDENCE, "norm = [float(w) / wsum for w in weights]",
+     "norm = [float(w) for w in weights]", [EVT]),
     # sight.py
     ("SEEN_MARGIN 0.5 -> 2.0 m (46)", SIGHT_PY, "SEEN_MARGIN = 0.5 ", "SEEN_MARGIN = 2.0 ", [SIGHT]),
     ("range band in 3-D range, not horizontal", SIGHT_PY, "r = torch.hypot(rel[band, :, 0], rel[band, :, 1])",

@@ -177,12 +177,13 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
         zeros = torch.zeros(n, dtype=torch.float32, device=dev)
         return MotionEvidence(zeros, torch.zeros(n, dtype=torch.bool, device=dev), zeros, zeros.clone())
     wsum = max(float(sum(weights)), 1e-12)  # all zero (lambda_d = 0): no residual, nothing explained
+    norm = [float(w) / wsum for w in weights]
     score, explained, rf, rz = F.dt_evidence(
         points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells, list(dts),
         [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
-        [float(w) / wsum for w in weights], float(truncation), float(margin), float(ratio), observed)
+        norm, float(truncation), float(margin), float(ratio), observed)
     if observed is not None and (seen_mean or keep_unseen):
-        return seen_evidence(score, explained, rf, rz, labels, cells, observed, [float(w) / wsum for w in weights],
+        return seen_evidence(score, explained, rf, rz, labels, cells, observed, norm,
                              margin=margin, ratio=ratio, seen_mean=seen_mean, keep_unseen=keep_unseen,
                              occluded=occluded, flow=flow, sensor_velocity=sensor_velocity)
     return MotionEvidence(score, explained, rf, rz)
