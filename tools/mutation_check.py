@@ -55,6 +55,9 @@ GROUND_RUN = "tests/lidar/test_ground_returns.py"
 REFINE = E + "test_refine.py"
 SIDED = E + "test_refine_sided.py"
 SEARCH = E + "test_refine_search.py"
+LONG = E + "test_long_windows.py"
+SEEN = E + "test_seen_evidence.py"
+SPREAD = E + "test_spread.py"
 COMPOSE = E + "test_accurate_composition.py"
 EVAL = "tests/evaluation/test_eval_scope.py"
 AV2 = "tests/evaluation/test_metrics_av2.py"
@@ -226,6 +229,22 @@ MUTATIONS = [
     ("range image bins 2 degrees", SIGHT_PY, "AZ_BIN = math.radians(0.5)", "AZ_BIN = math.radians(2.0)", [SIGHT]),
     ("removed ground left out of the range images", SIGHT_PY, "if ground is not None and ground.shape[0]:",
      "if False:", [GSIGHT]),
+    # issue 47: the accurate preset's new fields and the code they switch on
+    ("accurate regularisers by count (47)", CFG, '"reg_scale": "weights", "max_offset"', '"reg_scale": "support", "max_offset"',
+     [ACC]),
+    ("accurate windows not cut at the ends (47)", CFG, '"max_offset": 5,', '"max_offset": 0,', [ACC]),
+    ("accurate without evidence_seen_mean (47)", CFG, '"evidence_seen_mean": True,', '"evidence_seen_mean": False,',
+     [ACC]),
+    ("accurate without evidence_keep_unseen (47)", CFG, '"evidence_keep_unseen": True,',
+     '"evidence_keep_unseen": False,', [ACC]),
+    ("accurate without refine_level (47)", CFG, '"refine_level": True,', '"refine_level": False,', [ACC]),
+    ("accurate without refine_spread (47)", CFG, '"refine_spread": 1.0,', '"refine_spread": 0.0,', [ACC]),
+    ("weights scale not normalised to the paper's 4 (47)", CFG,
+     "return 4.0 * sum(self.time_weight(t) for t in offsets) / ref", "return sum(self.time_weight(t) for t in offsets)",
+     [LONG]),
+    ("max_offset ignored (47)", WINDOWS, "if max_offset > 0:", "if False:", [LONG]),
+    ("seen_mean rescues groups that follow the sensor (47)", EVIDENCE,
+     "rescued &= run_mean(follows.to(torch.float64)) < 0.5", "pass", [SEEN]),
     # eval's scoring scope
     ("eval scores every point by default", EVAL_CLI,
      'mask = z["mask"] if "mask" in z.files and not all_points else None', "mask = None", [EVAL]),

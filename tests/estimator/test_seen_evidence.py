@@ -33,9 +33,11 @@ def test_seen_evidence_rescues_partly_seen_groups_unless_they_follow_the_sensor(
     assert ev.explained.tolist() == [True, True, True, True, False]
     assert ev.hidden.tolist() == [False, False, True, True, False]  # no occluded bits given: every unseen group
     assert torch.equal(ev.score, score) and torch.equal(ev.residual_zero, rz)
-    # ... unless its flow is the sensors' own velocity (structure whose visible part follows the sensor)
+    # ... unless its flow points along the sensors' velocity (structure whose visible part follows
+    # the sensor, at its speed or a part of it)
     flow = torch.tensor([[2.5, 0.0, 0.0]] * 5)
-    for v, rescued in (([2.4, 0.1, 0.0], False), ([0.5, 0.0, 0.0], True)):
+    for v, rescued in (([2.4, 0.1, 0.0], False), ([4.6, 0.3, 0.0], False), ([0.0, 0.5, 0.0], True),
+                       ([-1.0, 0.0, 0.0], True), ([0.01, 0.0, 0.0], True)):
         ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, seen_mean=True, keep_unseen=False,
                            flow=flow, sensor_velocity=torch.tensor(v), **kw)
         assert ev.explained[:2].tolist() == [rescued] * 2 and ev.hidden is None
