@@ -36,7 +36,9 @@ REFERENCE_SETTINGS = dict(
     evidence="off", evidence_margin=0.02, evidence_ratio=0.05,
     # the accurate preset's ingredients (issue 33) are not part of the paper: off
     velocity_search=False, rigid_refine=False, refine_max_supports=0, refine_sided=False, refine_search=False,
-    range_mask=False, visibility=False)
+    range_mask=False, visibility=False,
+    # issue 47's (in the accurate preset): off
+    max_offset=0, evidence_seen_mean=False, evidence_keep_unseen=False, refine_level=False, refine_spread=0.0)
 
 SCENES = [("crossing", 3), ("parking", 1), ("urban", 2)]
 
