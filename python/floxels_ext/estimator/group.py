@@ -27,7 +27,7 @@ from floxels_ext.ops.grid import grid_from_bounds, point_bounds
 from floxels_ext.ops.setup import problem_setup
 from floxels_ext.ops.solver import MAX_DTS, MAX_PROBLEMS, SEGMENT_TILE, PackedProblems, SolverProblem
 
-__all__ = ["Prepared", "Solving", "fit_group", "prepare_group", "solve_group", "pack", "problem_evidence"]
+__all__ = ["Prepared", "Solving", "Finishing", "fit_group", "prepare_group", "solve_group", "pack", "problem_evidence"]
 
 F = torch.ops.floxels
 
@@ -208,6 +208,14 @@ class Solving:
             run.poll()
 
     def finish(self) -> list[FloxelsResult]:
+        """Wait for the optimisations and build the results."""
+        return self.queue_results().results()
+
+    def queue_results(self) -> "Finishing":
+        """Queue everything the results need on the device (the flows at the points, the steps
+        after the optimiser, the one read-back) behind the optimisations, without waiting: work
+        queued on the stream afterwards (the next group's optimisation) runs while the host
+        waits for this group's read-back alone (:meth:`Finishing.results`)."""
         pr, cfg = self.prepared, self.cfg
         t_solve = time.perf_counter()
         solved: dict[int, tuple] = {}
@@ -221,7 +229,7 @@ class Solving:
         for group, packed, run in self.runs:
             for b, k in enumerate(group):
                 solved[k] = packed.best_params(b).clone()
-        flows, parts = [], []  # flow of the kept rows, (labels, fields of the result) per frame
+        flows = []  # flow of the kept rows per frame
         evidence = [] if cfg.evidence != "off" else None  # (N_kept, 2): score, explained (0/1)
         for k, (prep, _) in enumerate(pr.items):
             if pr.problems[k] is None:
@@ -240,17 +248,39 @@ class Solving:
             flow = torch.empty_like(flow_s)
             flow[pr.orders[k]] = flow_s
             flows.append(flow)
-        # every frame's output in one transfer (numpy outputs of CUDA flows), then the one
-        # synchronisation of the read-backs
+        # every frame's output in one transfer (numpy outputs of CUDA flows), queued; an event
+        # behind it and the summaries' copies, which the host waits for instead of the stream
         if self.marks is not None:
             self.marks.mark("end")
         t_readback = time.perf_counter()
-        outs, ev_outs = restore_outputs(flows, [prep for prep, _ in pr.items], evidence)
+        outputs = restore_outputs(flows, [prep for prep, _ in pr.items], evidence, wait=False)
+        done = []
         for _, packed, run in self.runs:
-            run.wait()
+            if run.cuda:
+                done.append(torch.cuda.Event())
+                done[-1].record(run.stream)
+        return Finishing(self, solved, flows, hosts, outputs, done, (t_solve, t_results, t_readback))
+
+
+class Finishing:
+    """A group whose results are queued (:meth:`Solving.queue_results`); :meth:`results` waits
+    for them and builds the :class:`FloxelsResult` of each target."""
+
+    def __init__(self, solving: Solving, solved: dict, flows: list, hosts: list, outputs, done: list,
+                 times: tuple) -> None:
+        self.solving, self.solved, self.flows, self.hosts = solving, solved, flows, hosts
+        self.outputs, self.done, self.times = outputs, done, times
+
+    def results(self) -> list[FloxelsResult]:
+        sv = self.solving
+        pr, cfg, solved, flows = sv.prepared, sv.cfg, self.solved, self.flows
+        t_solve, t_results, t_readback = self.times
+        outs, ev_outs = self.outputs()
+        for ev in self.done:
+            ev.synchronize()
         t_finish = time.perf_counter()
         summaries: dict[int, tuple] = {}
-        for (group, packed, _), host in zip(self.runs, hosts):
+        for (group, packed, _), host in zip(sv.runs, self.hosts):
             for k, summary in zip(group, packed.summaries(host)):
                 summaries[k] = summary
         timings = dict(pr.timings)
@@ -263,12 +293,13 @@ class Solving:
         timings["results"] = t_readback - t_results
         timings["readback"] = t_finish - t_readback
         timings["finish"] = time.perf_counter() - t_finish
-        if self.marks is not None:  # GPU time from the solver's enqueue on (no synchronisation)
-            timings.update(self.marks.spans())
-        timings["optimise"] = time.perf_counter() - self.t0
+        if sv.marks is not None:  # GPU time from the solver's enqueue on (no synchronisation)
+            timings.update(sv.marks.spans())
+        timings["optimise"] = time.perf_counter() - sv.t0
         timings["total"] = time.perf_counter() - pr.t_start
         if len(pr.items) > 1:
             timings["group_size"] = float(len(pr.items))
+        parts = []  # (labels, fields of the result) per frame
         for k, lab in enumerate(pr.labels):
             if pr.problems[k] is None:
                 parts.append((None, [], -1, 0, dict(timings), None, cfg.voxel_size, None, None))

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from floxels_ext.estimator.recentre import Recentring
-from floxels_ext.estimator.schedule import host_float32, staged_uploads
+from floxels_ext.estimator.schedule import HostCopy, staged_uploads
 from floxels_ext.estimator.user_warnings import warn_user
 
 
@@ -358,7 +358,8 @@ def restore_output(flow_kept: torch.Tensor, prep: PreparedScans):
     return restore_outputs([flow_kept], [prep])[0][0]
 
 
-def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], evidence: list | None = None):
+def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], evidence: list | None = None,
+                    wait: bool = True):
     """:func:`restore_output` of several frames; the numpy outputs of CUDA flows come back in
     one copy through page-locked memory (per-frame copies from pageable memory cost a host
     synchronisation and ~0.3 ms per 100k points each).
@@ -366,7 +367,9 @@ def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], 
     ``evidence``: per frame, the kept rows' (N_kept, 2) float32 (motion-evidence score,
     explained as 0/1), or None. Returns (flows, None) or (flows, [(score, explained)]) with
     the score in the flow's kind (numpy float32 / the input's dtype and device; NaN on dropped
-    rows) and explained bool (False on dropped rows); everything in the same one transfer."""
+    rows) and explained bool (False on dropped rows); everything in the same one transfer.
+    ``wait=False``: the transfer is only queued; returns a function that waits for it (for that
+    copy alone, schedule.HostCopy) and returns the same."""
     def full_rows(kept, prep, width):
         if kept.shape[0] == prep.num_target_points:
             return kept.detach()
@@ -380,19 +383,24 @@ def restore_outputs(flows_kept: list[torch.Tensor], preps: list[PreparedScans], 
     every = fulls + evs
     out: list = [None] * len(every)
     to_host = [k for k in range(len(every)) if preps[k % nf].was_numpy]
-    for k, arr in zip(to_host, host_float32([every[k] for k in to_host])):
-        out[k] = arr
+    copy = HostCopy([every[k] for k in to_host])
     for k in range(len(every)):
         prep = preps[k % nf]
         if not prep.was_numpy:
             out[k] = every[k].to(device=prep.in_device, dtype=prep.in_dtype)
-    if evidence is None:
-        return out, None
-    pairs = []
-    for e in out[nf:]:
-        score, flag = e[:, 0], e[:, 1]
-        if isinstance(e, np.ndarray):
-            pairs.append((np.ascontiguousarray(score), flag == 1.0))
-        else:
-            pairs.append((score.contiguous(), flag == 1.0))
-    return out[:nf], pairs
+
+    def outputs():
+        for k, arr in zip(to_host, copy.arrays()):
+            out[k] = arr
+        if evidence is None:
+            return out, None
+        pairs = []
+        for e in out[nf:]:
+            score, flag = e[:, 0], e[:, 1]
+            if isinstance(e, np.ndarray):
+                pairs.append((np.ascontiguousarray(score), flag == 1.0))
+            else:
+                pairs.append((score.contiguous(), flag == 1.0))
+        return out[:nf], pairs
+
+    return outputs() if wait else outputs

@@ -17,8 +17,10 @@ On a GPU, for one group of targets:
    other than the one it was made on (``record_stream``);
 5. **solver**: on the current stream (``solver_run.SolverRun``), a pipelined run's next batch
    prepared meanwhile on the side stream (:class:`Pipeline`);
-6. **read-back** (:func:`host_float32`): every output in one page-locked copy, one
-   synchronisation.
+6. **read-back** (:func:`host_float32`, :class:`HostCopy`): every output in one page-locked
+   copy and one wait for it; in a stream of groups (``windows.solve_windows``) the next group's
+   optimisation is queued behind this copy before the host waits for it, so the device goes on
+   while the host builds and hands over the results.
 
 On the CPU, or with ``FLOXELS_SERIAL_STAGES=1``, every step runs in order on the current
 stream (with a synchronisation after the EDTs, so stage timings are wall times).
@@ -27,6 +29,7 @@ stream (with a synchronisation after the EDTs, so stage timings are wall times).
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 
 import torch
@@ -35,7 +38,7 @@ from floxels_ext.ops.setup import stage_points
 from floxels_ext.switches import flag
 
 __all__ = ["serial_stages", "sync_device", "side_stream", "EdtStreams", "PrepareSchedule", "receive", "Pipeline",
-           "staged_uploads", "upload", "host_float32", "GpuMarks"]
+           "staged_uploads", "upload", "host_float32", "HostCopy", "GpuMarks"]
 
 _SIDE_STREAMS: dict = {}
 
@@ -334,17 +337,37 @@ def host_float32(tensors: list[torch.Tensor]):
     """float32 numpy copies of (N_i, k) tensors; CUDA ones in one page-locked transfer and one
     synchronisation (the arrays are views of one reused buffer, :class:`_ReadBack`; per-tensor
     copies from pageable memory cost a synchronisation and ~0.3 ms per 100k points each)."""
-    import numpy as np
+    return HostCopy(tensors).arrays()
 
-    if not tensors or not any(t.is_cuda for t in tensors):
-        return [t.cpu().numpy().astype(np.float32, copy=False) for t in tensors]
-    flat = torch.cat([t.reshape(-1).to(torch.float32) for t in tensors])
-    host, arr = _READBACK.take(flat.numel())
-    host[:flat.numel()].copy_(flat, non_blocking=True)
-    torch.cuda.current_stream(flat.device).synchronize()
-    out, at = [], 0
-    for t in tensors:
-        n = t.numel()
-        out.append(arr[at:at + n].reshape(t.shape))
-        at += n
-    return out
+
+class HostCopy:
+    """:func:`host_float32` in two steps: the constructor queues the one page-locked copy on the
+    current stream and records an event behind it; :meth:`arrays` waits for that event only, not
+    for the stream, so work queued on the stream after the copy (the next group's optimisation)
+    does not hold the arrays back."""
+
+    def __init__(self, tensors: list[torch.Tensor]) -> None:
+        import numpy as np
+
+        self.shapes = [t.shape for t in tensors]
+        self.event = self.arr = None
+        if not tensors or not any(t.is_cuda for t in tensors):
+            self.out = [t.cpu().numpy().astype(np.float32, copy=False) for t in tensors]
+            return
+        flat = torch.cat([t.reshape(-1).to(torch.float32) for t in tensors])
+        host, self.arr = _READBACK.take(flat.numel())  # held here: the pool does not hand it out again
+        host[:flat.numel()].copy_(flat, non_blocking=True)
+        self.event = torch.cuda.Event()
+        self.event.record(torch.cuda.current_stream(flat.device))
+        self.out = None
+
+    def arrays(self) -> list:
+        if self.out is None:
+            self.event.synchronize()
+            out, at = [], 0
+            for shape in self.shapes:
+                n = math.prod(shape)
+                out.append(self.arr[at:at + n].reshape(shape))
+                at += n
+            self.out, self.arr = out, None
+        return self.out

@@ -130,18 +130,22 @@ def solve_windows(scans: Sequence, cfg: FloxelsConfig, device, batches: Iterable
     batch = next(it, None)
     if not batch:
         return
-    prepared = prepare(batch)
+    solving = solve_group(cfg, prepare(batch), wait_for=pipe.side)
     while batch:
-        solving = solve_group(cfg, prepared, wait_for=pipe.side)
-        error, nxt = None, None
+        error, nxt, prepared = None, None, None
         try:
             nxt = next(it, None)  # a stream's source may wait for its next segment here: the device is busy
             if nxt:
                 prepared = prepare(nxt, poll=solving.poll)
         except BaseException as e:  # deliver this batch's flows first, then raise
             error = e
-        results = solving.finish()
-        del solving
+        # this batch's results queued, then the next batch's optimisation behind them: the
+        # device goes on with it while the host waits for this batch's read-back and builds and
+        # delivers its results (which, with the motion evidence, left the GPU idle ~1 ms a frame)
+        finishing = solving.queue_results()
+        solving = solve_group(cfg, prepared, wait_for=pipe.side) if prepared is not None else None
+        results = finishing.results()
+        del finishing
         low = horizon(nxt if error is None else None)
         for d in (cache, converted):  # free the DTs and device scans that no later window will use
             for i in [i for i in d if i < low]:
