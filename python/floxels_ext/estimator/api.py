@@ -19,7 +19,6 @@ import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
-import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import DistanceTransform, EarlyDts
