@@ -192,7 +192,11 @@ def test_removed_ground_and_every_window_of_a_sequence_far_from_origin():
     far = FAR.copy()
     far[1] += RECENTRE_GRID / 2 - np.mod(FAR[1] + 0.5 * (mids[0][1] + mids[1][1]), RECENTRE_GRID)
     assert np.round((mids[0][1] + far[1]) / RECENTRE_GRID) != np.round((mids[1][1] + far[1]) / RECENTRE_GRID)
-    cfg = _preset(num_scans=5)  # windows starting at scans 0, 1 and 2 of the 7
+    # windows starting at scans 0, 1 and 2 of the 7; issue 47's two rescues of the evidence test
+    # off (evidence_keep_unseen: a group no scan saw keeps its flow where a rigid motion fits;
+    # evidence_seen_mean: judged on the scans that saw it): with either, the pedestrian keeps its
+    # motion without the road returns too, and a ground left un-re-centred would go unseen here
+    cfg = _preset(num_scans=5, evidence_keep_unseen=False, evidence_seen_mean=False)
     out = []
     for shift in (np.zeros(3), far):
         with warnings.catch_warnings():
