@@ -212,7 +212,15 @@ def points_crc32(points: np.ndarray) -> int:
     without the GIL), recorded as ``source_crc32`` so that a changed source file is noticed."""
     import zlib
 
-    return zlib.crc32(np.ascontiguousarray(np.asarray(points)[:, :3], np.float32))
+    pts = np.asarray(points)[:, :3]
+    if pts.dtype == np.float32 and not pts.flags.c_contiguous:
+        # x y z of wider rows (a .bin's x y z intensity): copied column by column, ~4x faster
+        # than numpy's (N, 3) strided copy (~1 ms a 216k-point frame); the same bytes
+        rows = np.empty(pts.shape, np.float32)
+        for k in range(pts.shape[1]):
+            rows[:, k] = pts[:, k]
+        return zlib.crc32(rows)
+    return zlib.crc32(np.ascontiguousarray(pts, np.float32))
 
 
 def _source_points(d: dict, path: Path) -> np.ndarray:

@@ -56,12 +56,37 @@ def _disorder(a: np.ndarray, rows: int = 200_000) -> float:
     Shuffled points give ~0.5 for every count (no evidence either way). Median over the three
     columns: one noisy column (e.g. z of a flat ground) does not hide the others' order."""
     xyz = a[:rows, :3].astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(1)]
-    if xyz.shape[0] < 16:
+    fin = np.isfinite(xyz)
+    ok = fin[:, 0] & fin[:, 1] & fin[:, 2]  # (column by column: .all(1) on 3 columns is ~10x slower)
+    cols = (xyz if ok.all() else xyz[ok]).T.copy()  # (3, n): each column contiguous for the selections
+    n = cols.shape[1]
+    if n < 16:
         return float("nan")
-    q75, q25 = np.percentile(xyz, [75, 25], axis=0)
-    step = np.median(np.abs(np.diff(xyz, axis=0)), axis=0)
-    return float(np.median(step / np.maximum(q75 - q25, 1e-6)))
+    q75, q25 = _percentiles(cols, (0.75, 0.25))
+    step = np.subtract(cols[:, 1:], cols[:, :-1])
+    np.abs(step, out=step)
+    m = step.shape[1]
+    half = m // 2
+    # two kth even for an odd count: numpy's selection of one kth took 5x longer on these rows
+    part = np.partition(step, (half - 1, half), axis=1)
+    med = part[:, half] if m % 2 else (part[:, half - 1] + part[:, half]) / 2.0
+    return float(np.sort(med / np.maximum(q75 - q25, 1e-6))[1])
+
+
+def _percentiles(cols: np.ndarray, qs) -> list:
+    """``np.percentile(cols, 100 * q, axis=1)`` ('linear') for each ``q`` in [0, 1), to the
+    bit (numpy's virtual index, floor and lerp, tests/lidar compare them) from one selection of
+    the four order statistics instead of numpy's generic path (~10x the time on 8k rows)."""
+    n = cols.shape[1]
+    vis = [(n - 1) * q for q in qs]
+    lo = [int(np.floor(v)) for v in vis]
+    part = np.partition(cols, sorted({k for i in lo for k in (i, min(i + 1, n - 1))}), axis=1)
+    out = []
+    for v, i in zip(vis, lo):
+        a, b, t = part[:, i], part[:, min(i + 1, n - 1)], v - np.floor(v)
+        d = b - a
+        out.append(b - d * (1 - t) if t >= 0.5 else a + d * t)  # numpy's _lerp
+    return out
 
 
 def _ordered_columns(flat: np.ndarray, size: int, rows: int) -> int | None:
@@ -74,6 +99,11 @@ def _ordered_columns(flat: np.ndarray, size: int, rows: int) -> int | None:
         return None
     low = min(score.values())
     return min(c for c, v in score.items() if v <= 2 * low) if low < 0.1 else None
+
+
+def _any_finite_row(xyz: np.ndarray) -> bool:
+    fin = np.isfinite(xyz)
+    return bool((fin[:, 0] & fin[:, 1] & fin[:, 2]).any())
 
 
 # the size guess is checked on the first rows only (scan order shows there; cheap for readers)
@@ -91,11 +121,11 @@ def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size:
     step = max(1, len(a) // 8192)
     xyz = a[::step, :3]
     with np.errstate(invalid="ignore", over="ignore"):
-        bad = (np.isfinite(xyz) & (np.abs(xyz) > 1e5)).any(1)
-    frac = float(bad.mean())
-    if not np.isfinite(xyz).all(1).any():
+        big = np.isfinite(xyz) & (np.abs(xyz) > 1e5)
+    frac = float((big[:, 0] | big[:, 1] | big[:, 2]).mean())  # any over 3 columns, column by column (faster)
+    if not _any_finite_row(xyz):
         xyz = a[:, :3]
-    if frac > 0.1 or not np.isfinite(xyz).all(1).any():
+    if frac > 0.1 or not _any_finite_row(xyz):
         what = f"{100 * frac:.0f}% of the {len(a)} rows" if frac > 0.1 else f"none of the {len(a)} rows"
         raise _fail(path, f"{what} read with {cols} float32 columns have "
                           + ("coordinates beyond 100 km" if frac > 0.1 else "finite coordinates")

@@ -144,8 +144,9 @@ def load_frame(i: int, seq, settings, pose_mode: str, poses, keep_points: bool, 
     out["preprocess"] = time.perf_counter() - t1
     counts = ground = None
     if classes is not None:
-        n = np.bincount(classes, minlength=4)
-        counts = {"kept": int(n[1]), "ground": int(n[2]), "outlier": int(n[3]), "cropped": int(n[0])}
+        # per class, not np.bincount: that converts the (N,) uint8 classes to int64 first (~4x the time)
+        n = [int(np.count_nonzero(classes == c)) for c in range(4)]
+        counts = {"kept": n[1], "ground": n[2], "outlier": n[3], "cropped": n[0]}
         if settings.remove_ground and counts["ground"] == 0:
             beyond = beyond_ground_grid(path, pts_sensor, settings, pose_mode)
             if beyond:
