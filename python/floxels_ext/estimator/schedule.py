@@ -17,7 +17,7 @@ On a GPU, for one group of targets:
    other than the one it was made on (``record_stream``);
 5. **solver**: on the current stream (``solver_run.SolverRun``), a pipelined run's next batch
    prepared meanwhile on the side stream (:class:`Pipeline`);
-6. **read-back** (:func:`host_float32`, :class:`HostCopy`): every output in one page-locked
+6. **read-back** (:class:`HostCopy`): every output in one page-locked
    copy and one wait for it; in a stream of groups (``windows.solve_windows``) the next group's
    optimisation is queued behind this copy before the host waits for it, so the device goes on
    while the host builds and hands over the results.
@@ -38,7 +38,7 @@ from floxels_ext.ops.setup import stage_points
 from floxels_ext.switches import flag
 
 __all__ = ["serial_stages", "sync_device", "side_stream", "EdtStreams", "PrepareSchedule", "receive", "Pipeline",
-           "staged_uploads", "upload", "host_float32", "HostCopy", "GpuMarks"]
+           "staged_uploads", "upload", "HostCopy", "GpuMarks"]
 
 _SIDE_STREAMS: dict = {}
 
@@ -301,7 +301,7 @@ class _ReadBack:
     gone. The arrays are views of one numpy array per buffer (``arr``), so ``arr``'s reference
     count says whether any is still held (a writer thread, a caller's list); a fresh
     page-locked allocation per group cost ~1 ms a frame of idle GPU in ``floxels run``
-    (tools/run_gaps.py: ``torch.empty`` under ``host_float32``, bench/RESULTS.md). At most
+    (tools/run_gaps.py: ``torch.empty`` under the read-back, bench/RESULTS.md). At most
     ``KEEP`` buffers are kept; beyond them (a caller keeping every result) new ones are not
     pooled and go with their arrays."""
 
@@ -333,18 +333,13 @@ class _ReadBack:
 _READBACK = _ReadBack()
 
 
-def host_float32(tensors: list[torch.Tensor]):
-    """float32 numpy copies of (N_i, k) tensors; CUDA ones in one page-locked transfer and one
-    synchronisation (the arrays are views of one reused buffer, :class:`_ReadBack`; per-tensor
-    copies from pageable memory cost a synchronisation and ~0.3 ms per 100k points each)."""
-    return HostCopy(tensors).arrays()
-
-
 class HostCopy:
-    """:func:`host_float32` in two steps: the constructor queues the one page-locked copy on the
-    current stream and records an event behind it; :meth:`arrays` waits for that event only, not
-    for the stream, so work queued on the stream after the copy (the next group's optimisation)
-    does not hold the arrays back."""
+    """float32 numpy copies of (N_i, k) tensors in two steps: the constructor queues CUDA ones
+    as one page-locked copy on the current stream (the arrays are views of one reused buffer,
+    :class:`_ReadBack`; per-tensor copies from pageable memory cost a synchronisation and ~0.3 ms
+    per 100k points each) and records an event behind it; :meth:`arrays` waits for that event
+    only, not for the stream, so work queued on the stream after the copy (the next group's
+    optimisation) does not hold the arrays back."""
 
     def __init__(self, tensors: list[torch.Tensor]) -> None:
         import numpy as np
