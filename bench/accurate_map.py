@@ -14,6 +14,9 @@ data, three rows) is a few minutes: ``--device cuda --sim-workers 12 --budget 48
 simulation runs in worker processes first, cached; a case not started within the budget is left
 out and the tables say so). A run writes its JSON and markdown after every case, so a run cut
 short keeps what it did; a second run with the same cache computes only what is missing.
+On a host of N GPUs: N processes ``--shard K/N`` (``CUDA_VISIBLE_DEVICES=K``) on one ``--cache``,
+then one ``--cached-only`` run that writes the tables of every case they finished
+(``tools/gpu_map_shards.sh``).
 
 Each case is estimated as an API user does it: ``estimate_sequence`` over the whole sequence
 (scans in one world frame) for the scored frames, with each scan's sensor (``--pass``: its
@@ -118,6 +121,11 @@ class Runner:
                            None if paper else self.code], default=str, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:20]
 
+    def cached(self, case, label, cfg) -> bool:
+        """Whether every scored frame of (case, variant) is in the cache."""
+        return self.cache is not None and all(
+            (self.cache / f"{self.key(case, label, cfg, f)}.npz").exists() for f in case.frames)
+
     def flows(self, case, label, cfg) -> tuple[dict, float | None]:
         """({frame: flow}, seconds per frame or None: the mean over the frames that have one)."""
         out, todo, secs = {}, [], []
@@ -182,6 +190,10 @@ def parse_args(argv=None):
                     "the seeds are the outer loop, so a cut run has every cell of its first seeds")
     ap.add_argument("--sim-workers", type=int, default=0, help="simulate the cases in this many processes first "
                     "(0: each when it is reached)")
+    ap.add_argument("--shard", default=None, metavar="K/N", help="only the cases K, K+N, K+2N, ... (0 <= K < N) of the "
+                    "listed ones: N processes (one a GPU) share one --cache; then one run with --cached-only reports all")
+    ap.add_argument("--cached-only", action="store_true", help="report only the cases whose every row is in the "
+                    "cache (the others listed as left out); estimates nothing")
     ap.add_argument("--cache", default=str(HERE / "results" / "accurate_map_cache"))
     ap.add_argument("--no-cache", action="store_true")
     ap.add_argument("--code-tag", default=None, help="cache key of the code of rows other than paper (default: a "
@@ -196,6 +208,17 @@ def parse_args(argv=None):
     if args.budget < 0 or args.sim_workers < 0:
         ap.error("--budget and --sim-workers must be >= 0")
     args.md = args.md or str(Path(args.json).with_suffix(".md"))
+    args.shard_k, args.shard_n = 0, 1
+    if args.shard is not None:
+        try:
+            k, n = (int(x) for x in args.shard.split("/"))
+        except ValueError:
+            ap.error(f"--shard {args.shard}: expected K/N, e.g. 0/4")
+        if not 0 <= k < n:
+            ap.error(f"--shard {args.shard}: K must be in 0..N-1")
+        args.shard_k, args.shard_n = k, n
+    if args.cached_only and args.no_cache:
+        ap.error("--cached-only contradicts --no-cache")
     return args
 
 
@@ -260,7 +283,9 @@ def main(argv=None) -> int:
     specs = [] if args.no_sim else [(sc, sd, b, n) for sd in args.seeds for b in args.beams for n in args.lengths
                                     for sc in args.scenes]
     cases = [("sim", s) for s in specs] + [(r, None) for r in ("av2", "kitti") if r in args.real]
-    if args.sim_workers and specs and not args.no_cache:
+    cases = cases[args.shard_k::args.shard_n]
+    specs = [s for k, s in cases if k == "sim"]
+    if args.sim_workers and specs and not args.no_cache and not args.cached_only:
         presimulate(specs, args)
     records, skipped = [], []
     for i, (kind, spec) in enumerate(cases, 1):
@@ -274,6 +299,9 @@ def main(argv=None) -> int:
                             None if args.no_cache else Path(args.cache) / "sim")
         else:
             case = av2_case() if kind == "av2" else kitti_case(args.kitti_frames)
+        if args.cached_only and not all(runner.cached(case, lab, cfg) for lab, cfg in variants):
+            skipped.append(case.key + " (not cached)")
+            continue
         rec = {"key": case.key, "attrs": case.attrs, "frames": case.frames, "positions": case.positions,
                "truth": case.truth and {f: case.truth[f] for f in case.frames}, "preds": {}, "seconds": {},
                "label_free": {}}

@@ -6,6 +6,7 @@ shaped like a real one (issue 32).
     python bench/bench_ray.py --device cuda --gpus 1 2      # + Ray on 1 and 2 GPUs (one worker per GPU)
     python bench/bench_ray.py --device cuda --gpus 1 2 4 --modes long ray --sequences 80 --ray-address auto \
         --cold 4 --subset 16 --subset-gpus 2                # issue 44 (tools/gpu_ray_bench.sh)
+    python bench/bench_ray.py --device cuda --gpus 1 4 --workers-per-gpu 1 2 ...   # + rows of 2 workers a GPU
 
 The dataset (``_kitti_dataset.py``): ``--sequences`` (default 16) sequences of ``--frames``
 (150) frames in the KITTI odometry layout (.bin scans in their sensor frames, poses/NN.txt),
@@ -16,7 +17,7 @@ other), run by the plain ``floxels run`` in the same process, on the same GPU, i
 
 Rows (``--modes``): ``long`` (the plain run of the long sequence), ``local`` (``floxels run
 DATASET``: one pipeline for every sequence), ``rayK`` (``--ray``, one worker per GPU, one row
-per ``--gpus`` count). Each is warmed up first on a tiny dataset; for Ray that job leaves its
+per ``--gpus`` count; ``rayKxW``: W workers share each GPU, ``--workers-per-gpu``). Each is warmed up first on a tiny dataset; for Ray that job leaves its
 workers in the warm pool (``--keep-workers``), so ``rayK`` rows measure warm workers (the
 steady state and a warm cluster's start). ``coldK`` rows (``--cold K``) run the dataset with
 fresh workers (``--keep-workers 0``: process, imports, CUDA context in the row), ``coldK/N`` and
@@ -168,6 +169,10 @@ def main() -> None:
     ap.add_argument("--subset", type=int, metavar="N", help="also run the first N sequences (a list file) with fresh "
                     "workers ('coldK/N') and warm ones ('rayK/N') on each of --subset-gpus")
     ap.add_argument("--subset-gpus", type=int, nargs="+", default=[2], metavar="K", help="default 2")
+    ap.add_argument("--workers-per-gpu", type=int, nargs="+", default=[1], metavar="W",
+                    help="Ray rows with W workers sharing each GPU (--gpus-per-task 1/W; rows ray<K>x<W> for W > 1; "
+                         "each W's efficiency against its own 1-GPU row; the cold and subset rows use the first W). "
+                         "Default 1")
     ap.add_argument("--data", type=Path, help="dataset directory (made if missing or different; default: temporary)")
     ap.add_argument("--compare", type=int, default=2, help="sequences whose Ray outputs are compared (default 2)")
     ap.add_argument("--json", help="output JSON path")
@@ -180,6 +185,8 @@ def main() -> None:
     az = args.azimuth or (1800 if cuda else 512)
     gpus = args.gpus or [1]
     cpus = max(1, args.cpus)
+    if min(args.workers_per_gpu) < 1:
+        sys.exit("--workers-per-gpu: each value must be >= 1")
     import torch
 
     if cuda and not torch.cuda.is_available():
@@ -192,7 +199,8 @@ def main() -> None:
     desc = make_kitti_dataset(data, seqs, frames, beams, az, cpus, args.distinct)
     warm = tmp / "warm"
     # the warm-up jobs: a task per worker, so every worker of a Ray row starts (and stays in the pool)
-    make_kitti_dataset(warm, max([2, *(args.gpus or [1]), *args.cold, *args.subset_gpus]), 6, 16, 360, 2, 2)
+    most = max([2, *(args.gpus or [1]), *args.cold, *args.subset_gpus]) * max(args.workers_per_gpu)
+    make_kitti_dataset(warm, most, 6, 16, 360, 2, 2)
     gen_s = time.perf_counter() - t0
     flags = ["--device", args.device, "-q", *args.run_args.split()]
     if args.max_iters or not cuda:
@@ -225,43 +233,51 @@ def main() -> None:
         if cuda:
             torch.cuda.empty_cache()  # leave the GPU's memory to the Ray workers
         visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-        base = None
         subset = subset_list(data, seqs, args.subset) if args.subset else None
-        counts = sorted(set(gpus + args.cold + (args.subset_gpus if subset else []))) if cuda else [1]
+        # in --gpus order (a run cut by its time limit keeps the rows asked for first), then the others
+        counts = list(dict.fromkeys(gpus + args.cold + (args.subset_gpus if subset else []))) if cuda else [1]
         gpus = gpus if cuda else [1]
+        bases = {}
         for k in counts:
             if cuda and not args.ray_address:  # Ray sees (and its workers use) the first k GPUs
                 os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(k))
             init_s = start_ray(cpus, k if cuda else 0, args.ray_address)
-            extra = ["--ray", "--max-tasks", str(k), "--cpus-per-task", str(max(1, cpus // k))]
-            extra += ["--gpus-per-task", "1"] if cuda else []
-            cold = ["--keep-workers", "0"]
+            for wi, w in enumerate(args.workers_per_gpu if cuda else [1]):
+                n = k * w  # workers of the row; W > 1: W processes share each GPU (their idle gaps filled)
+                extra = ["--ray", "--max-tasks", str(n), "--cpus-per-task", str(max(1, cpus // n))]
+                extra += ["--gpus-per-task", "1" if w == 1 else f"{1 / w:.4f}"] if cuda else []
+                cold = ["--keep-workers", "0"]
+                tag = "" if w == 1 else f"x{w}"
 
-            def ray_row(name, argv, out, **kw):
-                row = record(name, run_job(argv, out), gpus=k, ray_init_s=init_s, **kw)
-                row["workers"] = job_workers(out)
-                return row
+                def ray_row(name, argv, out, **kw):
+                    row = record(name, run_job(argv, out), gpus=k, ray_init_s=init_s, workers_per_gpu=w, **kw)
+                    row["workers"] = job_workers(out)
+                    return row
 
-            if k in args.cold:  # fresh workers: their whole start is in the row
-                ray_row(f"cold{k}", ["run", str(data), *sel, *flags, *extra, *cold], tmp / f"out_cold{k}", cold=True)
-                shutil.rmtree(tmp / f"out_cold{k}", ignore_errors=True)
-            if subset and k in args.subset_gpus:
-                name = f"cold{k}/{args.subset}"
-                ray_row(name, ["run", str(subset), *flags, *extra, *cold], tmp / "out_sub", cold=True, subset=args.subset)
-                shutil.rmtree(tmp / "out_sub", ignore_errors=True)
-                run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")  # fills the pool
-                ray_row(f"ray{k}/{args.subset}", ["run", str(subset), *flags, *extra], tmp / "out_sub", subset=args.subset)
-                shutil.rmtree(tmp / "out_sub", ignore_errors=True)
-            if k in gpus:  # warm workers (the pool the warm-up job filled): the steady state
-                run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
-                out = tmp / f"out_ray{k}"
-                row = ray_row(f"ray{k}", ["run", str(data), *sel, *flags, *extra], out)
-                if local is not None:
-                    row.update(compare(out, tmp / "out_local", [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
-                shutil.rmtree(out, ignore_errors=True)
-                if base is None:
-                    base = row
-        for r in rows:  # scaling efficiency against the 1-GPU warm row (cold rows too: their start counts)
+                if k in args.cold and wi == 0:  # fresh workers: their whole start is in the row
+                    ray_row(f"cold{k}{tag}", ["run", str(data), *sel, *flags, *extra, *cold], tmp / f"out_cold{k}",
+                            cold=True)
+                    shutil.rmtree(tmp / f"out_cold{k}", ignore_errors=True)
+                if subset and k in args.subset_gpus and wi == 0:
+                    name = f"cold{k}{tag}/{args.subset}"
+                    ray_row(name, ["run", str(subset), *flags, *extra, *cold], tmp / "out_sub", cold=True,
+                            subset=args.subset)
+                    shutil.rmtree(tmp / "out_sub", ignore_errors=True)
+                    run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")  # fills the pool
+                    ray_row(f"ray{k}{tag}/{args.subset}", ["run", str(subset), *flags, *extra], tmp / "out_sub",
+                            subset=args.subset)
+                    shutil.rmtree(tmp / "out_sub", ignore_errors=True)
+                if k in gpus:  # warm workers (the pool the warm-up job filled): the steady state
+                    run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
+                    out = tmp / f"out_ray{k}"
+                    row = ray_row(f"ray{k}{tag}", ["run", str(data), *sel, *flags, *extra], out)
+                    if local is not None:
+                        row.update(compare(out, tmp / "out_local",
+                                           [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
+                    shutil.rmtree(out, ignore_errors=True)
+                    bases.setdefault(w, row)
+        for r in rows:  # scaling efficiency against the same W's 1-GPU warm row (cold rows too: their start counts)
+            base = bases.get(r.get("workers_per_gpu"))
             if r["mode"].startswith(("ray", "cold")) and base is not None:
                 r["efficiency"] = r["fps"] / (r["gpus"] * base["fps"] / base["gpus"])
         retire_pool()

@@ -54,6 +54,17 @@ def _meminfo() -> dict:
     return out
 
 
+def _cpu_mhz() -> dict:
+    """Core clocks from /proc/cpuinfo (MHz): the busy cores' boost falls as more cores work, which
+    slows every worker's host steps alike (issue 44). top16: mean of the 16 fastest cores."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            mhz = sorted((float(ln.split(":")[1]) for ln in f if ln.startswith("cpu MHz")), reverse=True)
+    except (OSError, ValueError, IndexError):
+        return {}
+    return dict(max=mhz[0], top16=sum(mhz[:16]) / len(mhz[:16]), mean=sum(mhz) / len(mhz)) if mhz else {}
+
+
 def _threads(pid: int) -> dict[int, int]:
     """tid -> utime + stime (clock ticks)."""
     out = {}
@@ -104,7 +115,7 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
     pattern = re.compile(match)
     smi = None
     if shutil.which("nvidia-smi"):
-        smi = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu,memory.used",
+        smi = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu,memory.used,clocks.sm",
                                 "--format=csv,noheader,nounits", f"-lms={int(interval * 1000)}"],
                                stdout=open(out / "gpu.csv", "w"), stderr=subprocess.DEVNULL)
     t_end = time.time() + duration
@@ -141,7 +152,7 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
             except OSError:
                 load = None
             log.write(json.dumps(dict(t=now, host_busy=1.0 - dt_idle / max(dt_tot, 1), cores=ncpu, load=load,
-                                      mem=_meminfo(), procs=rows)) + "\n")
+                                      mem=_meminfo(), mhz=_cpu_mhz(), procs=rows)) + "\n")
             log.flush()
     if smi is not None:
         smi.terminate()
@@ -153,8 +164,9 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
     if (out / "gpu.csv").exists():
         # nvidia-smi prints one line per GPU per period, without a timestamp: spread them over the
         # samples' span in order (periods are equal)
-        lines = [ln.split(",") for ln in open(out / "gpu.csv") if ln.count(",") == 2]
-        gpu = [(int(a), float(b), float(c)) for a, b, c in lines]
+        lines = [ln.split(",") for ln in open(out / "gpu.csv") if ln.count(",") in (2, 3)]
+        gpu = [(int(v[0]), float(v[1]), float(v[2]), float(v[3]) if len(v) > 3 else float("nan"))
+               for v in lines if all(x.strip().replace(".", "", 1).isdigit() for x in v)]
     res = []
     t_first = samples[0]["t"] if samples else 0.0
     t_last = samples[-1]["t"] if samples else 0.0
@@ -169,6 +181,9 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
                    load_max=max((s["load"] or 0) for s in ss),
                    dirty_mb_max=max(s["mem"].get("Dirty", 0) for s in ss),
                    writeback_mb_max=max(s["mem"].get("Writeback", 0) for s in ss))
+        mhz = [s["mhz"] for s in ss if s.get("mhz")]
+        if mhz:
+            row["cpu_mhz"] = {k: round(sum(m[k] for m in mhz) / len(mhz)) for k in ("max", "top16", "mean")}
         procs: dict[str, list] = {}
         for s in ss:
             for pid, p in s["procs"].items():
@@ -189,16 +204,20 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
             k0 = max(0, int((w["t0"] - t_first) / per))
             k1 = min(periods, int((w["t1"] - t_first) / per) + 1)
             util: dict[int, list] = {}
+            clock: dict[int, list] = {}
             for k in range(k0, k1):
                 for g in gpu[k * n_gpu:(k + 1) * n_gpu]:
                     util.setdefault(g[0], []).append(g[1])
+                    clock.setdefault(g[0], []).append(g[3])
             row["gpu_util"] = {i: round(sum(v) / len(v), 1) for i, v in sorted(util.items()) if v}
+            row["gpu_sm_mhz"] = {i: round(sum(v) / len(v)) for i, v in sorted(clock.items()) if v and v[0] == v[0]}
         res.append(row)
     (out / "summary.json").write_text(json.dumps(res, indent=1) + "\n")
     for r in res:
         print(f"\n== {r['name']}: {r['seconds']:.1f} s, host busy {100 * r['host_busy']:.0f} % of {r['cores']} cores, "
               f"load max {r['load_max']:.0f}, dirty max {r['dirty_mb_max']:.0f} MB, writeback max "
-              f"{r['writeback_mb_max']:.0f} MB, GPU util {r.get('gpu_util')}")
+              f"{r['writeback_mb_max']:.0f} MB, GPU util {r.get('gpu_util')}, GPU SM MHz {r.get('gpu_sm_mhz')}, "
+              f"CPU MHz {r.get('cpu_mhz')}")
         for p in r["procs"][:12]:
             print(f"   {p['pid']:>7} {p['cores']:6.2f} cores  {p['threads']:4d} threads  {p['busy02']:5.1f} >0.2  "
                   f"{p['busy08']:5.1f} >0.8  main {p['main']:.2f}  {p['cmd']}")
