@@ -25,7 +25,7 @@ left() { echo $((LIMIT - (SECONDS - T0))); }
 log() { echo "[$((SECONDS - T0)) s] $*" | tee -a $S; }
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
   && export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
-NG=$(nvidia-smi -L | wc -l); NC=$(nproc); GPUS=${GPUS:-"1 2 $NG"}; GPUS=$(echo $GPUS | tr ' ' '\n' | awk -v n=$NG '$1<=n' | sort -nu | tr '\n' ' ')
+NG=$(nvidia-smi -L | wc -l); NC=$(nproc); GPUS=${GPUS:-"1 2 $NG"}; GPUS=$(echo $GPUS | tr ' ' '\n' | awk -v n=$NG '$1<=n && !seen[$1]++' | tr '\n' ' ')
 log "host: $NG x $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1), $NC cores, $(lscpu | grep -m1 'NUMA node(s)'), $(free -g | awk '/Mem/{print $2}') GiB"
 log "ray $(python3 -c 'import ray; print(ray.__version__)' 2>&1), torch $(python3 -c 'import torch; print(torch.__version__)'), py-spy: $(command -v py-spy || echo none)"
 # outputs of SEQS x 150 frames are ~2.5 MB a frame: in RAM when /dev/shm can hold them (every row deletes its own)
