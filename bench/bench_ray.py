@@ -25,7 +25,9 @@ fresh workers (``--keep-workers 0``: process, imports, CUDA context in the row),
 Columns: frames/s over the command's wall time; ``first s``: seconds until the first output
 file appeared; ``all 1st``: the slowest worker's first output (its timeline); frames/s from the
 first output on; the per-GPU rate against the long sequence's (target >= 0.9); the scaling
-efficiency (frames/s / (K x the 1-GPU warm Ray row's)). Below the table, each worker's start
+efficiency (frames/s / (K x the 1-GPU warm Ray row's, of the same W)); ``workers``: those that
+wrote frames / those asked for (fewer: some never started; each Ray row starts with the cluster
+free, the pool retired). Below the table, each worker's start
 timeline (from the job's ``ray_job_summary.json``: s from the driver's start of the job). The
 Ray outputs are compared with the local run's (two sequences, flow max |difference|). Prints a
 table and writes JSON (bench/results/bench_ray_<device>.json or --json).
@@ -133,6 +135,24 @@ def retire_pool() -> None:
                 ray.get(ray.get_actor(a["name"], namespace="floxels").retire.remote(), timeout=10)
             except (ValueError, ray.exceptions.RayError):
                 pass
+
+
+def free_cluster(timeout: float = 90.0) -> float:
+    """Retires the pool and waits until every GPU and CPU of the cluster is free again (a row then
+    starts from the same state whatever ran before it, e.g. workers of another size); seconds waited."""
+    import ray
+
+    t0 = time.perf_counter()
+    retire_pool()
+    total = ray.cluster_resources()
+    while time.perf_counter() - t0 < timeout:
+        free = ray.available_resources()
+        if all(free.get(k, 0.0) >= total.get(k, 0.0) - 1e-6 for k in ("GPU", "CPU")):
+            break
+        time.sleep(0.25)
+    else:
+        print(f"  (cluster not free after {timeout:.0f} s: {ray.available_resources()} of {total})", flush=True)
+    return time.perf_counter() - t0
 
 
 def start_ray(cpus: int, gpus: int, address: str | None) -> float:
@@ -252,13 +272,17 @@ def main() -> None:
                 def ray_row(name, argv, out, **kw):
                     row = record(name, run_job(argv, out), gpus=k, ray_init_s=init_s, workers_per_gpu=w, **kw)
                     row["workers"] = job_workers(out)
+                    row["workers_asked"] = n  # against those that wrote frames: fewer means some never started
+                    row["workers_writing"] = sum(1 for x in row["workers"] if (x.get("written") or 0) > 0)
                     return row
 
                 if k in args.cold and wi == 0:  # fresh workers: their whole start is in the row
+                    free_cluster()
                     ray_row(f"cold{k}{tag}", ["run", str(data), *sel, *flags, *extra, *cold], tmp / f"out_cold{k}",
                             cold=True)
                     shutil.rmtree(tmp / f"out_cold{k}", ignore_errors=True)
                 if subset and k in args.subset_gpus and wi == 0:
+                    free_cluster()
                     name = f"cold{k}{tag}/{args.subset}"
                     ray_row(name, ["run", str(subset), *flags, *extra, *cold], tmp / "out_sub", cold=True,
                             subset=args.subset)
@@ -268,9 +292,10 @@ def main() -> None:
                             subset=args.subset)
                     shutil.rmtree(tmp / "out_sub", ignore_errors=True)
                 if k in gpus:  # warm workers (the pool the warm-up job filled): the steady state
+                    freed = free_cluster()
                     run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
                     out = tmp / f"out_ray{k}"
-                    row = ray_row(f"ray{k}{tag}", ["run", str(data), *sel, *flags, *extra], out)
+                    row = ray_row(f"ray{k}{tag}", ["run", str(data), *sel, *flags, *extra], out, freed_s=freed)
                     if local is not None:
                         row.update(compare(out, tmp / "out_local",
                                            [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
@@ -290,7 +315,7 @@ def main() -> None:
         ray.shutdown()
 
     print(f"\n{'mode':<10}{'GPUs':>5}{'wall s':>9}{'frames':>8}{'frames/s':>10}{'first s':>9}{'all 1st':>8}"
-          f"{'f/s after':>10}{'per GPU/long':>14}{'eff.':>7}{'max |dflow|':>13}{'>1 cm':>8}{'masks':>7}")
+          f"{'f/s after':>10}{'per GPU/long':>14}{'eff.':>7}{'workers':>8}{'max |dflow|':>13}{'>1 cm':>8}{'masks':>7}")
     for r in rows:
         if long is not None:
             r["per_gpu_vs_long"] = r["fps"] / r["gpus"] / long["fps"]
@@ -301,12 +326,13 @@ def main() -> None:
         diff = f"{r['max_flow_diff']:.2e}" if "max_flow_diff" in r else "-"
         over = f"{100 * r['frac_over_1cm']:.2f}%" if "frac_over_1cm" in r else "-"
         masks = ("yes" if r["masks_equal"] else "NO") if "masks_equal" in r else "-"
+        wk = f"{r['workers_writing']}/{r['workers_asked']}" if "workers_asked" in r else "-"
         # the slowest worker's first output, s from the driver's start of the job (its timeline)
         firsts = [w["timeline"].get("first_output") for w in r.get("workers", []) if w.get("timeline")]
         r["all_first_output_s"] = max(firsts) if firsts and None not in firsts else None
         all1 = f"{r['all_first_output_s']:.2f}" if r["all_first_output_s"] is not None else "-"
         print(f"{r['mode']:<10}{r['gpus']:>5}{r['wall_s']:>9.2f}{r['frames']:>8}{r['fps']:>10.2f}{first:>9}{all1:>8}"
-              f"{after:>10}{ratio:>14}{eff:>7}{diff:>13}{over:>8}{masks:>7}")
+              f"{after:>10}{ratio:>14}{eff:>7}{wk:>8}{diff:>13}{over:>8}{masks:>7}")
     from floxels_ext.lidar.dataset.ray_runner import format_timeline
 
     for r in rows:  # where each worker's start went (s from the job's start; negative: before it)

@@ -74,3 +74,24 @@ def test_channel_gives_up_without_driver(monkeypatch):
     ch = Channel()
     ch.seen -= 1.0  # the driver's last poll was long ago: it is gone
     assert list(ch.tasks()) == [] and ch.ask("idle") is None
+
+
+def test_retire_while_held_exits_on_release(monkeypatch):
+    """A job that needs a held worker's resources asks it to retire; the worker leaves as soon
+    as its job releases it (a job finishing its last frames), not after the pool's idle time."""
+    exits = []
+    monkeypatch.setattr(ray_worker.FloxelsWorker, "_exit", lambda self: exits.append(1))
+    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=60.0, job="A")
+    w.warm.join()
+    assert w.retire() is False          # held by job A
+    assert not w.claim("B")             # leaving: no other job takes it meanwhile
+    w.release("A")
+    t = time.time()
+    while not exits and time.time() - t < 5:
+        time.sleep(0.01)
+    assert exits == [1] and w.retiring
+    idle = ray_worker.FloxelsWorker(1, "cpu", keep_s=60.0, job="A")
+    idle.warm.join()
+    idle.release("A")                   # no retire asked: it stays in the pool
+    time.sleep(0.1)
+    assert len(exits) == 1 and not idle.retiring and idle.claim("C")

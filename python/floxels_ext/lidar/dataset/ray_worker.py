@@ -155,6 +155,7 @@ class FloxelsWorker:
         self.idle_since = time.monotonic()
         self.running = False
         self.retiring = False
+        self.retire_asked = False  # a job asked while another held it: it exits once released
         self.jobs = 0
         self.channels: dict[str, Channel] = {}
         self.warm = threading.Thread(target=self._warm_up, name="floxels-warm-up", daemon=True)
@@ -192,9 +193,9 @@ class FloxelsWorker:
 
     # -- the warm pool -----------------------------------------------------------------------
     def claim(self, job: str) -> bool:
-        """Makes this worker ``job``'s, when no job holds it."""
+        """Makes this worker ``job``'s, when no job holds it (and no job asked it to leave)."""
         with self.lock:
-            if self.owner is not None or self.retiring:
+            if self.owner is not None or self.retiring or self.retire_asked:
                 return False
             self.owner, self.owner_seen = job, time.monotonic()
             return True
@@ -207,17 +208,32 @@ class FloxelsWorker:
                 return
             self.owner, self.idle_since = None, time.monotonic()
             self.channels.pop(job, None)
+            leave = self._leave_if_asked()
+        if leave:
+            return
         if self.device.startswith("cuda"):
             import torch
 
             torch.cuda.empty_cache()
 
     def retire(self) -> bool:
-        """Exits when idle (another job needs its resources); False when a job holds it."""
+        """Exits when idle (another job needs its resources). False when a job holds it: then it
+        exits as soon as that job releases it (a job still finishing its last frames, or one that
+        started it and is gone), instead of holding its GPU for the pool's idle time while the
+        asking job waits for it."""
         with self.lock:
             if self.owner is not None:
+                self.retire_asked = True
                 return False
             self.retiring = True
+        threading.Thread(target=self._exit, daemon=True).start()
+        return True
+
+    def _leave_if_asked(self) -> bool:
+        """(Under the lock, just released.) Starts the exit a retire asked for while it was held."""
+        if not self.retire_asked or self.retiring:
+            return False
+        self.retiring = True
         threading.Thread(target=self._exit, daemon=True).start()
         return True
 
@@ -240,6 +256,8 @@ class FloxelsWorker:
                     if now - seen > OWNER_TIMEOUT:
                         self.channels.pop(self.owner, None)
                         self.owner, self.idle_since = None, now
+                        if self._leave_if_asked():
+                            return
                 idle = self.owner is None and now - self.idle_since > self.keep_s
                 if idle:
                     self.retiring = True
