@@ -95,3 +95,23 @@ def test_retire_while_held_exits_on_release(monkeypatch):
     idle.release("A")                   # no retire asked: it stays in the pool
     time.sleep(0.1)
     assert len(exits) == 1 and not idle.retiring and idle.claim("C")
+
+
+def test_default_two_workers_a_gpu():
+    """On a GPU cluster a worker asks for half a GPU by default (two share each GPU: one leaves
+    its GPU idle during its host steps) and the node's CPUs are split between them."""
+    from types import SimpleNamespace
+
+    from floxels_ext.lidar.dataset.ray_runner import GPU_SHARE, _resources, task_slots
+
+    nodes = [{"Alive": True, "Resources": {"CPU": 64.0, "GPU": 4.0}}]
+    ray = SimpleNamespace(nodes=lambda: nodes)
+
+    def args(**kw):
+        return SimpleNamespace(**{"gpus_per_task": None, "cpus_per_task": None, "device": None, **kw})
+
+    assert GPU_SHARE == 0.5
+    assert _resources(ray, args()) == (0.5, 8.0, "cuda")
+    assert task_slots([nodes[0]["Resources"]], 0.5, 8.0) == 8
+    assert _resources(ray, args(gpus_per_task=1.0)) == (1.0, 16.0, "cuda")
+    assert _resources(ray, args(device="cpu")) == (0.0, 1.0, "cpu")

@@ -1,6 +1,6 @@
 """The engine of ``floxels run``: every run, one sequence or a dataset, here or on Ray, is tasks
 through one pipeline. ``run`` sends INPUT to ``local`` (one sequence, or a dataset with one
-progress bar) or ``ray_runner`` (one long-lived worker per GPU); ``tasks`` finds a dataset's
+progress bar) or ``ray_runner`` (long-lived workers, two per GPU); ``tasks`` finds a dataset's
 sequences and cuts them into tasks; ``worker`` runs tasks through the engine in a process;
 ``sequence`` opens a task (checks, resume, reader) and writes its summary; ``stream`` runs
 the method over the tasks' chunks, which ``layout`` lays end to end in one index space

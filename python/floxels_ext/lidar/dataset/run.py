@@ -39,16 +39,17 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
         "'floxels simulate' sequences; frame files beside sequences are refused) or a text file listing sequence directories (one a line, "
         "optionally 'PATH --poses FILE --calib FILE'). OUT then mirrors the input tree. Without --ray "
         "the sequences run here, one after another through one pipeline (the next one read while the "
-        "current one is estimated); with --ray, one worker per GPU does the same with the sequences it "
+        "current one is estimated); with --ray, two workers per GPU do the same with the sequences it "
         "takes from the driver.", 92))
     g.add_argument("--ray", nargs="?", const="auto", metavar="auto|ADDRESS",
-                   help="run on a Ray cluster, one long-lived worker per GPU (pip install 'floxels_ext[ray]'): "
+                   help="run on a Ray cluster, long-lived workers, two per GPU (pip install 'floxels_ext[ray]'): "
                         "'auto' (the default "
                         "when the flag is bare) joins the cluster this machine belongs to or starts a local "
                         "one; ADDRESS is a head node (host:6379 or ray://host:10001)")
     g.add_argument("--gpus-per-task", type=finite_float, metavar="G",
-                   help="GPUs a worker asks Ray for; fractions pack several workers on a GPU (default: 1 when "
-                        "the cluster has GPUs and --device is not cpu, else 0 = CPU workers)")
+                   help="GPUs a worker asks Ray for; fractions pack several workers on a GPU (default: 0.5, two "
+                        "workers a GPU, when the cluster has GPUs and --device is not cpu, else 0 = CPU workers; "
+                        "1: one worker a GPU, for GPUs too small for two)")
     g.add_argument("--cpus-per-task", type=finite_float, default=None, metavar="C",
                    help="CPUs a worker asks Ray for (its reader threads and torch threads; default: a GPU "
                         "node's CPUs shared by its GPU workers, 1 for CPU workers)")
