@@ -50,7 +50,7 @@ def hidden_keeps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
     better than zero flow (robust DT residuals, the refinement's gain) and moves at most
     ``LANDING_SHARE`` of it (weighted by the scans' loss weights) within ``LANDING_RADIUS`` of a
     target point outside the group that keeps less than ``REFINE_MIN_SPEED`` (the module's
-    tests). Host synchronisations: two (the candidate rows, the static rows)."""
+    tests). Host synchronisations: two (the candidate rows, the static rows near their moved places)."""
     cand = hidden & fits
     idx = torch.nonzero(cand).squeeze(1)
     if idx.numel() == 0 or not supports:
@@ -63,14 +63,17 @@ def hidden_keeps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
     s_u = _segment_sum(C, lab, _weighted_residual(supports, p, u, tau, False))
     s_0 = _segment_sum(C, lab, _weighted_residual(supports, p, torch.zeros_like(u), tau, False))
     keep = s_u < (1 - SEARCH_GAIN) * s_0
-    # its moved place at each support scan's time is not the target's static structure
-    ref = points[(flow.norm(dim=1) < REFINE_MIN_SPEED) & ~cand].contiguous()
+    # its moved place at each support scan's time is not the target's static structure; the
+    # static points are those inside the moved places' box (a brute-force search over them all
+    # would cost hidden points x support scans x the frame's points)
+    q = torch.cat([p + s.t * u for s in supports]).contiguous()  # (scans x hidden points, 3)
+    lo, hi = q.min(dim=0).values - LANDING_RADIUS, q.max(dim=0).values + LANDING_RADIUS
+    static = (flow.norm(dim=1) < REFINE_MIN_SPEED) & ~cand & ((points >= lo) & (points <= hi)).all(dim=1)
+    ref = points[static].contiguous()
     if ref.shape[0]:
-        landed = torch.zeros(idx.shape[0], dtype=p.dtype, device=p.device)
-        for s in supports:
-            q = (p + s.t * u).contiguous()
-            j = F.nearest_neighbor(q, ref)
-            landed += (s.w / wsum) * ((q - ref[j]).norm(dim=1) <= LANDING_RADIUS).to(p.dtype)
+        hit = ((q - ref[F.nearest_neighbor(q, ref)]).norm(dim=1) <= LANDING_RADIUS).to(p.dtype)
+        w = torch.tensor([s.w / wsum for s in supports], dtype=p.dtype, device=p.device)
+        landed = (w[:, None] * hit.view(len(supports), -1)).sum(dim=0)
         count = _segment_sum(C, lab, torch.ones_like(landed))
         share = _segment_sum(C, lab, landed) / count.clamp_min(1)
         keep &= share < LANDING_SHARE
