@@ -12,6 +12,7 @@ from floxels_ext.estimator.evidence import MotionEvidence, run_evidence, sensor_
 from floxels_ext.estimator.refine import rigid_refine, supports_of
 from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.spread import spread_rigid
+from floxels_ext.estimator.unseen import hidden_keeps
 from floxels_ext.ops.solver import SolverProblem
 
 __all__ = ["after_optimisation", "problem_evidence", "problem_observed"]
@@ -49,8 +50,10 @@ def after_optimisation(cfg: FloxelsConfig, problem: SolverProblem,
         # flow where a rigid motion explains the scans (all of them) clearly better than zero flow
         # (a car approaching from behind, at a sequence's first frame); static structure hidden
         # behind passing traffic is seen around the hidden part: zero flow fits it, and it keeps
-        # no arbitrary flow
-        keep = motions.fits if motions is not None else torch.zeros_like(ev.hidden)
+        # no arbitrary flow. The flow kept must itself fit, and must not move the group onto
+        # the target's static structure (estimator/unseen.py: a parked car in a row of them)
+        keep = torch.zeros_like(ev.hidden) if motions is None else hidden_keeps(
+            p.points, flow, p.labels, ev.hidden, motions.fits, supports, p.num_clusters)
         flow = torch.where((ev.hidden & ~keep)[:, None], torch.zeros_like(flow), flow)
     if motions is not None and cfg.refine_spread > 0:
         flow = spread_rigid(p.points, flow, p.labels, supports, motions, cfg.refine_spread, observed=observed)
