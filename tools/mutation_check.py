@@ -58,6 +58,7 @@ SEARCH = E + "test_refine_search.py"
 LONG = E + "test_long_windows.py"
 SEEN = E + "test_seen_evidence.py"
 SPREAD = E + "test_spread.py"
+UNSEEN_T = E + "test_unseen.py"
 COMPOSE = E + "test_accurate_composition.py"
 EVAL = "tests/evaluation/test_eval_scope.py"
 AV2 = "tests/evaluation/test_metrics_av2.py"
@@ -245,6 +246,8 @@ MUTATIONS = [
     ("max_offset ignored (47)", WINDOWS, "if max_offset > 0:", "if False:", [LONG]),
     ("seen_mean rescues groups that follow the sensor (47)", EVIDENCE,
      "rescued &= run_mean(follows.to(torch.float64)) < 0.5", "pass", [SEEN]),
+    ("hidden groups kept wherever they land (47)", "python/floxels_ext/estimator/unseen.py",
+     "LANDING_SHARE = 0.5", "LANDING_SHARE = 9.0", [UNSEEN_T]),
     # eval's scoring scope
     ("eval scores every point by default", EVAL_CLI,
      'mask = z["mask"] if "mask" in z.files and not all_points else None', "mask = None", [EVAL]),
