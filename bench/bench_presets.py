@@ -1,7 +1,8 @@
 """What the `accurate` preset costs against `paper` (issue 47: at most 2x paper's GPU time per frame).
 
     python bench/bench_presets.py [--device cpu|cuda] [--beams 32] [--lengths 11] [--scenes urban]
-                                  [--seed 60] [--frames ends] [--iters N] [--repeat 3]
+                                  [--seed 60] [--frames ends] [--azimuth 2048] [--max-range 50]
+                                  [--iters N] [--repeat 3]
                                   [--variant LABEL=PRESET[,FIELD=VALUE...]] [--no-profile] [--json PATH]
 
 Each row (``paper``, ``accurate`` and every ``--variant``, e.g. ``old=accurate,refine_level=false``)
@@ -171,6 +172,7 @@ def parse_args(argv=None):
     ap.add_argument("--seed", type=int, default=60, help="simulator seed (60-62: held out from the preset's tuning)")
     ap.add_argument("--frames", default="ends", help="scored frames of each sequence: ends, all, or 0,5,-1")
     ap.add_argument("--azimuth", type=int, default=2048, help="simulated lidar azimuth steps")
+    ap.add_argument("--max-range", type=float, default=50.0, help="the protocol's crop of the simulated scans (m)")
     ap.add_argument("--iters", type=int, default=0, help="cap max_iters of every row (smoke runs; 0: the presets')")
     ap.add_argument("--repeat", type=int, default=3, help="timed calls per row and case (median)")
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=PRESET[,FIELD=VALUE...]",
@@ -202,7 +204,8 @@ def main(argv=None) -> int:
     for scene in args.scenes:
         for beams in args.beams:
             for length in args.lengths:
-                case = sim_case(scene, args.seed, beams, length, args.frames, azimuth=args.azimuth, cache=cache)
+                case = sim_case(scene, args.seed, beams, length, args.frames, max_range=args.max_range,
+                                azimuth=args.azimuth, cache=cache)
                 rows = {lab: measure(case, cfg, args) for lab, cfg in variants}
                 add_ratios(rows)
                 pts = sum(case.scans[f].shape[0] for f in case.frames) / len(case.frames)

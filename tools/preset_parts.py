@@ -10,10 +10,10 @@ solves, velocity search and residual look-ups, the spreading), the read-back. Pa
 child's time is inside its parent's); ``self`` is a part's time less its children's.
 
 Per part: seconds per frame, calls, ATen/floxels ops launched (top-level calls: on CUDA about one
-kernel launch each) and host synchronisations (``aten::nonzero``, ``aten::_local_scalar_dense``,
-copies to the host, and on CUDA every synchronisation ``torch.cuda.set_sync_debug_mode`` reports,
-e.g. ``torch.tensor(..., device="cuda")``), counted in one extra run under ``torch.profiler``
-(CPU activity only). ``--sync``: on CUDA each part waits for the device before and after, so
+kernel launch each) and host synchronisations (``aten::nonzero``, ``aten::_local_scalar_dense``
+and estimator/host_reads.py's merged reads), counted in one extra run under ``torch.profiler``
+(CPU activity only); on CUDA also every synchronisation ``torch.cuda.set_sync_debug_mode``
+reports (e.g. ``torch.tensor(..., device="cuda")``, blocking copies), by part. ``--sync``: on CUDA each part waits for the device before and after, so
 its time includes its GPU work (the run then loses its overlaps; compare parts, not totals).
 
     PYTHONPATH=python python tools/preset_parts.py [--device cpu|cuda] [--beams 32] [--lengths 11]
@@ -27,6 +27,7 @@ refine_level=false`` for what one field costs).
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import sys
 import time
@@ -43,32 +44,42 @@ from accurate_map import parse_variant, sensor_kwargs  # noqa: E402
 
 from floxels_ext import FloxelsConfig, estimate_sequence  # noqa: E402
 from floxels_ext.estimator import distance, evidence, group, post, refine, spread  # noqa: E402
+
+try:
+    from floxels_ext.estimator import host_reads  # noqa: E402
+except ImportError:  # (a checkout before the merged reads)
+    host_reads = None
 from floxels_ext.ops import solver as solver_ops  # noqa: E402
 
-# (part, parent part or None, object, attribute): each wrapped where its caller looks it up
+# (part, parent part or None, object, attribute): each wrapped where its caller looks it up (an
+# attribute the checkout lacks is skipped: the tool also measures the code before issue 47's
+# speed work, where post.py called rigid_refine / spread_rigid one problem at a time)
 PARTS = [
     ("dt+sight", None, group, "build_dt"),
     ("dt+sight", None, distance, "build_dt"),  # EarlyDts (single frames)
     ("sight", "dt+sight", distance, "scan_sight"),
     ("dbscan+setup", None, group, "_targets"),
     ("optimiser", None, solver_ops.PackedProblems, "run"),
-    ("post", None, group, "after_optimisation"),
+    ("post", None, group, "after_optimisation_all"),
+    ("post", None, group, "after_optimisation"),  # (before the host reads were merged)
     ("observed_bits", "post", post, "observed_bits"),
     ("evidence", "post", post, "run_evidence"),
     ("seen_evidence", "evidence", evidence, "seen_evidence"),
     ("sensor_velocity", "post", post, "sensor_velocity"),
+    ("rigid_refine", "post", post, "rigid_refine_steps"),
     ("rigid_refine", "post", post, "rigid_refine"),
     ("cluster_means", "rigid_refine", refine, "_cluster_means"),
     ("subsample", "rigid_refine", refine, "_subsample"),
     ("rigid_lm", "rigid_refine", refine._LevenbergMarquardt, "solve"),
     ("search", "rigid_refine", refine, "_search"),
     ("residuals", "rigid_refine", refine, "_weighted_residual"),
+    ("spread", "post", post, "spread_rigid_steps"),
     ("spread", "post", post, "spread_rigid"),
     ("spread_residuals", "spread", spread, "_weighted_residual"),
     ("restore", None, group, "restore_outputs"),
 ]
 PARENT = {name: parent for name, parent, _, _ in PARTS}  # each part once, in order
-SYNC_OPS = ("aten::nonzero", "aten::_local_scalar_dense")
+SYNC_OPS = ("aten::nonzero", "aten::_local_scalar_dense", "host_read")  # host_read: host_reads._read's transfer
 VIEWS = {"aten::" + n for n in ("unsqueeze", "squeeze", "select", "slice", "view", "reshape", "expand",
                                   "expand_as", "transpose", "unbind", "detach", "as_strided", "alias", "t",
                                   "permute", "diagonal", "empty", "empty_like", "lift_fresh", "_unsafe_view",
@@ -87,8 +98,17 @@ class Parts:
         self.saved = []
 
     def install(self) -> None:
+        read = getattr(host_reads, "_read", None) if host_reads is not None else None  # the merged reads (a .tolist(): no ATen op of its own)
+        if read is not None:
+            def counted(counts):
+                with torch.profiler.record_function("host_read"):
+                    return read(counts)
+            self.saved.append((host_reads, "_read", read))
+            host_reads._read = counted
         for name, _, obj, attr in PARTS:
-            fn = getattr(obj, attr)
+            fn = getattr(obj, attr, None)
+            if fn is None:
+                continue
             self.saved.append((obj, attr, fn))
             setattr(obj, attr, self._wrap(name, fn))
 
@@ -101,20 +121,34 @@ class Parts:
         parts = self
 
         def wrapped(*a, **k):
-            if parts.sync:
-                torch.cuda.synchronize()
-            parts.stack.append(name)
-            t0 = time.perf_counter()
-            try:
-                with torch.profiler.record_function("part:" + name):
-                    return fn(*a, **k)
-            finally:
-                if parts.sync:
-                    torch.cuda.synchronize()
-                parts.time[name] += time.perf_counter() - t0
-                parts.calls[name] += 1
-                parts.stack.pop()
+            parts.calls[name] += 1
+            out = parts._timed(name, fn, a, k)
+            return parts._steps(name, out) if inspect.isgenerator(out) else out
         return wrapped
+
+    def _timed(self, name, fn, a, k):
+        if self.sync:
+            torch.cuda.synchronize()
+        self.stack.append(name)
+        t0 = time.perf_counter()
+        try:
+            with torch.profiler.record_function("part:" + name):
+                return fn(*a, **k)
+        finally:
+            if self.sync:
+                torch.cuda.synchronize()
+            self.time[name] += time.perf_counter() - t0
+            self.stack.pop()
+
+    def _steps(self, name, gen):
+        """A generator part (estimator/host_reads.py's steps): each resumption timed."""
+        value = None
+        while True:
+            try:
+                want = self._timed(name, gen.send, (value,), {})
+            except StopIteration as stop:
+                return stop.value
+            value = yield want
 
     def reset(self) -> None:
         self.time.clear()
