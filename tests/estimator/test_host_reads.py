@@ -8,6 +8,7 @@ import torch
 from floxels_ext import FloxelsConfig, estimate_sequence
 from floxels_ext.estimator import host_reads, post
 from floxels_ext.estimator.host_reads import rows_where, run_one, run_steps
+from test_accurate_preset import highway  # noqa: F401  (5 simulated highway frames, sensors, ground)
 
 
 @pytest.mark.parametrize("p", [0.0, 0.3, 1.0])
@@ -37,26 +38,10 @@ def test_run_steps_reads_every_problem_once_per_round(monkeypatch):
     assert [run_one(_steps(v)) for v in problems] == [6, 0, 4, 11]
 
 
-@pytest.fixture(scope="module")
-def highway():
-    """6 frames of the simulated highway (32 beams) with the sensors and the removed ground."""
-    from floxels_ext.evaluation.protocol import protocol_mask
-    from floxels_ext.evaluation.sim import simulate_sequence
-
-    seq = simulate_sequence("highway", num_frames=6, seed=11, beams=32, azimuth_steps=512)
-    scans, sensors, ground = [], [], []
-    for fr in seq.frames:
-        keep = protocol_mask(fr.points, fr.pose[:3, 3], max_range=30.0, ground=fr.ground)
-        scans.append(fr.points[keep].astype(np.float32))
-        sensors.append(fr.pose[:3, 3])
-        ground.append(fr.points[fr.ground].astype(np.float32))
-    return scans, sensors, ground
-
-
 def test_accurate_sequence_in_one_group_gives_the_same_bits(highway, monkeypatch):
     """Every frame's flow and evidence the same bits whether its steps after the optimiser run
     alone or in lockstep with the other frames of its group (their host reads merged)."""
-    scans, sensors, ground = highway
+    scans, sensors, ground, _, _ = highway
     cfg = FloxelsConfig.preset("accurate", max_iters=60)
     groups = []
     real = post.run_steps
