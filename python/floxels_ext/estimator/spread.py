@@ -64,9 +64,10 @@ def spread_rigid_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     free = ~m.take
     offered = near & free
     # a DBSCAN cluster touched by an offered point is offered whole (one motion test per cluster);
-    # the points of no cluster mark a spare last row (no boolean indexing: no synchronisation)
-    touched = torch.zeros(C + 1, dtype=torch.bool, device=points.device)
-    touched[torch.where(offered & (lab >= 0), lab, torch.full_like(lab, C))] = True
+    # the points of no cluster mark a spare last row (no boolean indexing, and a scatter of a
+    # scalar, not an assignment, whose value a CUDA tensor copies from the host: no synchronisation)
+    touched = torch.zeros(C + 1, dtype=torch.bool, device=points.device).scatter_(
+        0, torch.where(offered & (lab >= 0), lab, torch.full_like(lab, C)), True)
     offered |= free & (lab >= 0) & touched[lab.clamp_min(0)]
     (num_offered,) = yield [offered.sum()]
     if num_offered == 0:
