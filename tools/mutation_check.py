@@ -59,6 +59,7 @@ LONG = E + "test_long_windows.py"
 SEEN = E + "test_seen_evidence.py"
 SPREAD = E + "test_spread.py"
 UNSEEN_T = E + "test_unseen.py"
+HOSTR = E + "test_host_reads.py"
 COMPOSE = E + "test_accurate_composition.py"
 EVAL = "tests/evaluation/test_eval_scope.py"
 AV2 = "tests/evaluation/test_metrics_av2.py"
@@ -79,6 +80,7 @@ POST = "python/floxels_ext/estimator/post.py"
 EVIDENCE = "python/floxels_ext/estimator/evidence.py"
 SIGHT_PY = "python/floxels_ext/estimator/sight.py"
 REFINE_PY = "python/floxels_ext/estimator/refine.py"
+HOST_READS = "python/floxels_ext/estimator/host_reads.py"
 LAYOUT = "python/floxels_ext/lidar/dataset/layout.py"
 EVAL_CLI = "python/floxels_ext/evaluation/eval_cli.py"
 PREPROC_SET = "python/floxels_ext/lidar/preprocess/settings.py"
@@ -228,8 +230,8 @@ MUTATIONS = [
     ("range band in 3-D range, not horizontal", SIGHT_PY, "r = torch.hypot(rel[band, :, 0], rel[band, :, 1])",
      "r = torch.linalg.vector_norm(rel[band], dim=-1)", [SIGHT]),
     ("range image bins 2 degrees", SIGHT_PY, "AZ_BIN = math.radians(0.5)", "AZ_BIN = math.radians(2.0)", [SIGHT]),
-    ("removed ground left out of the range images", SIGHT_PY, "if ground is not None and ground.shape[0]:",
-     "if False:", [GSIGHT]),
+    ("removed ground left out of the range images", SIGHT_PY,
+     "with_ground = image and ground is not None and ground.shape[0] > 0", "with_ground = False", [GSIGHT]),
     # issue 47: the accurate preset's new fields and the code they switch on
     ("accurate regularisers by count (47)", CFG, '"reg_scale": "weights", "max_offset"', '"reg_scale": "support", "max_offset"',
      [ACC]),
@@ -248,6 +250,9 @@ MUTATIONS = [
      "rescued &= run_mean(follows.to(torch.float64)) < 0.5", "pass", [SEEN]),
     ("hidden groups kept wherever they land (47)", "python/floxels_ext/estimator/unseen.py",
      "LANDING_SHARE = 0.5", "LANDING_SHARE = 9.0", [UNSEEN_T]),
+    ("merged host reads handed to the wrong problems (47)", HOST_READS,
+     "values = iter(_read([t for want in asked.values() for t in want]))",
+     "values = iter(_read([t for want in asked.values() for t in want])[::-1])", [HOSTR]),
     # eval's scoring scope
     ("eval scores every point by default", EVAL_CLI,
      'mask = z["mask"] if "mask" in z.files and not all_points else None', "mask = None", [EVAL]),

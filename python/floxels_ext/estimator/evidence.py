@@ -44,6 +44,8 @@ from dataclasses import dataclass
 
 import torch
 
+from floxels_ext.ops._small import device_values
+
 __all__ = ["MotionEvidence", "motion_evidence", "run_evidence", "seen_evidence", "sensor_velocity", "group_ids",
            "EVIDENCE_MODES", "FOLLOW_RATIO"]
 
@@ -220,19 +222,24 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
     n = rf.shape[0]
     k = len(weights)
     bits = (observed[:, None] >> torch.arange(k, dtype=torch.int32, device=observed.device)) & 1
-    share = bits.to(torch.float64) @ torch.tensor(weights, dtype=torch.float64, device=observed.device)
+    share = bits.to(torch.float64) @ device_values(weights, torch.float64, observed.device)
     lab = labels.long() if labels is not None else torch.full((n,), -1, dtype=torch.long, device=rf.device)
-    same = (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | (cells[1:].long() == cells[:-1].long()))
+    same = (lab[1:] == lab[:-1]) & ((lab[1:] >= 0) | (cells[1:] == cells[:-1]))
     one = torch.ones(min(n, 1), dtype=torch.bool, device=rf.device)
     idx = torch.arange(n, device=rf.device)
     # each point's run [first, last] (no host synchronisation: running maxima and minima)
-    first = torch.cummax(torch.where(torch.cat([one, ~same]), idx, torch.zeros_like(idx)), 0).values
-    last = torch.cummin(torch.where(torch.cat([~same, one]), idx, torch.full_like(idx, n)).flip(0), 0).values.flip(0)
+    ends = ~same
+    first = torch.cummax(torch.where(torch.cat([one, ends]), idx, torch.zeros_like(idx)), 0).values
+    last = torch.cummin(torch.where(torch.cat([ends, one]), idx, torch.full_like(idx, n)).flip(0), 0).values.flip(0)
     count = (last - first + 1).to(torch.float64)
+    # each run's sum: the prefix sum at its last point less the one before its first (shared by
+    # every run_mean: a few launches fewer on CUDA)
+    after_first, before = first > 0, (first - 1).clamp_min(0)
+    zeros = torch.zeros(n, dtype=torch.float64, device=rf.device)
 
     def run_mean(v: torch.Tensor) -> torch.Tensor:  # each point's group mean of v (float64)
         cs = torch.cumsum(v, 0)
-        return (cs[last] - torch.where(first > 0, cs[(first - 1).clamp_min(0)], torch.zeros_like(v))) / count
+        return (cs[last] - torch.where(after_first, cs[before], zeros)) / count
 
     mean_share = run_mean(share)
     seen = mean_share > 0
@@ -245,9 +252,11 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
         if sensor_velocity is not None and flow is not None:
             f = flow.to(torch.float64)
             v = sensor_velocity.to(f)
-            along = f @ (v / v.norm().clamp_min(1e-9))
-            across = (f - along[:, None] * (v / v.norm().clamp_min(1e-9))).norm(dim=1)
-            follows = (v.norm() > 0.05) & (along > 0) & (across <= FOLLOW_RATIO * f.norm(dim=1))
+            speed = v.norm()
+            unit = v / speed.clamp_min(1e-9)
+            along = f @ unit
+            across = (f - along[:, None] * unit).norm(dim=1)
+            follows = (speed > 0.05) & (along > 0) & (across <= FOLLOW_RATIO * f.norm(dim=1))
             rescued &= run_mean(follows.to(torch.float64)) < 0.5
         explained = explained | rescued
     if keep_unseen:
@@ -270,6 +279,6 @@ def sensor_velocity(sensors: list[torch.Tensor | None], offsets: Sequence[float]
     var = sum((t - tm) ** 2 for t in ts)
     if var <= 0:
         return None
-    pos = torch.stack([s.to(torch.float64) for s, _ in known])
-    w = torch.tensor([(t - tm) / var for t in ts], dtype=torch.float64, device=pos.device)
+    pos = torch.stack([s for s, _ in known]).to(torch.float64)  # (float32 -> float64: exact in any order)
+    w = device_values([(t - tm) / var for t in ts], torch.float64, pos.device)
     return (w[:, None] * (pos - pos.mean(0))).sum(0)

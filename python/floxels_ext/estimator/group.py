@@ -17,7 +17,7 @@ import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.distance import build_dt
-from floxels_ext.estimator.post import after_optimisation, problem_evidence, problem_observed
+from floxels_ext.estimator.post import after_optimisation_all, problem_evidence, problem_observed
 from floxels_ext.estimator.refine import cluster_velocity_search, supports_of, vertex_init
 from floxels_ext.estimator.result import FloxelsResult
 from floxels_ext.estimator.scans import PreparedScans, restore_outputs
@@ -231,15 +231,19 @@ class Solving:
                 solved[k] = packed.best_params(b).clone()
         flows = []  # flow of the kept rows per frame
         evidence = [] if cfg.evidence != "off" else None  # (N_kept, 2): score, explained (0/1)
+        # the evidence test and the refinement of every problem, their host reads merged
+        live = [k for k, p in enumerate(pr.problems) if p is not None]
+        after = dict(zip(live, after_optimisation_all(
+            cfg, [pr.problems[k] for k in live],
+            [F.corner_gather(solved[k], pr.problems[k].corners.corner_idx, pr.problems[k].corners.corner_w)
+             for k in live])))
         for k, (prep, _) in enumerate(pr.items):
             if pr.problems[k] is None:
                 flows.append(prep.points[prep.target].new_zeros(0, 3))
                 if evidence is not None:
                     evidence.append(prep.points[prep.target].new_zeros(0, 2))
                 continue
-            p = pr.problems[k]
-            flow_s = F.corner_gather(solved[k], p.corners.corner_idx, p.corners.corner_w)
-            flow_s, ev = after_optimisation(cfg, p, flow_s)  # the evidence test, the refinement
+            flow_s, ev = after[k]
             if evidence is not None:
                 ev_k = torch.empty(len(flow_s), 2, dtype=torch.float32, device=flow_s.device)
                 ev_k[pr.orders[k], 0] = ev.score

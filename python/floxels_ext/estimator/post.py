@@ -1,7 +1,9 @@
 """After the optimiser, per solved problem (rows in the solver's order): what each support scan
 saw of the target (estimator/sight.py), the motion evidence test (estimator/evidence.py) and the
 rigid refinement with its spreading to the refined objects' other points (estimator/refine.py),
-in the order the ``accurate`` preset applies them. Nothing here runs with the paper's settings."""
+in the order the ``accurate`` preset applies them. Nothing here runs with the paper's settings.
+A group's problems run together (:func:`after_optimisation_all`): their few host reads are merged,
+one synchronisation per round for all of them (estimator/host_reads.py)."""
 
 from __future__ import annotations
 
@@ -9,19 +11,41 @@ import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.evidence import MotionEvidence, run_evidence, sensor_velocity
-from floxels_ext.estimator.refine import rigid_refine, supports_of
+from floxels_ext.estimator.host_reads import Steps, run_one, run_steps
+from floxels_ext.estimator.refine import rigid_refine_steps, supports_of
 from floxels_ext.estimator.sight import observed_bits
-from floxels_ext.estimator.spread import spread_rigid
+from floxels_ext.estimator.spread import spread_rigid_steps
 from floxels_ext.estimator.unseen import hidden_keeps
 from floxels_ext.ops.solver import SolverProblem
 
-__all__ = ["after_optimisation", "problem_evidence", "problem_observed"]
+__all__ = ["after_optimisation", "after_optimisation_all", "after_optimisation_steps", "problem_evidence",
+           "problem_observed"]
 
 
 def after_optimisation(cfg: FloxelsConfig, problem: SolverProblem,
                        flow: torch.Tensor) -> tuple[torch.Tensor, MotionEvidence | None]:
     """(the flow after the evidence test and the rigid refinement, the evidence or None) of one
     solved problem's optimiser flow ``flow`` (solver order)."""
+    return run_one(after_optimisation_steps(cfg, problem, flow))
+
+
+def after_optimisation_all(cfg: FloxelsConfig, problems: list[SolverProblem],
+                           flows: list[torch.Tensor]) -> list[tuple[torch.Tensor, MotionEvidence | None]]:
+    """:func:`after_optimisation` of several problems, their host reads merged (one per round for
+    all of them: estimator/host_reads.py); each result the same bits as alone."""
+    if not _anything_after(cfg):
+        return [(flow, None) for flow in flows]
+    return run_steps([after_optimisation_steps(cfg, p, f) for p, f in zip(problems, flows)])
+
+
+def _anything_after(cfg: FloxelsConfig) -> bool:
+    """Whether anything runs after the optimiser (not with the paper's settings)."""
+    return cfg.evidence != "off" or cfg.rigid_refine
+
+
+def after_optimisation_steps(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Tensor) -> Steps:
+    """:func:`after_optimisation` as steps of estimator/host_reads.py (the refinement's and the
+    spreading's host reads yielded)."""
     p = problem
     short = cfg.refine_max_supports <= 0 or len(p.dts) <= cfg.refine_max_supports
     refine = cfg.rigid_refine and (short or cfg.refine_sided)
@@ -43,8 +67,9 @@ def after_optimisation(cfg: FloxelsConfig, problem: SolverProblem,
     motions = None
     if refine:
         supports = supports_of(p.dts, p.origins, p.time_offsets, p.weights, cfg.dt_cell)
-        flow, motions = rigid_refine(p.points, flow, p.labels, supports, num_clusters=p.num_clusters, sided=not short,
-                                     search=cfg.refine_search, motions=True, level=cfg.refine_level)
+        flow, motions = yield from rigid_refine_steps(p.points, flow, p.labels, supports,
+                                                      num_clusters=p.num_clusters, sided=not short,
+                                                      search=cfg.refine_search, motions=True, level=cfg.refine_level)
     if ev is not None and ev.hidden is not None and cfg.evidence == "zero":
         # a group kept only because no scan saw it (something in front of it each time) keeps its
         # flow where a rigid motion explains the scans (all of them) clearly better than zero flow
@@ -56,7 +81,8 @@ def after_optimisation(cfg: FloxelsConfig, problem: SolverProblem,
             p.points, flow, p.labels, ev.hidden, motions.fits, supports, p.num_clusters)
         flow = torch.where((ev.hidden & ~keep)[:, None], torch.zeros_like(flow), flow)
     if motions is not None and cfg.refine_spread > 0:
-        flow = spread_rigid(p.points, flow, p.labels, supports, motions, cfg.refine_spread, observed=observed)
+        flow = yield from spread_rigid_steps(p.points, flow, p.labels, supports, motions, cfg.refine_spread,
+                                             observed=observed)
     return flow, ev
 
 
@@ -75,8 +101,9 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
                         problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
                         truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
                         observed=observed, seen_mean=cfg.evidence_seen_mean, keep_unseen=cfg.evidence_keep_unseen,
-                        occluded=occluded, sensor_velocity=None if problem.sights is None else sensor_velocity(
-                            [None if s is None else s.sensor for s in problem.sights], problem.time_offsets))
+                        occluded=occluded, sensor_velocity=None if problem.sights is None or not cfg.evidence_seen_mean
+                        else sensor_velocity([None if s is None else s.sensor for s in problem.sights],
+                                             problem.time_offsets))
 
 
 def problem_observed(problem: SolverProblem) -> torch.Tensor | None:

@@ -33,8 +33,10 @@ from dataclasses import dataclass
 
 import torch
 
+from floxels_ext.estimator.host_reads import Steps, rows_where, run_one
+
 __all__ = ["Support", "supports_of", "robust_residual", "cluster_velocity_search", "vertex_init", "rigid_refine",
-           "RigidMotions"]
+           "rigid_refine_steps", "RigidMotions"]
 
 F = torch.ops.floxels
 
@@ -113,6 +115,12 @@ def _subsample(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> torch
     """Rows of at most ``k`` points per cluster, evenly spread over each cluster's rows
     (deterministic), grouped by cluster in row order. ``counts``: points of each cluster with
     ``lab >= 0``. One host synchronisation (the number of rows kept)."""
+    order, keep = _subsample_mask(lab, C, counts, k)
+    return order[keep]
+
+
+def _subsample_mask(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(``order``, ``keep``): :func:`_subsample`'s rows are ``order[keep]`` (no synchronisation)."""
     key = torch.where(lab >= 0, lab, torch.full_like(lab, C))  # points of no cluster sort last
     order = torch.argsort(key, stable=True)
     ks = key[order]
@@ -120,7 +128,7 @@ def _subsample(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> torch
     start = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
     rank = torch.arange(ks.numel(), device=lab.device) - start[ks]
     stride = torch.clamp((counts[ks] + k - 1) // k, min=1)
-    return order[(ks < C) & (rank % stride == 0)]
+    return order, (ks < C) & (rank % stride == 0)
 
 
 def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -323,13 +331,24 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     Every cluster is solved at once by ``floxels::rigid_lm`` (kernels/rigid_lm.h: per step the
     clusters' normal equations from one look-up per support scan, sums in a fixed order, and a
     closed-form 3 x 3 solve; on CUDA one launch for every cluster and step); the only host
-    synchronisation is the number of sample points (plus ``labels.max()`` without ``num_clusters``).
+    synchronisation is the number of sample points (plus ``labels.max()`` without ``num_clusters``;
+    :func:`rigid_refine_steps` yields it, for reads merged over several problems).
 
     ``motions``: return ``(flow, RigidMotions or None)`` (what was kept, for
     estimator/spread.py). ``level`` (``FloxelsConfig.refine_level``): each start is also solved
     with no vertical velocity, and the lower cost kept: the optimiser's mean vertical flow of a
     fast, far mover can be off by decimetres a frame (a highway truck: 0.47 m/frame), which no
     horizontal motion then fits."""
+    return run_one(rigid_refine_steps(points, flow, labels, supports, tau, min_speed, iters, num_clusters, sided,
+                                      search, motions, level))
+
+
+def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | None,
+                       supports: list[Support], tau: float = TAU, min_speed: float = REFINE_MIN_SPEED,
+                       iters: int = REFINE_ITERS, num_clusters: int | None = None, sided: bool = False,
+                       search: bool = False, motions: bool = False, level: bool = False) -> Steps:
+    """:func:`rigid_refine` as steps of ``estimator/host_reads.py``: its host read (the number of
+    sample rows) yielded."""
     none = (flow, None) if motions else flow
     if labels is None or points.shape[0] == 0 or not supports:
         return none
@@ -341,9 +360,12 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     mean_flow, size = _cluster_means(flow, lab, C)
     sel = (mean_flow[:, :2].norm(dim=1) >= min_speed) & (size >= MIN_CLUSTER_POINTS)
     lab = torch.where((lab >= 0) & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
-    rows = _subsample(lab, C, torch.where(sel, size, torch.zeros_like(size)).to(torch.int64), REFINE_POINTS)
-    if rows.numel() == 0:  # (the one host synchronisation)
+    order, keep = _subsample_mask(lab, C, torch.where(sel, size, torch.zeros_like(size)).to(torch.int64),
+                                  REFINE_POINTS)
+    (num_rows,) = yield [keep.sum()]  # (the one host synchronisation)
+    if num_rows == 0:
         return none
+    rows = order[rows_where(keep, num_rows)]
     q, cid = points[rows], lab[rows]
     segments = _segments(cid, C)
     n = segments.diff().clamp_min(1).to(dt)  # sample points per cluster
@@ -375,9 +397,10 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     fits = accept.clone()
     if sided:
         u = _planar(theta[cid], rel, vz[cid])
+        f = flow[rows]
         for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):
             if side:  # summed loss-weighted residuals of the sample points: rigid minus the flow's
-                worse = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, flow[rows], tau, True)
+                worse = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, f, tau, True)
                 accept &= _segment_sum(C, cid, worse) <= 0
     cl = lab.clamp_min(0)
     take = (lab >= 0) & accept[cl]

@@ -55,9 +55,11 @@ class Sight:
         return [t for t in (self.sensor, self.band, self.image) if t is not None]
 
 
-def _bins(rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Direction bin and range of positions relative to a sensor (n, 3)."""
-    horiz = torch.hypot(rel[:, 0], rel[:, 1])
+def _bins(rel: torch.Tensor, horiz: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Direction bin and range of positions relative to a sensor (n, 3); ``horiz``: their
+    horizontal range ``hypot(rel[:, 0], rel[:, 1])`` if already computed (the same bits)."""
+    if horiz is None:
+        horiz = torch.hypot(rel[:, 0], rel[:, 1])
     az = torch.atan2(rel[:, 1], rel[:, 0])
     el = torch.atan2(rel[:, 2], horiz)
     ia = ((az + math.pi) / AZ_BIN).floor().long().clamp(0, NUM_AZ - 1)
@@ -69,23 +71,25 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
     """The sight of a scan (n, 3) float32 from ``sensor`` (xyz in the scans' frame). ``ground``:
     the scan's removed ground returns (m, 3) float32 in the same frame, any device: they join the
     range image (not the band: the scan's crop is that of its points)."""
-    # fills, not host-to-device copies: nothing here waits for the device
-    s = torch.stack([torch.full((), float(v), dtype=torch.float32, device=points.device) for v in sensor[:3]])
+    # a page-locked copy, not a blocking host-to-device one: nothing here waits for the device
+    s = device_values([float(v) for v in sensor[:3]], torch.float32, points.device)
     rel = points.to(torch.float32) - s
+    n = rel.shape[0]
+    with_ground = image and ground is not None and ground.shape[0] > 0
+    if with_ground:  # binned with the points in one pass (each row's arithmetic is its own)
+        rel = torch.cat([rel, ground.to(device=points.device, dtype=torch.float32) - s])
+    # (column views of rel: the same element-wise path as before the ground joined them)
+    horiz = torch.hypot(rel[:, 0], rel[:, 1]) if band or image else None
     b = img = None
     if band:
-        lo, hi = torch.aminmax(torch.hypot(rel[:, 0], rel[:, 1]))
-        b = torch.stack([lo, hi])
+        b = torch.stack(list(torch.aminmax(horiz[:n])))
     if image:
-        idx, rr = _bins(rel)
+        idx, rr = _bins(rel, horiz)
+        if with_ground:  # non-finite ground rows: no return (no host synchronisation; the points are finite)
+            ok = torch.isfinite(rel).all(dim=1)
+            idx, rr = torch.where(ok, idx, torch.zeros_like(idx)), torch.where(ok, rr, torch.full_like(rr, -1.0))
         img = torch.full((NUM_AZ * NUM_EL,), -1.0, dtype=torch.float32, device=points.device)
         img.scatter_reduce_(0, idx, rr, "amax")  # a maximum: the same bits in any order
-        if ground is not None and ground.shape[0]:
-            rel_g = ground.to(device=points.device, dtype=torch.float32) - s
-            idx, rr = _bins(rel_g)
-            ok = torch.isfinite(rel_g).all(dim=1)  # non-finite rows: no return (no host synchronisation)
-            img.scatter_reduce_(0, torch.where(ok, idx, torch.zeros_like(idx)),
-                                torch.where(ok, rr, torch.full_like(rr, -1.0)), "amax")
     return Sight(s, b, img)
 
 
@@ -123,22 +127,35 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
     and (n,) int32 with it set where its range image has a nearer return in the point's direction."""
     n, K = p.shape[0], len(sights)
     rel = p[None] - torch.stack([s.sensor for s in sights])[:, None]  # (K, n, 3)
-    ok = torch.ones(K, n, dtype=torch.bool, device=p.device)
-    front = torch.zeros(K, n, dtype=torch.bool, device=p.device)
+    ok = front = None  # (K, n) bool; None: every scan saw the point / none shows a nearer return
+
+    def where_scans(js: list[int], v: torch.Tensor, fill: bool) -> torch.Tensor:
+        # v for the scans js (rows of it), fill for the others (every scan has one: v itself)
+        if len(js) == K:
+            return v
+        out = torch.full((K, n), fill, dtype=torch.bool, device=p.device)
+        out[js] = v
+        return out
+
     band = [j for j, s in enumerate(sights) if s.band is not None]
     if band:
         lim = torch.stack([sights[j].band for j in band])  # (B, 2)
-        r = torch.hypot(rel[band, :, 0], rel[band, :, 1])
-        ok[band] &= (r >= lim[:, :1]) & (r <= lim[:, 1:])
+        r = torch.hypot(rel[band, :, 0], rel[band, :, 1])  # (rows gathered by the list: as before)
+        ok = where_scans(band, (r >= lim[:, :1]) & (r <= lim[:, 1:]), True)
     image = [j for j, s in enumerate(sights) if s.image is not None]
     if image:
         imgs = torch.stack([sights[j].image for j in image])  # (I, bins)
-        idx, rr = _bins(rel[image].reshape(-1, 3))
+        idx, rr = _bins((rel if len(image) == K else rel[image]).reshape(-1, 3))
         idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
         ret = imgs.view(-1)[idx]
         near = rr.view(len(image), n) - SEEN_MARGIN
-        ok[image] &= ret >= near
-        front[image] = (ret >= 0) & (ret < near)
+        seen = where_scans(image, ret >= near, True)
+        ok = seen if ok is None else ok & seen
+        front = where_scans(image, (ret >= 0) & (ret < near), False)
+    if ok is None:
+        ok = torch.ones(K, n, dtype=torch.bool, device=p.device)
+    if front is None:
+        front = torch.zeros(K, n, dtype=torch.bool, device=p.device)
     shifts = device_values(ks, torch.int32, p.device)[:, None]
     # distinct bits: the sums are their ORs
     return ((ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32),

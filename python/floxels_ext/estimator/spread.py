@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import torch
 
+from floxels_ext.estimator.host_reads import Steps, rows_where, run_one
 from floxels_ext.estimator.refine import SEARCH_GAIN, TAU, RigidMotions, Support, _segment_sum, _weighted_residual
 
-__all__ = ["spread_rigid", "BOX_CHUNK"]
+__all__ = ["spread_rigid", "spread_rigid_steps", "BOX_CHUNK"]
 
 F = torch.ops.floxels
 
@@ -34,39 +35,52 @@ def spread_rigid(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
                  observed: torch.Tensor | None = None) -> torch.Tensor:
     """``flow`` with the groups near accepted rigid motions that one of them explains better (the
     module's test). ``labels``: the DBSCAN labels of ``points`` (-1: none); ``observed``: (n,) int32
-    sight bits (estimator/sight.py) or None. Host synchronisations: three (the accepted sample
-    rows, the accepted clusters, the offered points)."""
+    sight bits (estimator/sight.py) or None. Host synchronisations: two (the numbers of accepted
+    sample rows and clusters, then of offered points; :func:`spread_rigid_steps` yields them)."""
+    return run_one(spread_rigid_steps(points, flow, labels, supports, motions, radius, tau, observed))
+
+
+def spread_rigid_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor, supports: list[Support],
+                       motions: RigidMotions, radius: float, tau: float = TAU,
+                       observed: torch.Tensor | None = None) -> Steps:
+    """:func:`spread_rigid` as steps of ``estimator/host_reads.py`` (its two host reads yielded)."""
     m = motions
     ref_rows = m.accept[m.cid]
-    ref, ref_c = m.q[ref_rows], m.cid[ref_rows]
-    if ref.shape[0] == 0:
+    num_ref, num_acc = yield [ref_rows.sum(), m.accept.sum()]
+    if num_ref == 0:
         return flow
-    acc = torch.nonzero(m.accept).squeeze(1)
+    sample = rows_where(ref_rows, num_ref)
+    ref, ref_c = m.q[sample], m.cid[sample]
+    acc = rows_where(m.accept, num_acc)
     C = m.accept.shape[0]
     inf = torch.full((C, 3), float("inf"), dtype=points.dtype, device=points.device)
     lo = inf.scatter_reduce(0, ref_c[:, None].expand(-1, 3), ref, "amin")[acc] - radius
     hi = (-inf).scatter_reduce(0, ref_c[:, None].expand(-1, 3), ref, "amax")[acc] + radius
     near = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
-    for a in range(0, acc.shape[0], BOX_CHUNK):
+    for a in range(0, num_acc, BOX_CHUNK):
         inside = (points[:, None] >= lo[None, a:a + BOX_CHUNK]) & (points[:, None] <= hi[None, a:a + BOX_CHUNK])
         near |= inside.all(dim=2).any(dim=1)
     lab = labels.to(torch.int64)
     free = ~m.take
     offered = near & free
-    # a DBSCAN cluster touched by an offered point is offered whole (one motion test per cluster)
-    touched = torch.zeros(C, dtype=torch.bool, device=points.device)
-    touched[lab[offered & (lab >= 0)]] = True
+    # a DBSCAN cluster touched by an offered point is offered whole (one motion test per cluster);
+    # the points of no cluster mark a spare last row (no boolean indexing, and a scatter of a
+    # scalar, not an assignment, whose value a CUDA tensor copies from the host: no synchronisation)
+    touched = torch.zeros(C + 1, dtype=torch.bool, device=points.device).scatter_(
+        0, torch.where(offered & (lab >= 0), lab, torch.full_like(lab, C)), True)
     offered |= free & (lab >= 0) & touched[lab.clamp_min(0)]
-    idx = torch.nonzero(offered).squeeze(1)
-    if idx.numel() == 0:
+    (num_offered,) = yield [offered.sum()]
+    if num_offered == 0:
         return flow
+    idx = rows_where(offered, num_offered)
     p = points[idx]
     j = F.nearest_neighbor(p.contiguous(), ref.contiguous())
     close = (p - ref[j]).norm(dim=1) <= radius
     u = m.motion_at(p, ref_c[j])
     ob = None if observed is None else observed[idx]
+    f = flow[idx]
     r_u = _weighted_residual(supports, p, u, tau, False, ob)
-    r_f = _weighted_residual(supports, p, flow[idx], tau, False, ob)
+    r_f = _weighted_residual(supports, p, f, tau, False, ob)
     r_0 = _weighted_residual(supports, p, torch.zeros_like(p), tau, False, ob)
     # groups: a DBSCAN cluster, or an unclustered point alone (only if within the radius)
     li = lab[idx]
@@ -76,5 +90,5 @@ def spread_rigid(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
     better = (s_u < s_f) & (s_u < (1 - SEARCH_GAIN) * s_0)
     take = better[key] & ((li >= 0) | close)
     out = flow.clone()
-    out[idx] = torch.where(take[:, None], u.to(flow.dtype), flow[idx])
+    out[idx] = torch.where(take[:, None], u.to(flow.dtype), f)
     return out
