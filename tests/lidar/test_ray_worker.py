@@ -79,9 +79,9 @@ def test_channel_gives_up_without_driver(monkeypatch):
 def test_retire_while_held_exits_on_release(monkeypatch):
     """A job that needs a held worker's resources asks it to retire; the worker leaves as soon
     as its job releases it (a job finishing its last frames), not after the pool's idle time."""
-    exits = []
+    exits = []  # (keep_s: never idle long enough to exit by itself, after the patch is undone too)
     monkeypatch.setattr(ray_worker.FloxelsWorker, "_exit", lambda self: exits.append(1))
-    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=60.0, job="A")
+    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
     w.warm.join()
     assert w.retire() is False          # held by job A
     assert not w.claim("B")             # leaving: no other job takes it meanwhile
@@ -90,7 +90,7 @@ def test_retire_while_held_exits_on_release(monkeypatch):
     while not exits and time.time() - t < 5:
         time.sleep(0.01)
     assert exits == [1] and w.retiring
-    idle = ray_worker.FloxelsWorker(1, "cpu", keep_s=60.0, job="A")
+    idle = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
     idle.warm.join()
     idle.release("A")                   # no retire asked: it stays in the pool
     time.sleep(0.1)
