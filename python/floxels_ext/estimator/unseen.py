@@ -29,6 +29,7 @@ from __future__ import annotations
 import torch
 
 from floxels_ext.estimator.refine import REFINE_MIN_SPEED, SEARCH_GAIN, TAU, Support, _segment_sum, _weighted_residual
+from floxels_ext.ops._small import device_values
 
 __all__ = ["hidden_keeps", "LANDING_RADIUS", "LANDING_SHARE"]
 
@@ -72,7 +73,7 @@ def hidden_keeps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
     ref = points[static].contiguous()
     if ref.shape[0]:
         hit = ((q - ref[F.nearest_neighbor(q, ref)]).norm(dim=1) <= LANDING_RADIUS).to(p.dtype)
-        w = torch.tensor([s.w / wsum for s in supports], dtype=p.dtype, device=p.device)
+        w = device_values([s.w / wsum for s in supports], p.dtype, p.device)  # (no blocking copy on CUDA)
         landed = (w[:, None] * hit.view(len(supports), -1)).sum(dim=0)
         count = _segment_sum(C, lab, torch.ones_like(landed))
         share = _segment_sum(C, lab, landed) / count.clamp_min(1)

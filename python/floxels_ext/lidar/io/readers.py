@@ -48,6 +48,13 @@ def _bin_plausibly_5_columns(flat: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(ring)) and np.all(ring == np.round(ring)) and np.all((ring >= 0) & (ring < 1024)))
 
 
+def _finite_rows(xyz: np.ndarray) -> np.ndarray:
+    """(n,) bool: the rows of (n, 3) ``xyz`` whose three values are finite (column by column:
+    ``np.isfinite(xyz).all(1)`` on 3 columns is ~10x slower)."""
+    fin = np.isfinite(xyz)
+    return fin[:, 0] & fin[:, 1] & fin[:, 2]
+
+
 def _disorder(a: np.ndarray, rows: int = 200_000) -> float:
     """How far consecutive rows of x, y, z jump, relative to each column's spread (median
     |step| / interquartile range, averaged over x, y, z), on the first ``rows`` finite rows.
@@ -56,8 +63,7 @@ def _disorder(a: np.ndarray, rows: int = 200_000) -> float:
     Shuffled points give ~0.5 for every count (no evidence either way). Median over the three
     columns: one noisy column (e.g. z of a flat ground) does not hide the others' order."""
     xyz = a[:rows, :3].astype(np.float64)
-    fin = np.isfinite(xyz)
-    ok = fin[:, 0] & fin[:, 1] & fin[:, 2]  # (column by column: .all(1) on 3 columns is ~10x slower)
+    ok = _finite_rows(xyz)
     cols = (xyz if ok.all() else xyz[ok]).T.copy()  # (3, n): each column contiguous for the selections
     n = cols.shape[1]
     if n < 16:
@@ -102,8 +108,7 @@ def _ordered_columns(flat: np.ndarray, size: int, rows: int) -> int | None:
 
 
 def _any_finite_row(xyz: np.ndarray) -> bool:
-    fin = np.isfinite(xyz)
-    return bool((fin[:, 0] & fin[:, 1] & fin[:, 2]).any())
+    return bool(_finite_rows(xyz).any())
 
 
 # the size guess is checked on the first rows only (scan order shows there; cheap for readers)
