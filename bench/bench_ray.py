@@ -81,13 +81,56 @@ def run_job(argv: list[str], out: Path) -> dict:
     watch.stop = True
     watch.join()
     frames = sum(1 for _ in out.rglob("*.npz"))
+    row_steady = steady_fps(out)
     # t0/t1 (time.time()): the row's span, for tools/host_sampler.py's per-row summary
     row = dict(rc=rc, wall_s=wall, frames=frames, fps=frames / wall, first_output_s=watch.first,
-               t0=t0_wall, t1=t0_wall + wall)
+               t0=t0_wall, t1=t0_wall + wall, fps_steady=row_steady)
     if watch.first is not None and wall > watch.first:
         row["fps_after_first"] = frames / (wall - watch.first)
     if rc != 0:
         row["stderr_tail"] = err.getvalue()[-3000:]
+    return row
+
+
+def steady_fps(out: Path) -> float | None:
+    """Frames/s between the 10th and the 90th percentile of the outputs' write times: the steady
+    state, without the workers' start or the tail where some have finished (rows whose starts
+    differ, fresh processes against warm workers, compare on it)."""
+    t = sorted(p.stat().st_mtime for p in out.rglob("*.npz"))
+    if len(t) < 20:
+        return None
+    a, b = int(0.1 * len(t)), int(0.9 * len(t))
+    return (b - a) / (t[b] - t[a]) if t[b] > t[a] else None
+
+
+def run_procs(data: Path, seqs: int, k: int, w: int, flags: list[str], cpus: int, out: Path) -> dict:
+    """The control without Ray: k x w independent plain ``floxels run`` processes, w of them on
+    each of k GPUs (CUDA_VISIBLE_DEVICES), each over every (k x w)-th sequence (a list file), each
+    with cpus / (k x w) CPU threads. Whatever Ray adds (or takes) is the gap to the rayKxW row;
+    what the host loses to more processes is the gap between this row's steady rate and k x the
+    1-GPU one. Fresh processes: compare the steady rate (fps_steady), not the wall's."""
+    import subprocess
+
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    n = k * w
+    threads = str(max(1, cpus // n))
+    procs, t0, t0_wall = [], time.perf_counter(), time.time()
+    for i in range(n):
+        lst = out / f"list{i}.txt"
+        lst.write_text("".join(f"{data}/sequences/{j:02d}/velodyne --poses {data}/poses/{j:02d}.txt\n"
+                               for j in range(i, seqs, n)))
+        env = dict(os.environ, CUDA_VISIBLE_DEVICES=str(i // w), OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+        procs.append(subprocess.Popen([sys.executable, "-m", "floxels_ext", "run", str(lst), "--out", str(out / f"p{i}"),
+                                       *flags], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
+    errs = [p.communicate()[1] for p in procs]
+    wall = time.perf_counter() - t0
+    frames = sum(1 for _ in out.rglob("*.npz"))
+    row = dict(rc=max(p.returncode for p in procs), wall_s=wall, frames=frames, fps=frames / wall,
+               first_output_s=None, t0=t0_wall, t1=t0_wall + wall, fps_steady=steady_fps(out))
+    if row["rc"] != 0:
+        row["stderr_tail"] = "".join(e[-1500:] for e, p in zip(errs, procs) if p.returncode != 0)[-3000:]
+    shutil.rmtree(out, ignore_errors=True)
     return row
 
 
@@ -179,7 +222,8 @@ def main() -> None:
     ap.add_argument("--beams", type=int, help="default 128 (cuda), 32 (cpu)")
     ap.add_argument("--azimuth", type=int, help="azimuth steps; default 1800 (cuda), 512 (cpu)")
     ap.add_argument("--max-iters", type=int, help="optimiser iterations (default: 30 on cpu, the method's on cuda)")
-    ap.add_argument("--modes", nargs="+", default=["long", "local", "ray"], choices=["long", "local", "ray"])
+    ap.add_argument("--modes", nargs="+", default=["long", "local", "ray"], choices=["long", "local", "ray", "procs"],
+                    help="procs: the control without Ray, K x W plain floxels run processes (run_procs)")
     ap.add_argument("--cpus", type=int, default=os.cpu_count(), help="CPUs for Ray (default: all)")
     ap.add_argument("--run-args", default="", help="extra floxels run arguments for every row (quoted)")
     ap.add_argument("--ray-address", help="a running cluster instead of a local one")
@@ -314,8 +358,22 @@ def main() -> None:
 
         ray.shutdown()
 
+    if "procs" in args.modes:  # the control without Ray, same dataset, after the Ray rows
+        if cuda:
+            torch.cuda.empty_cache()
+        for k in (gpus if cuda else [1]):
+            for w in (args.workers_per_gpu if cuda else [1]):
+                record(f"procs{k}" + ("" if w == 1 else f"x{w}"),
+                       run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs"), gpus=k, workers_per_gpu=w)
+    # the steady rates' efficiency, per family (ray, procs) against its own 1-GPU row of the same W
+    fam = lambda r: "procs" if r["mode"].startswith("procs") else "ray" if r["mode"].startswith("ray") else None  # noqa: E731
+    base = {(fam(r), r.get("workers_per_gpu")): r for r in rows if fam(r) and r["gpus"] == 1 and "/" not in r["mode"]}
+    for r in rows:
+        b = base.get((fam(r), r.get("workers_per_gpu")))
+        if fam(r) and "/" not in r["mode"] and b is not None and b.get("fps_steady") and r.get("fps_steady"):
+            r["efficiency_steady"] = r["fps_steady"] / (r["gpus"] * b["fps_steady"])
     print(f"\n{'mode':<10}{'GPUs':>5}{'wall s':>9}{'frames':>8}{'frames/s':>10}{'first s':>9}{'all 1st':>8}"
-          f"{'f/s after':>10}{'per GPU/long':>14}{'eff.':>7}{'workers':>8}{'max |dflow|':>13}{'>1 cm':>8}{'masks':>7}")
+          f"{'f/s after':>10}{'per GPU/long':>14}{'eff.':>7}{'workers':>8}{'max |dflow|':>13}{'>1 cm':>8}{'masks':>7}{'steady':>10}{'eff st.':>8}")
     for r in rows:
         if long is not None:
             r["per_gpu_vs_long"] = r["fps"] / r["gpus"] / long["fps"]
@@ -326,13 +384,15 @@ def main() -> None:
         diff = f"{r['max_flow_diff']:.2e}" if "max_flow_diff" in r else "-"
         over = f"{100 * r['frac_over_1cm']:.2f}%" if "frac_over_1cm" in r else "-"
         masks = ("yes" if r["masks_equal"] else "NO") if "masks_equal" in r else "-"
+        steady = f"{r['fps_steady']:.1f}" if r.get("fps_steady") else "-"
+        eff_st = f"{r['efficiency_steady']:.3f}" if "efficiency_steady" in r else "-"
         wk = f"{r['workers_writing']}/{r['workers_asked']}" if "workers_asked" in r else "-"
         # the slowest worker's first output, s from the driver's start of the job (its timeline)
         firsts = [w["timeline"].get("first_output") for w in r.get("workers", []) if w.get("timeline")]
         r["all_first_output_s"] = max(firsts) if firsts and None not in firsts else None
         all1 = f"{r['all_first_output_s']:.2f}" if r["all_first_output_s"] is not None else "-"
         print(f"{r['mode']:<10}{r['gpus']:>5}{r['wall_s']:>9.2f}{r['frames']:>8}{r['fps']:>10.2f}{first:>9}{all1:>8}"
-              f"{after:>10}{ratio:>14}{eff:>7}{wk:>8}{diff:>13}{over:>8}{masks:>7}")
+              f"{after:>10}{ratio:>14}{eff:>7}{wk:>8}{diff:>13}{over:>8}{masks:>7}{steady:>10}{eff_st:>8}")
     from floxels_ext.lidar.dataset.ray_runner import format_timeline
 
     for r in rows:  # where each worker's start went (s from the job's start; negative: before it)

@@ -15,7 +15,8 @@
 # (tools/strip_ray_wheel.py) and py-spy, carried with the call (carry [".whl"]).
 # WPG="1 2": also the rows with 2 workers sharing each GPU (bench_ray --workers-per-gpu; the first
 # value's rows come first, and the cold and subset rows use it).
-#   OUT=... [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] tools/gpu_ray_bench.sh
+# MODES="long ray procs": also the control without Ray (bench_ray --modes procs: K x W plain runs).
+#   OUT=... [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] [MODES="long ray"] tools/gpu_ray_bench.sh
 set -u
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 TORCH_CUDA_ARCH_LIST=9.0
@@ -44,7 +45,7 @@ HS=$!
 cold=${COLD:-$(echo $GPUS | awk '{print $NF}')}; coldf="--cold $cold"; [ "$cold" = none ] && coldf=""
 t=$(( $(left) - 45 ))
 log "bench_ray: --gpus $GPUS --workers-per-gpu ${WPG:-1} --cold $cold --subset ${SUBSET:-16} --subset-gpus 2, limit $t s"
-timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-gpu ${WPG:-1} --modes long ray \
+timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-gpu ${WPG:-1} --modes ${MODES:-long ray} \
   --sequences ${SEQS:-80} --ray-address auto $coldf --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
   > $OUT/bench_ray.log 2>&1
 log "bench_ray rc=$?"

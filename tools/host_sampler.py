@@ -3,7 +3,9 @@
 Runs beside a job and samples every ``--interval`` seconds, until ``--stop-file`` appears or
 ``--duration`` passes:
 
-* the whole host: CPU busy share (/proc/stat), load average, page cache dirty/writeback (MB);
+* the whole host: CPU busy share and steal (/proc/stat), load average, page cache dirty/writeback
+  (MB), and a core's speed (``probe_ms``: a fixed single-threaded workload timed each sample, best
+  of 3: the same work taking longer in a row means slower cores, whatever /proc/cpuinfo says);
 * every process whose command line matches ``--match`` (regex; default: Ray's floxels workers
   and the python driver): its CPU (cores), its thread count, how many of its threads used more
   than 0.2 / 0.8 of a core, its main thread's share (the thread that feeds the GPU);
@@ -37,11 +39,28 @@ HZ = os.sysconf("SC_CLK_TCK")
 DEFAULT_MATCH = r"FloxelsWorker|floxels|bench_ray|bench_run|ray::IDLE|raylet|gcs_server"
 
 
-def _cpu_total() -> tuple[int, int]:
+def _cpu_total() -> tuple[int, int, int]:
+    """(all ticks, idle ticks, steal ticks) of the host: steal is time the hypervisor gave this
+    VM's cores to someone else (a VM's cores that slow down together show it)."""
     with open("/proc/stat") as f:
         vals = [int(v) for v in f.readline().split()[1:]]
     idle = vals[3] + vals[4]
-    return sum(vals), idle
+    return sum(vals), idle, vals[7] if len(vals) > 7 else 0
+
+
+def _probe_ms() -> float:
+    """Milliseconds of a fixed single-threaded workload (Python loop + a small numpy sort): a
+    core's speed as this process sees it. /proc/cpuinfo reads a flat clock on these VMs, so the
+    clock's fall (or shared caches, memory bandwidth, steal) under load shows here instead."""
+    import numpy as np
+
+    t0 = time.perf_counter()
+    acc = 0
+    for i in range(20000):
+        acc += i * i
+    a = np.arange(32768, dtype=np.float64)[::-1].copy()
+    a.sort()
+    return 1000.0 * (time.perf_counter() - t0)
 
 
 def _meminfo() -> dict:
@@ -127,9 +146,10 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
         while time.time() < t_end and not (stop_file and stop_file.exists()):
             time.sleep(interval)
             now = time.time()
-            tot, idle = _cpu_total()
-            dt_tot, dt_idle = tot - prev_cpu[0], idle - prev_cpu[1]
-            prev_cpu = (tot, idle)
+            tot, idle, steal = _cpu_total()
+            dt_tot, dt_idle, dt_steal = tot - prev_cpu[0], idle - prev_cpu[1], steal - prev_cpu[2]
+            prev_cpu = (tot, idle, steal)
+            probe = min(_probe_ms() for _ in range(3))
             procs = _matching(pattern)
             names.update(procs)
             rows = {}
@@ -151,7 +171,8 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
                 load = os.getloadavg()[0]
             except OSError:
                 load = None
-            log.write(json.dumps(dict(t=now, host_busy=1.0 - dt_idle / max(dt_tot, 1), cores=ncpu, load=load,
+            log.write(json.dumps(dict(t=now, host_busy=1.0 - dt_idle / max(dt_tot, 1), cores=ncpu,
+                                      steal=dt_steal / max(dt_tot, 1), probe_ms=probe, load=load,
                                       mem=_meminfo(), mhz=_cpu_mhz(), procs=rows)) + "\n")
             log.flush()
     if smi is not None:
@@ -181,6 +202,10 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
                    load_max=max((s["load"] or 0) for s in ss),
                    dirty_mb_max=max(s["mem"].get("Dirty", 0) for s in ss),
                    writeback_mb_max=max(s["mem"].get("Writeback", 0) for s in ss))
+        probes = sorted(s["probe_ms"] for s in ss if "probe_ms" in s)
+        if probes:  # the median: a core's speed in this row (compare rows: same workload)
+            row["probe_ms"] = round(probes[len(probes) // 2], 3)
+            row["steal"] = round(sum(s.get("steal", 0.0) for s in ss) / len(ss), 4)
         mhz = [s["mhz"] for s in ss if s.get("mhz")]
         if mhz:
             row["cpu_mhz"] = {k: round(sum(m[k] for m in mhz) / len(mhz)) for k in ("max", "top16", "mean")}
@@ -217,7 +242,7 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
         print(f"\n== {r['name']}: {r['seconds']:.1f} s, host busy {100 * r['host_busy']:.0f} % of {r['cores']} cores, "
               f"load max {r['load_max']:.0f}, dirty max {r['dirty_mb_max']:.0f} MB, writeback max "
               f"{r['writeback_mb_max']:.0f} MB, GPU util {r.get('gpu_util')}, GPU SM MHz {r.get('gpu_sm_mhz')}, "
-              f"CPU MHz {r.get('cpu_mhz')}")
+              f"CPU MHz {r.get('cpu_mhz')}, probe {r.get('probe_ms')} ms, steal {r.get('steal')}")
         for p in r["procs"][:12]:
             print(f"   {p['pid']:>7} {p['cores']:6.2f} cores  {p['threads']:4d} threads  {p['busy02']:5.1f} >0.2  "
                   f"{p['busy08']:5.1f} >0.8  main {p['main']:.2f}  {p['cmd']}")
