@@ -239,6 +239,8 @@ def main() -> None:
                          "Default 1")
     ap.add_argument("--data", type=Path, help="dataset directory (made if missing or different; default: temporary)")
     ap.add_argument("--compare", type=int, default=2, help="sequences whose Ray outputs are compared (default 2)")
+    ap.add_argument("--rounds", type=int, default=1, help="repeat the Ray (and procs) rows this many times, "
+                    "interleaved (rows named #2, #3...): a host's noise against a real difference")
     ap.add_argument("--json", help="output JSON path")
     args = ap.parse_args()
 
@@ -302,7 +304,10 @@ def main() -> None:
         counts = list(dict.fromkeys(gpus + args.cold + (args.subset_gpus if subset else []))) if cuda else [1]
         gpus = gpus if cuda else [1]
         bases = {}
-        for k in counts:
+        for rnd, k in [(r, k) for r in range(max(1, args.rounds)) for k in counts]:
+            if rnd and (k not in gpus or (k == 1 and len(gpus) > 1)):  # the 1-GPU base (the longest row) once
+                continue
+            sfx = f"#{rnd + 1}" if rnd else ""
             if cuda and not args.ray_address:  # Ray sees (and its workers use) the first k GPUs
                 os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(k))
             init_s = start_ray(cpus, k if cuda else 0, args.ray_address)
@@ -339,12 +344,19 @@ def main() -> None:
                     freed = free_cluster()
                     run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
                     out = tmp / f"out_ray{k}"
-                    row = ray_row(f"ray{k}{tag}", ["run", str(data), *sel, *flags, *extra], out, freed_s=freed)
+                    row = ray_row(f"ray{k}{tag}{sfx}", ["run", str(data), *sel, *flags, *extra], out, freed_s=freed)
                     if local is not None:
                         row.update(compare(out, tmp / "out_local",
                                            [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))
                     shutil.rmtree(out, ignore_errors=True)
-                    bases.setdefault(w, row)
+                    if k == 1:
+                        bases.setdefault(w, row)
+                    if "procs" in args.modes:  # the control without Ray, right after (same host state)
+                        free_cluster()
+                        if cuda:
+                            torch.cuda.empty_cache()
+                        record(f"procs{k}{tag}{sfx}", run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs"),
+                               gpus=k, workers_per_gpu=w)
         for r in rows:  # scaling efficiency against the same W's 1-GPU warm row (cold rows too: their start counts)
             base = bases.get(r.get("workers_per_gpu"))
             if r["mode"].startswith(("ray", "cold")) and base is not None:
@@ -358,16 +370,17 @@ def main() -> None:
 
         ray.shutdown()
 
-    if "procs" in args.modes:  # the control without Ray, same dataset, after the Ray rows
-        if cuda:
-            torch.cuda.empty_cache()
+    if "procs" in args.modes and "ray" not in args.modes:  # the control alone
         for k in (gpus if cuda else [1]):
             for w in (args.workers_per_gpu if cuda else [1]):
                 record(f"procs{k}" + ("" if w == 1 else f"x{w}"),
                        run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs"), gpus=k, workers_per_gpu=w)
     # the steady rates' efficiency, per family (ray, procs) against its own 1-GPU row of the same W
     fam = lambda r: "procs" if r["mode"].startswith("procs") else "ray" if r["mode"].startswith("ray") else None  # noqa: E731
-    base = {(fam(r), r.get("workers_per_gpu")): r for r in rows if fam(r) and r["gpus"] == 1 and "/" not in r["mode"]}
+    base: dict = {}
+    for r in rows:
+        if fam(r) and r["gpus"] == 1 and "/" not in r["mode"]:
+            base.setdefault((fam(r), r.get("workers_per_gpu")), r)
     for r in rows:
         b = base.get((fam(r), r.get("workers_per_gpu")))
         if fam(r) and "/" not in r["mode"] and b is not None and b.get("fps_steady") and r.get("fps_steady"):

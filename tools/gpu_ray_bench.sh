@@ -16,6 +16,7 @@
 # WPG="1 2": also the rows with 2 workers sharing each GPU (bench_ray --workers-per-gpu; the first
 # value's rows come first, and the cold and subset rows use it).
 # MODES="long ray procs": also the control without Ray (bench_ray --modes procs: K x W plain runs).
+# ROUNDS=R repeats the Ray (and procs) rows R times, interleaved; SPY=N py-spy dumps of N busy workers of each kind.
 #   OUT=... [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] [MODES="long ray"] tools/gpu_ray_bench.sh
 set -u
 cd "$(dirname "$0")/.."
@@ -27,6 +28,7 @@ log() { echo "[$((SECONDS - T0)) s] $*" | tee -a $S; }
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
   && export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
 NG=$(nvidia-smi -L | wc -l); NC=$(nproc); GPUS=${GPUS:-"1 2 $NG"}; GPUS=$(echo $GPUS | tr ' ' '\n' | awk -v n=$NG '$1<=n && !seen[$1]++' | tr '\n' ' ')
+lscpu | grep -E "^(Thread|Core|Socket|Model name)" 2>&1 | tee -a $S > $W/lscpu.txt
 log "host: $NG x $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1), $NC cores, $(lscpu | grep -m1 'NUMA node(s)'), $(free -g | awk '/Mem/{print $2}') GiB"
 log "ray $(python3 -c 'import ray; print(ray.__version__)' 2>&1), torch $(python3 -c 'import torch; print(torch.__version__)'), py-spy: $(command -v py-spy || echo none)"
 # outputs of SEQS x 150 frames are ~2.5 MB a frame: in RAM when /dev/shm can hold them (every row deletes its own)
@@ -39,14 +41,14 @@ python3 -m ray.scripts.scripts start --head --num-gpus $NG --num-cpus $NC --incl
   > $W/ray_start.log 2>&1
 log "ray start rc=$?"
 # (c)
-python3 tools/host_sampler.py --out $W/hs --stop-file $W/hs/stop --interval 0.5 --spy 8 > $W/hs.log 2>&1 &
+python3 tools/host_sampler.py --out $W/hs --stop-file $W/hs/stop --interval 0.5 --spy ${SPY:-2} --spy-match "${SPY_MATCH:-FloxelsWorker|floxels_ext run}" > $W/hs.log 2>&1 &
 HS=$!
 # (d)
 cold=${COLD:-$(echo $GPUS | awk '{print $NF}')}; coldf="--cold $cold"; [ "$cold" = none ] && coldf=""
 t=$(( $(left) - 45 ))
 log "bench_ray: --gpus $GPUS --workers-per-gpu ${WPG:-1} --cold $cold --subset ${SUBSET:-16} --subset-gpus 2, limit $t s"
 timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-gpu ${WPG:-1} --modes ${MODES:-long ray} \
-  --sequences ${SEQS:-80} --ray-address auto $coldf --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
+  --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
   > $OUT/bench_ray.log 2>&1
 log "bench_ray rc=$?"
 mkdir -p $W/hs; touch $W/hs/stop; wait $HS

@@ -84,15 +84,20 @@ def _cpu_mhz() -> dict:
     return dict(max=mhz[0], top16=sum(mhz[:16]) / len(mhz[:16]), mean=sum(mhz) / len(mhz)) if mhz else {}
 
 
+THREAD_NAMES: dict[int, str] = {}  # tid -> the thread's name (/proc comm: OpenMP, Ray's, Python's)
+
+
 def _threads(pid: int) -> dict[int, int]:
-    """tid -> utime + stime (clock ticks)."""
+    """tid -> utime + stime (clock ticks); fills THREAD_NAMES."""
     out = {}
     try:
         for tid in os.listdir(f"/proc/{pid}/task"):
             try:
                 with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
+                    text = f.read()
+                fields = text.rsplit(")", 1)[1].split()
                 out[int(tid)] = int(fields[11]) + int(fields[12])
+                THREAD_NAMES[int(tid)] = text[text.find("(") + 1:text.rfind(")")]
             except (OSError, IndexError, ValueError):
                 pass
     except OSError:
@@ -115,23 +120,33 @@ def _matching(pattern: re.Pattern) -> dict[int, str]:
     return out
 
 
-def _spy(out: Path, pid: int, cmd: str) -> None:
-    """One py-spy dump of ``pid`` (all threads, native frames) into OUT/spy/<pid>.txt."""
+def _spy(out: Path, pid: int, cmd: str, dumps: int = 2) -> None:
+    """``dumps`` py-spy dumps of ``pid`` (all threads, native frames), 1 s apart, into
+    OUT/spy/<pid>.txt: what its busy threads run (two dumps tell a steady loop from a moment)."""
     (out / "spy").mkdir(exist_ok=True)
-    try:
-        r = subprocess.run(["py-spy", "dump", "--native", "--pid", str(pid)], capture_output=True, text=True, timeout=20)
-        text = r.stdout + r.stderr
-    except (OSError, subprocess.SubprocessError) as e:
-        text = f"py-spy failed: {e}"
-    (out / "spy" / f"{pid}.txt").write_text(f"# {time.time():.3f} pid {pid}: {cmd}\n{text}")
+    texts = []
+    for i in range(dumps):
+        if i:
+            time.sleep(1.0)
+        try:
+            r = subprocess.run(["py-spy", "dump", "--native", "--pid", str(pid)], capture_output=True, text=True,
+                               timeout=20)
+            text = r.stdout + r.stderr
+        except (OSError, subprocess.SubprocessError) as e:
+            text = f"py-spy failed: {e}"
+        texts.append(f"# {time.time():.3f} pid {pid} (dump {i + 1}): {cmd}\n{text}")
+    (out / "spy" / f"{pid}.txt").write_text("\n".join(texts))
 
 
-def sample(out: Path, interval: float, stop_file: Path | None, duration: float, match: str, spy: int = 0) -> None:
+def sample(out: Path, interval: float, stop_file: Path | None, duration: float, match: str, spy: int = 0,
+           spy_match: str = "") -> None:
     out.mkdir(parents=True, exist_ok=True)
     spy = spy if shutil.which("py-spy") else 0
     hot: dict[int, int] = {}     # pid -> samples in a row with a thread >= 0.8 core
     spied: set[int] = set()
+    spied_kinds: dict[str, int] = {}
     pattern = re.compile(match)
+    spy_pattern = re.compile(spy_match or match)
     smi = None
     if shutil.which("nvidia-smi"):
         smi = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu,memory.used,clocks.sm",
@@ -162,10 +177,15 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
                 d = {tid: (cur[tid] - before.get(tid, cur[tid])) / HZ / interval for tid in cur}
                 rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), threads=len(cur),
                                       busy02=sum(v > 0.2 for v in d.values()), busy08=sum(v > 0.8 for v in d.values()),
-                                      main=d.get(pid, 0.0), top=sorted(d.values(), reverse=True)[:6])
+                                      main=d.get(pid, 0.0), top=sorted(d.values(), reverse=True)[:6],
+                                      top_named=[[THREAD_NAMES.get(t, "?"), round(v, 3)] for t, v in
+                                                 sorted(d.items(), key=lambda kv: -kv[1])[:8]])
                 hot[pid] = hot.get(pid, 0) + 1 if max(d.values(), default=0.0) >= 0.8 else 0
-                if spy and hot[pid] >= 6 and pid not in spied and len(spied) < spy:
+                key = procs[pid][:24]  # up to N processes of each kind (Ray workers, plain runs...)
+                if (spy and hot[pid] >= 6 and pid not in spied and spied_kinds.get(key, 0) < spy
+                        and spy_pattern.search(procs[pid])):
                     spied.add(pid)
+                    spied_kinds[key] = spied_kinds.get(key, 0) + 1
                     _spy(out, pid, procs[pid])
             try:
                 load = os.getloadavg()[0]
@@ -256,7 +276,8 @@ def main() -> None:
     ap.add_argument("--stop-file", type=Path)
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--match", default=DEFAULT_MATCH)
-    ap.add_argument("--spy", type=int, default=0, metavar="N", help="py-spy dumps of up to N busy processes")
+    ap.add_argument("--spy", type=int, default=0, metavar="N", help="py-spy dumps of up to N busy processes of each kind")
+    ap.add_argument("--spy-match", default="", help="regex: only these processes are dumped (default: --match)")
     ap.add_argument("--summarise", type=Path, help="summarise an earlier sampling folder")
     ap.add_argument("--windows", type=Path, help="JSON list of {name, t0, t1}")
     args = ap.parse_args()
@@ -266,7 +287,7 @@ def main() -> None:
             windows = [dict(name=r["mode"], t0=r["t0"], t1=r["t1"]) for r in windows.get("rows", []) if "t0" in r]
         summarise(args.summarise, windows)
     else:
-        sample(args.out, args.interval, args.stop_file, args.duration, args.match, args.spy)
+        sample(args.out, args.interval, args.stop_file, args.duration, args.match, args.spy, args.spy_match)
 
 
 if __name__ == "__main__":
