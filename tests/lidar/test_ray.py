@@ -134,6 +134,26 @@ def test_ray_equals_local_and_warm_pool(cluster, dataset, tmp_path, capsys):
     assert not _pool(), "idle pooled workers did not exit"
 
 
+def test_worker_not_needed_joins_the_pool(cluster, dataset, tmp_path, capsys):
+    """A job with fewer tasks than the workers it asked for (or that ends before some are up)
+    leaves those workers warm in the pool, not killed: the next job claims them all (a killed one
+    cost the next job its whole start, ~6 s on a GPU host)."""
+    lst, _ = dataset
+    _empty_pool()
+    one = tmp_path / "one.txt"
+    one.write_text(f"{lst.parent / 'sim' / 's0'}\n")
+    flags = ["--ray", "--max-tasks", "2", "--keep-workers", "30", *FLAGS]
+    assert cli.main(["run", str(one), "--out", str(tmp_path / "a"), "-q", *flags]) == 0
+    t = time.time()
+    while len(_pool()) < 2 and time.time() - t < 30:  # the unused one joins once it is up
+        time.sleep(0.2)
+    assert len(_pool()) == 2
+    capsys.readouterr()
+    assert cli.main(["run", str(lst), "--out", str(tmp_path / "b"), *flags]) == 0
+    assert "2 of them warm from the pool" in capsys.readouterr().err
+    _empty_pool()
+
+
 class _Killer(threading.Thread):
     """SIGKILLs a worker actor's process once ``out`` holds a frame (the workers still have frames
     to write then), and watches every output file: one replaced after it first appeared (another

@@ -160,9 +160,11 @@ class Workers:
         try:
             if slot.pooled and ok and slot.launched:  # its run releases it (one still starting: at once)
                 slot.actor.offer.remote(self.job, None)
-            elif slot.pooled and ok and slot.claimed:  # taken from the pool, not needed: back to it
+            elif slot.pooled and ok:  # taken from the pool, or started for this job and not used: to the pool
+                # (a short job can end before some of its workers are up: killing them made the next
+                # job start them again, ~6 s each; the release waits in the actor's queue for its start)
                 slot.actor.release.remote(self.job)
-            else:  # failed, not pooled, or started for this job and never used (no pool of extras)
+            else:  # failed, or not pooled
                 self.ray.kill(slot.actor, no_restart=True)
         except Exception:  # noqa: BLE001 - a dead worker needs nothing
             pass
