@@ -105,6 +105,17 @@ def _threads(pid: int) -> dict[int, int]:
     return out
 
 
+def _proc_times(pid: int) -> tuple[int, int]:
+    """(user, system) clock ticks of the whole process: system time is the kernel's work for it
+    (page faults, mmap/munmap of large buffers, futexes, file writes)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return int(fields[11]), int(fields[12])
+    except (OSError, IndexError, ValueError):
+        return 0, 0
+
+
 def _matching(pattern: re.Pattern) -> dict[int, str]:
     out = {}
     for d in os.listdir("/proc"):
@@ -155,6 +166,7 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
     t_end = time.time() + duration
     prev_cpu = _cpu_total()
     prev_threads: dict[int, dict[int, int]] = {}
+    prev_times: dict[int, tuple[int, int]] = {}
     names: dict[int, str] = {}
     ncpu = os.cpu_count() or 1
     with open(out / "samples.jsonl", "w") as log:
@@ -172,10 +184,13 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
                 cur = _threads(pid)
                 before = prev_threads.get(pid)
                 prev_threads[pid] = cur
+                times, times_before = _proc_times(pid), prev_times.get(pid)
+                prev_times[pid] = times
                 if before is None:
                     continue
                 d = {tid: (cur[tid] - before.get(tid, cur[tid])) / HZ / interval for tid in cur}
-                rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), threads=len(cur),
+                sys_cores = (times[1] - times_before[1]) / HZ / interval if times_before else 0.0
+                rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), sys=sys_cores, threads=len(cur),
                                       busy02=sum(v > 0.2 for v in d.values()), busy08=sum(v > 0.8 for v in d.values()),
                                       main=d.get(pid, 0.0), top=sorted(d.values(), reverse=True)[:6],
                                       top_named=[[THREAD_NAMES.get(t, "?"), round(v, 3)] for t, v in
@@ -239,6 +254,7 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
             if cores < 0.05:
                 continue
             prow.append(dict(pid=pid, cmd=ps[0]["cmd"][:60], cores=round(cores, 2),
+                             sys=round(sum(p.get("sys", 0.0) for p in ps) / len(ps), 2),
                              threads=max(p["threads"] for p in ps),
                              busy02=round(sum(p["busy02"] for p in ps) / len(ps), 1),
                              busy08=round(sum(p["busy08"] for p in ps) / len(ps), 1),
@@ -264,7 +280,7 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
               f"{r['writeback_mb_max']:.0f} MB, GPU util {r.get('gpu_util')}, GPU SM MHz {r.get('gpu_sm_mhz')}, "
               f"CPU MHz {r.get('cpu_mhz')}, probe {r.get('probe_ms')} ms, steal {r.get('steal')}")
         for p in r["procs"][:12]:
-            print(f"   {p['pid']:>7} {p['cores']:6.2f} cores  {p['threads']:4d} threads  {p['busy02']:5.1f} >0.2  "
+            print(f"   {p['pid']:>7} {p['cores']:6.2f} cores ({p['sys']:.2f} system)  {p['threads']:4d} threads  {p['busy02']:5.1f} >0.2  "
                   f"{p['busy08']:5.1f} >0.8  main {p['main']:.2f}  {p['cmd']}")
     return res
 
