@@ -168,9 +168,10 @@ class Engines:
                 return
             theirs.close()  # its end lives in the child: a dead child reads as the end of the pipe
             with self.lock:
+                if self.closing:  # the run ended while it started
+                    _signal(proc, signal.SIGKILL)
+                    return
                 e.proc, e.conn, e.pid = proc, mine, proc.pid
-                if self.closing:
-                    _signal(proc, signal.SIGTERM)
             e.thread = threading.Thread(target=self._serve, args=(e,), name=f"floxels-engine-{e.index}-pipe",
                                         daemon=True)
             e.thread.start()
@@ -213,28 +214,25 @@ class Engines:
             self.on_lost(e, why, back)
 
     def close(self, interrupted: bool) -> list[int]:
-        """Stops the engines and returns their pids. Those still starting hold no task: killed
-        at once (the run never waits for them). Interrupted: the others get SIGTERM and write
-        what they computed, within ``STOP_S``. Else every task has ended (its outputs written):
-        they are told the run is over and killed if they have not ended within a second."""
+        """Stops the engines and returns their pids; the run never waits for one still
+        starting (it holds no task). Interrupted: the ones running get SIGTERM and write what
+        they computed, within ``STOP_S``. Else every task has ended, its outputs written: the
+        engines are killed without waiting for them to take their CUDA contexts down."""
         with self.lock:
             self.closing = True
-        self.handout.stop()  # engines waiting for a task get None and end
-        for e in self.engines:
-            if e.proc is not None:
-                e.stopping = interrupted or not e.ready
-                _signal(e.proc, signal.SIGKILL if not e.ready else signal.SIGTERM if interrupted else 0)
-        for e in self.engines:
-            if e.proc is not None:
-                e.proc.join(timeout=STOP_S if interrupted and e.ready else 1.0)
+            started = [e for e in self.engines if e.proc is not None]
+            for e in started:
+                e.stopping = True
+        self.handout.stop()  # engines waiting for a task get None
+        for e in started:
+            _signal(e.proc, signal.SIGTERM if interrupted and e.ready else signal.SIGKILL)
+        if interrupted:
+            for e in started:
+                e.proc.join(timeout=STOP_S if e.ready else 1.0)
                 if e.proc.exitcode is None:
-                    e.stopping = True
                     _signal(e.proc, signal.SIGKILL)
                     e.proc.join(timeout=5.0)
-            if e.thread is not None:
-                e.thread.join(timeout=5.0)
-        self.starter.join(timeout=5.0)
-        return [e.pid for e in self.engines if e.pid is not None]
+        return [e.pid for e in started]
 
     def run(self, tasks: list, args, *, report: Callable[[str], None],
             on_frame: Callable[[object, str, bool], None],

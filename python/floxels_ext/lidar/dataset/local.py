@@ -76,24 +76,41 @@ def run_sequence(args, engines=None, task_frames: int = 0) -> int:
         job.loader.close()  # its own readers
     wall = time.perf_counter() - t0
     summary_path = write_sequence_summary(job, ctx, wall=wall)
-    failed, times = job.failed, job.times
-    line = f"done: {job.written} frame(s) written, {job.info['skipped']} skipped (already done), {len(failed)} failed"
-    if job.loader.empty_crop:
-        line += f" ({len(job.loader.empty_crop)} with no point left after cropping)"
+    line = _done_line(job.written, job.info["skipped"], len(job.failed), len(job.loader.empty_crop), job.times)
+    return _finish(line, verbosity, "stages (s)", ctx.stages.as_dict(), summary_path, "failed frames:",
+                   failure_lines(job))
+
+
+def _done_line(written: int, skipped: int, failed: int, empty_crop: int, times: list) -> str:
+    """``floxels run SEQ``'s final line."""
+    line = f"done: {written} frame(s) written, {skipped} skipped (already done), {failed} failed"
+    if empty_crop:
+        line += f" ({empty_crop} with no point left after cropping)"
     if times:
         line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
                  f"{sum(times):.1f} s total")
-    print(line, file=sys.stderr)  # also with -q: its help promises the final summary
-    if verbosity >= 1:
-        st = ctx.stages.as_dict()
-        print("stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()) + f"; summary: {summary_path}",
-              file=sys.stderr)
-    if failed:
-        print("failed frames:", file=sys.stderr)
-        for msg in failure_lines(job):
-            print(f"  {msg}", file=sys.stderr)
-        return 1
-    return 0
+    return line
+
+
+def _finish(line: str, verbosity: int, stages_label: str, stages: dict | None, summary_path, header: str,
+            failures: list) -> int:
+    """Prints the final line (also with -q: the help promises it), the stage times with -v and
+    the failures; returns the exit status."""
+    print(line, file=sys.stderr)
+    if verbosity >= 1 and stages is not None:
+        print(f"{stages_label}: " + ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
+              + f"; summary: {summary_path}", file=sys.stderr)
+    return _failures(header, failures)
+
+
+def _failures(header: str, lines: list) -> int:
+    """Prints the failures under ``header``; the exit status (1 if any)."""
+    if not lines:
+        return 0
+    print(header, file=sys.stderr)
+    for msg in lines:
+        print(f"  {msg}", file=sys.stderr)
+    return 1
 
 
 def _sequence_on_engines(args, ctx, run: list, planned: list, todo: int, engines) -> int:
@@ -127,32 +144,17 @@ def _sequence_on_engines(args, ctx, run: list, planned: list, todo: int, engines
         bar.close()
     wall = time.perf_counter() - t0
     merged, unopened = got
-    summary_path = write_summary(merged, say, wall=wall) if merged is not None else None
-    written = merged["written"] if merged else 0
-    skipped = merged["skipped"] if merged else 0
-    failures = [line for _, (_, line) in sorted(merged["failures"].items())] if merged else []
-    failures += unopened
-    times = merged["times"] if merged else []
-    line = f"done: {written} frame(s) written, {skipped} skipped (already done), {len(failures)} failed"
-    if merged and merged["empty_crop"]:
-        line += f" ({len(merged['empty_crop'])} with no point left after cropping)"
-    if times:
-        line += (f"; {statistics.mean(times):.2f} s/frame mean, {statistics.median(times):.2f} s median, "
-                 f"{sum(times):.1f} s total")
-    line += f"; {res['engines']} engine(s), {written / wall if wall > 0 else 0:.2f} frames/s"
+    if merged is None:  # no task could be opened
+        merged = {"written": 0, "skipped": 0, "failures": {}, "empty_crop": {}, "times": [], "stages": {}}
+    summary_path = write_summary(merged, say, wall=wall) if "path" in merged else None
+    failures = [line for _, (_, line) in sorted(merged["failures"].items())] + unopened
+    line = _done_line(merged["written"], merged["skipped"], len(failures), len(merged["empty_crop"]), merged["times"])
+    line += f"; {res['engines']} engine(s), {merged['written'] / wall if wall > 0 else 0:.2f} frames/s"
     if res["lost"]:
         line += f"; {len(res['lost'])} engine(s) lost, their tasks redone by the others"
-    print(line, file=sys.stderr)  # also with -q: its help promises the final summary
-    if verbosity >= 1 and merged:
-        st = render(merged, wall)["stages_s"]
-        print("stages (s, summed over the engines): " + ", ".join(f"{k} {v:.2f}" for k, v in st.items())
-              + f"; summary: {summary_path}", file=sys.stderr)
-    if failures:
-        print("failed frames:", file=sys.stderr)
-        for msg in failures:
-            print(f"  {msg}", file=sys.stderr)
-        return 1
-    return 0
+    stages = render(merged, wall)["stages_s"] if "path" in merged else None
+    return _finish(line, verbosity, "stages (s, summed over the engines)", stages, summary_path, "failed frames:",
+                   failures)
 
 
 def _sequence_task(args):
@@ -226,12 +228,7 @@ def run_dataset(tasks, args, n_sequences: int, engines=None) -> int:
           + f", {len(res['failed'])} failure(s)" + (f"; {res['engines']} engine(s)" if "engines" in res else "")
           + (f", {len(res['lost'])} lost (their tasks redone by the others)" if res.get("lost") else "")
           + f"; outputs in {args.out}", file=sys.stderr)
-    if res["failed"]:
-        print("failed:", file=sys.stderr)
-        for line in res["failed"]:
-            print(f"  {line}", file=sys.stderr)
-        return 1
-    return 0
+    return _failures("failed:", res["failed"])
 
 
 def _dataset_on_engines(run: list, planned: list, args, engines, report, bar) -> dict:

@@ -41,7 +41,7 @@ def summary_part(job, ctx, engine: int = 0) -> dict:
                  "settings": json.loads(json.dumps(info["settings"], default=str))},
         "path": str(summary_path(info["task"], info["out"])),
         "selected": len(info["selected"]), "written": job.written, "skipped": info["skipped"],
-        "failures": dict(zip(sorted(job.failed), ((name[i], m) for i, m in zip(sorted(job.failed), failure_lines(job))))),
+        "failures": {i: (name[i], line) for i, line in zip(sorted(job.failed), failure_lines(job))},
         "nonfinite": {i: (name[i], seq.frames[i].path.name, k) for i, k in loader.nonfinite.items() if i in todo},
         "empty_crop": {i: name[i] for i in loader.empty_crop if _owned(job, i)},
         "stray": {i: name[i] for i in loader.stray if _owned(job, i)},
