@@ -62,6 +62,8 @@ def _serve(conn, send, index: int, device: str, threads: dict) -> None:
     torch.set_num_threads(threads["torch"])  # its share of the host, not an OpenMP team per core
     stamps = {"process": time.time()}
     warm_up(device, stamps)
+    if device.startswith("cuda") and "warm_error" in stamps:  # e.g. a GPU that takes one context only
+        raise RuntimeError(f"its warm-up on {device} failed ({stamps['warm_error']}): it takes no task")
     from floxels_ext.lidar.dataset.worker import run_tasks
 
     def ask(what: str):
@@ -94,8 +96,9 @@ def _serve(conn, send, index: int, device: str, threads: dict) -> None:
     item = ask("need")
     while item is not None:  # one stream while tasks are queued; once drained, wait for one handed back
         if item != "wait":
-            run_tasks(tasks(item), args, report=lambda msg: send(("report", msg)), on_frame=on_frame,
-                      on_sequence=ended, engine=index)
+            r = run_tasks(tasks(item), args, report=lambda msg: send(("report", msg)), on_frame=on_frame,
+                          on_sequence=ended, engine=index)
+            send(("stages", r["stages"]))  # the stream's stage times, its wall included
             if state["over"]:
                 break
         item = ask("idle")

@@ -31,6 +31,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from multiprocessing.connection import wait as wait_for
@@ -40,6 +41,7 @@ __all__ = ["Handout", "Engines", "early_engines", "engine_threads"]
 
 _WAIT = "wait"
 STOP_S = 15.0    # how long an interrupted engine may take to write what it computed
+DRAIN_S = 2.0    # how long the run waits for the engines to end their streams once all tasks have
 
 
 class Handout:
@@ -128,6 +130,7 @@ class _Engine:
     stopping: bool = False
     error: str | None = None
     thread: threading.Thread | None = None
+    ended: threading.Event = dataclasses.field(default_factory=threading.Event)  # said "done", or gone
 
 
 class Engines:
@@ -202,10 +205,12 @@ class Engines:
                 e.ready = True
             elif kind == "done":
                 e.done = True
+                e.ended.set()
             elif kind == "error":
                 e.error = msg[1]
             else:
                 self.on_message(e, msg)
+        e.ended.set()
         e.proc.join(timeout=5.0)
         back = self.handout.hand_back(e.index)
         if not e.done and not (e.stopping and not back):
@@ -238,7 +243,7 @@ class Engines:
             on_frame: Callable[[object, str, bool], None],
             on_ended: Callable[[object, str, list, dict | None], None]) -> dict:
         """Runs ``tasks`` on the engines, engine 0 here; returns {"lost": [lines], "engines":
-        how many took a task}. ``on_frame(task, name, ok)``: a frame written (or failed);
+        how many took a task, "stages": {engine: its stage times (s)}, those engines'}. ``on_frame(task, name, ok)``: a frame written (or failed);
         ``on_ended(task, outcome, lines, part)``: a task ended (``worker.run_tasks``'s outcome
         and failure lines; ``part``: its ``summary`` part, None when it could not be opened;
         its ``written`` counts the frames an engine lost on it had written). Both run on
@@ -255,6 +260,13 @@ class Engines:
         written_by: dict[int, int] = {}  # task -> frames written by its current holder
         took: set[int] = set()
         lost: list[str] = []
+        stages: dict[int, dict] = {}     # engine -> its streams' stage times (s), summed
+
+        def add_stages(engine: int, st: dict) -> None:
+            with lock:
+                mine = stages.setdefault(engine, {})
+                for key, v in st.items():
+                    mine[key] = mine.get(key, 0.0) + v
 
         def frame(engine: int, k: int, name: str, ok: bool) -> None:
             with lock:
@@ -277,6 +289,8 @@ class Engines:
                 ended(e.index, *msg[1:])
             elif msg[0] == "report":
                 report(msg[1])
+            elif msg[0] == "stages":
+                add_stages(e.index, msg[1])
 
         def on_lost(e: _Engine, why: str, back: list[int]) -> None:
             with lock:
@@ -309,17 +323,25 @@ class Engines:
             k = self.handout.take(0, wait=False)
             while k is not None:
                 if k != _WAIT:
-                    run_tasks(own_tasks(k), own, report=report, engine=0,
+                    r = run_tasks(own_tasks(k), own, report=report, engine=0,
                               on_frame=lambda job, i: frame(0, job.info["task"].lease, job.seq.frames[i].name,
                                                             i not in job.failed),
                               on_sequence=lambda task, outcome, job, lines: ended(
                                   0, task.lease, outcome, lines, None if job is None else job.info.get("summary")))
+                    add_stages(0, r["stages"])
                     if state["over"]:
                         break
                 k = self.handout.take(0, wait=True)  # tasks other engines still hold may come back
         finally:
             torch.set_num_threads(torch_threads)
-        return {"lost": lost, "engines": len(took)}
+        # every task has ended: the engines that ran some end their streams (their stage times
+        # come with that) a few ms later; the run waits for that, at most DRAIN_S
+        self.handout.stop()
+        deadline = time.monotonic() + DRAIN_S
+        for e in self.engines:
+            if e.index in took:
+                e.ended.wait(max(0.0, deadline - time.monotonic()))
+        return {"lost": lost, "engines": len(took), "stages": {e: st for e, st in stages.items() if e in took}}
 
 
 def _signal(proc, sig: int) -> None:

@@ -146,6 +146,8 @@ def _sequence_on_engines(args, ctx, run: list, planned: list, todo: int, engines
     merged, unopened = got
     if merged is None:  # no task could be opened
         merged = {"written": 0, "skipped": 0, "failures": {}, "empty_crop": {}, "times": [], "stages": {}}
+    if res["stages"]:  # the whole run's (the parts have each engine's up to its last task's end)
+        merged["stages"] = res["stages"]
     summary_path = write_summary(merged, say, wall=wall) if "path" in merged else None
     failures = [line for _, (_, line) in sorted(merged["failures"].items())] + unopened
     line = _done_line(merged["written"], merged["skipped"], len(failures), len(merged["empty_crop"]), merged["times"])
