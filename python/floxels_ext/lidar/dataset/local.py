@@ -2,6 +2,8 @@
 (:func:`run_dataset`), both through the engine (``worker``); they differ only in what they
 print. One sequence: its start line, a progress bar naming each frame, ``done: ...`` and the
 failed frames; a dataset: one progress bar counting frames and sequences, ``dataset done: ...``.
+With ``--engines N`` (``engines``) both print the same from what every engine reports, and a
+sequence's one summary is merged over its tasks (``summary``).
 
 Per frame: read the file (``floxels_ext.lidar.io``), crop and remove the ground in the scan's own
 sensor frame (``floxels_ext.lidar.preprocess``), bring the scans of its window into one frame
