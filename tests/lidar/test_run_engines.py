@@ -237,3 +237,18 @@ def test_handout_in_order_and_handed_back():
     assert h.take(0, True) == 1
     h.end(0, 1)
     assert h.take(0, True) is None and h.over
+
+
+@pytest.mark.cuda
+def test_two_engines_on_one_gpu_give_one_engine_s_bytes(tmp_path, monkeypatch, capsys):
+    """On the GPU (the default there is 2 engines): both engines take tasks (engine 1 the
+    first), and every output equals the one engine's byte for byte."""
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    save_sequence(tmp_path / "seq", simulate_sequence("urban", 24, 5, beams=32, azimuth_steps=720))
+    base = ["run", str(tmp_path / "seq"), "--device", "cuda", "--chunk", "8", "-q"]
+    assert cli.main([*base, "--out", str(tmp_path / "one"), "--engines", "1"]) == 0
+    _Spy(monkeypatch, engine1_first=True)
+    assert cli.main([*base, "--out", str(tmp_path / "two"), "--task-frames", "8"]) == 0
+    assert "2 engine(s)" in capsys.readouterr().err
+    _same(tmp_path / "two", tmp_path / "one")
