@@ -15,6 +15,13 @@ it twice: KITTI style (``velodyne/NNNNNN.bin`` + ``poses.txt``) and as an Argove
     python bench/bench_run.py --frames 16 --beams 32      # CPU-sized
     python bench/bench_run.py --repeat 3 --variant "w4=--writers 4"   # medians of 3, a variant
     python bench/bench_run.py --repeat 3 --variant "two-kernel=FLOXELS_SOLVER_PERSISTENT=0"   # an environment variant
+    python bench/bench_run.py --repeat 3 --frames 768 --variant "e1=--engines 1" --variant "e2=--engines 2"
+
+The default rows run with ``floxels run``'s default engines (2 on CUDA, 1 on the CPU). With
+several engines the stage columns are per engine (the summary sums them over the engines) and
+the workers column ends in xN; a run only shows the second engine's effect once it outlasts its
+start (~2-4 s: process, CUDA context, warm-up; the first run of a process also starts the fork
+server), hence the longer sequence in the example.
 
 Prints a table and writes bench/results/bench_run_<device>.json.
 """
@@ -176,6 +183,8 @@ def main() -> None:
                          "(0 = Python's default, "
                          "to compare with the pipeline's setting)")
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
+    ap.add_argument("--windows", type=Path, help="also write each timed run's [t0, t1] (time.time()) as a JSON "
+                    "list of {name, t0, t1}: tools/host_sampler.py --windows summarises the GPU's busy share per run")
     args = ap.parse_args()
 
     if args.gil_switch_interval is not None:
@@ -198,6 +207,7 @@ def main() -> None:
         rows = {}
         variants = [("", [])] + [(v.partition("=")[0], v.partition("=")[2].split()) for v in args.variant]
         reps: dict[str, list] = {}
+        windows: list[dict] = []
         ceil_runs = Ceiling(kitti, args.scans, args.device, options)
         for rep in range(args.repeat):  # interleaved: a host's drift touches every variant alike
             for label, extra in variants:
@@ -209,8 +219,10 @@ def main() -> None:
                     saved = {k: os.environ.get(k) for k in env}
                     os.environ.update(env)
                     try:
+                        t_start = time.time()
                         wall, summ = run_cli(["run", *argv, "--out", str(tmp / f"out_{key}_{rep}"), *common,
                                               *cli_extra])
+                        windows.append({"name": f"{key} (run {rep + 1})", "t0": t_start, "t1": time.time()})
                     finally:
                         for k, v in saved.items():
                             if v is None:
@@ -245,11 +257,14 @@ def main() -> None:
     print(" | ".join(f"{h:>9}" for h in hdr))
     # workers: N readers, t(hread)/p(rocess), where preprocessing ran, writers t/p
     for name, r in rows.items():
-        st = r["summary"]["stages_s"]
+        # with --engines N the summary sums each stage over the engines: per engine here
+        engines = r["summary"].get("engines", 1)
+        st = {k: v / engines for k, v in r["summary"]["stages_s"].items()}
         host_pct = 100 * (r["wall_s"] - st["compute"]) / r["wall_s"]  # everything but the method computing
         r["host_pct"] = host_pct
         sm = r["summary"]
-        vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}/w{sm.get('writer_kind', 'thread')[0]}", f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
+        vals = [name, f"{sm['workers']}{sm['worker_kind'][0]}/{sm['preprocess_device']}/w{sm.get('writer_kind', 'thread')[0]}"
+                + (f"x{engines}" if engines > 1 else ""), f"{r['frames_per_s']:.1f}", f"{1e3 * r['wall_s'] / n:.1f}"] + \
             [f"{1e3 * st.get(k, 0.0) / n:.1f}" for k in ("read", "preprocess", "transform", "estimate", "compute",
                                                           "write", "wait_input", "deliver")] + \
             [f"{1e3 * (r['wall_s'] - st['wall']) / n:.1f}", f"{1e3 * (r['wall_s'] - st['compute']) / n:.1f}", f"{host_pct:.1f}", f"{r['ratio_to_ceiling']:.2f}x"]
@@ -274,6 +289,8 @@ def main() -> None:
     res = {"device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
            "frames": n, "beams": args.beams, "repeat": args.repeat, "gil_switch_interval": args.gil_switch_interval, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
            "runs": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()}, "ceiling": ceil}
+    if args.windows:
+        args.windows.write_text(json.dumps(windows, indent=1) + "\n")
     path = Path(args.json or Path(__file__).parent / "results" / f"bench_run_{args.device.split(':')[0]}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(res, indent=2, default=str) + "\n")

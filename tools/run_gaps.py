@@ -4,7 +4,8 @@ stacks), then attributes every GPU idle gap to the innermost Python frames of th
 launches the kernels (the optimiser thread) at the gap's middle, and prints the GPU's busy time
 and its largest kernels. The profiler slows the host, so the gaps are larger than in a plain run;
 their ranking is what it is for (issue 33: the page-locked staging's reallocations and the
-per-scan sight launches were found this way).
+per-scan sight launches were found this way). It runs one engine (``--engines 1``, unless
+``--run-args`` names another count): the profiler sees only this process.
 
     python tools/run_gaps.py [--frames 32] [--run-args "--preset accurate --scans 11"] [--trace T.json]
 """
@@ -60,7 +61,10 @@ def main() -> None:
         sys.exit("run_gaps.py needs a CUDA device")
     tmp = Path(tempfile.mkdtemp(prefix="run_gaps_"))
     kitti, _, _ = build(tmp, args.frames + 8, args.beams, 1800, 0)
-    base = [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), *args.run_args.split(), "-q"]
+    # one engine: the profiler sees this process's kernels only (another engine's would fill the
+    # gaps unseen); with --engines N the GPU's busy share is host_sampler.py's (nvidia-smi)
+    engines = [] if "--engines" in args.run_args.split() else ["--engines", "1"]
+    base = [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), *args.run_args.split(), *engines, "-q"]
     cli.main(["run", *base, "--out", str(tmp / "warm"), "--frames", "0:8"])
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], with_stack=True) as prof:
         cli.main(["run", *base, "--out", str(tmp / "out"), "--frames", f"8:{args.frames + 8}"])

@@ -27,7 +27,7 @@ import socket
 import threading
 import time
 
-__all__ = ["FloxelsWorker", "Channel", "worker_threads", "process_start_time", "OWNER_TIMEOUT"]
+__all__ = ["FloxelsWorker", "Channel", "worker_threads", "warm_up", "process_start_time", "task_args", "OWNER_TIMEOUT"]
 
 _IMPORTED = time.time()  # Ray imports this module to load the actor class (torch comes in __init__)
 
@@ -66,6 +66,35 @@ def process_start_time() -> float | None:
         return time.time() - (uptime - ticks / os.sysconf("SC_CLK_TCK"))
     except (OSError, ValueError, IndexError):
         return None
+
+
+def warm_up(device: str, stamps: dict) -> None:
+    """The pipeline's imports, the CUDA context and one tiny estimate (the kernels' lazy
+    loading, the allocator's first blocks), each step stamped in ``stamps`` (``time.time()``);
+    a failure is stamped as ``warm_error`` (it only costs the first task its start). Ray
+    workers and the local engine processes (``engine_process``) start with it."""
+    try:
+        import floxels_ext.lidar.dataset.worker  # noqa: F401
+        import floxels_ext.lidar.pipeline.run_args  # noqa: F401
+        import floxels_ext.methods  # noqa: F401
+
+        stamps["warm_imports"] = time.time()
+        if device.startswith("cuda"):
+            import numpy as np
+            import torch
+
+            from floxels_ext import FloxelsConfig, estimate_flow
+
+            torch.zeros(1, device=device)
+            torch.cuda.synchronize()
+            stamps["cuda_context"] = time.time()
+            rng = np.random.default_rng(0)
+            scans = [(rng.random((400, 3)) * [8, 8, 1] + [0.2 * i, 0, 0]).astype(np.float32) for i in range(3)]
+            estimate_flow(scans, config=FloxelsConfig(max_iters=3), device=device)
+            torch.cuda.synchronize()
+        stamps["warm_done"] = time.time()
+    except Exception as e:  # noqa: BLE001 - a failed warm-up only costs the first task its start
+        stamps["warm_error"] = f"{type(e).__name__}: {e}"[:300]
 
 
 class Channel:
@@ -166,30 +195,9 @@ class FloxelsWorker:
 
     # -- start -------------------------------------------------------------------------------
     def _warm_up(self) -> None:
-        """The pipeline's imports, the CUDA context and one tiny estimate (the kernels' lazy
-        loading, the allocator's first blocks) while the driver lists and plans the job."""
-        try:
-            import floxels_ext.lidar.dataset.worker  # noqa: F401
-            import floxels_ext.lidar.pipeline.run_args  # noqa: F401
-            import floxels_ext.methods  # noqa: F401
-
-            self.stamps["warm_imports"] = time.time()
-            if self.device.startswith("cuda"):
-                import numpy as np
-                import torch
-
-                from floxels_ext import FloxelsConfig, estimate_flow
-
-                torch.zeros(1, device=self.device)
-                torch.cuda.synchronize()
-                self.stamps["cuda_context"] = time.time()
-                rng = np.random.default_rng(0)
-                scans = [(rng.random((400, 3)) * [8, 8, 1] + [0.2 * i, 0, 0]).astype(np.float32) for i in range(3)]
-                estimate_flow(scans, config=FloxelsConfig(max_iters=3), device=self.device)
-                torch.cuda.synchronize()
-            self.stamps["warm_done"] = time.time()
-        except Exception as e:  # noqa: BLE001 - a failed warm-up only costs the first task its start
-            self.stamps["warm_error"] = f"{type(e).__name__}: {e}"[:300]
+        """The pipeline's imports, the CUDA context and one tiny estimate while the driver
+        lists and plans the job (:func:`warm_up`)."""
+        warm_up(self.device, self.stamps)
 
     # -- the warm pool -----------------------------------------------------------------------
     def claim(self, job: str) -> bool:

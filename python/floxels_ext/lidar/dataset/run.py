@@ -1,8 +1,10 @@
 """``floxels run INPUT --out OUT [--ray [auto|ADDRESS]]``: where INPUT goes. One sequence runs
 here as one task (``local.run_sequence``); a dataset (a directory of sequences or a list file)
 as one task per sequence through one pipeline here (``local.run_dataset``), or through one per
-worker on a Ray cluster (``ray_runner``), as does any INPUT with ``--ray``. All of them run
-their tasks through the same engine (``worker``, ``stream``).
+worker on a Ray cluster (``ray_runner``), as does any INPUT with ``--ray``. With ``--engines N``
+(default 2 on CUDA) the sequences are cut into tasks of ``--task-frames`` for N engines on this
+machine's device (``engines``). All of them run their tasks through the same engine
+(``worker``, ``stream``).
 
 ``floxels_ext.lidar.run`` calls two functions of this module: ``add_dataset_arguments(parser)``
 while building its parser and ``run_input(args)`` to run.
@@ -25,7 +27,11 @@ __all__ = ["add_dataset_arguments", "run_input", "common_options"]
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
                 "ray", "gpus_per_task", "cpus_per_task", "max_tasks", "task_frames", "retries", "sequences",
-                "keep_workers"}
+                "keep_workers", "engines"}
+
+
+MAX_ENGINES = 8  # engines on one device: more contexts than this only queue behind each other
+RAY_TASK_FRAMES = 192
 
 
 def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
@@ -55,10 +61,11 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                         "node's CPUs shared by its GPU workers, 1 for CPU workers)")
     g.add_argument("--max-tasks", type=int, metavar="N", help="at most N workers (default: as many as the "
                    "cluster's resources fit)")
-    g.add_argument("--task-frames", type=int, default=192, metavar="N",
-                   help="frames per task (what a worker takes from the driver at a time): longer sequences "
-                        "are cut into chunks (rounded up to a multiple of --chunk; support scans beyond a chunk "
-                        "are still read); 0 = whole sequences (default 192)")
+    g.add_argument("--task-frames", type=int, default=None, metavar="N",
+                   help="frames per task (what an engine or a Ray worker takes at a time): longer sequences "
+                        "are cut into tasks (rounded up to a multiple of --chunk, else of 64; support scans beyond "
+                        "a task are still read, and the outputs do not depend on the cut); 0 = whole sequences "
+                        "(default: with --engines, --chunk (128): no method call is cut; with --ray, 192)")
     g.add_argument("--retries", type=int, default=3, metavar="N",
                    help="workers started in place of ones that died, at most (default 3); a dead worker's "
                         "tasks go to the others in any case")
@@ -66,6 +73,12 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --ray: the workers stay warm (process, CUDA context, kernels) for S seconds after "
                         "the job, for the next job on the same cluster with the same options, then exit and free "
                         "their GPUs (default 120); 0 = they stop with the job")
+    g.add_argument("--engines", type=int, default=None, metavar="N",
+                   help="engines on this machine's one device: the run's own process is engine 0 and starts at "
+                        "once, N-1 processes start beside it and take tasks (--task-frames) from one queue when "
+                        "ready. Two keep a GPU busy through each other's host steps (1.41x the frames/s of one, "
+                        "measured); the outputs are the same bytes whatever N. Default: 2 on CUDA, 1 on the CPU "
+                        f"(whose cores one engine already uses); 1: one engine in this process; at most {MAX_ENGINES}")
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
@@ -76,17 +89,42 @@ def common_options(args) -> dict:
     return {k: v for k, v in vars(args).items() if k not in _DRIVER_KEYS}
 
 
-def _check_options(args, dataset: bool) -> None:
+def engine_count(args) -> int:
+    """``--engines``, checked (CLIError), or its default: 2 on CUDA, else 1 (also with --ray,
+    whose workers are the engines, and with --worker-kind process)."""
+    from floxels_ext.errors import CLIError
+
+    n = args.engines
+    if n is None:
+        if args.ray is not None or args.worker_kind == "process":
+            return 1
+        import torch
+
+        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+        return 2 if device.startswith("cuda") else 1
+    if args.ray is not None:
+        raise CLIError("--engines runs engines on this machine; it contradicts --ray, whose workers are the engines "
+                       "(--gpus-per-task 0.5: two a GPU)")
+    if not 1 <= n <= MAX_ENGINES:
+        raise CLIError(f"--engines must be in [1, {MAX_ENGINES}] (engines sharing this machine's one device), got {n}")
+    if n > 1 and args.worker_kind == "process":
+        raise CLIError(f"--engines {n} runs its engines as processes, with reader and writer threads; it "
+                       f"contradicts --worker-kind process")
+    return n
+
+
+def _check_options(args, dataset: bool, engines: int = 1) -> None:
     from floxels_ext.errors import CLIError
 
     if args.ray is None:
         used = [f for f, v, default in (("--gpus-per-task", args.gpus_per_task, None),
                                         ("--max-tasks", args.max_tasks, None), ("--cpus-per-task", args.cpus_per_task, None),
-                                        ("--task-frames", args.task_frames, 192), ("--retries", args.retries, 3),
-                                        ("--keep-workers", args.keep_workers, 120.0))
+                                        ("--retries", args.retries, 3), ("--keep-workers", args.keep_workers, 120.0))
                 if v != default]
         if used:
             raise CLIError(f"{', '.join(used)} only apply with --ray")
+        if args.task_frames is not None and engines == 1:
+            raise CLIError("--task-frames only applies with --ray or --engines N > 1 (one engine runs whole sequences)")
     if dataset and (args.poses or args.calib):
         raise CLIError("--poses/--calib name one sequence's files; a dataset's are found per sequence (KITTI "
                        "poses/NN.txt and sequences/NN/calib.txt) or given per line of a list file "
@@ -99,7 +137,7 @@ def _check_options(args, dataset: bool) -> None:
         raise CLIError(f"--cpus-per-task must be > 0, got {args.cpus_per_task}")
     if args.max_tasks is not None and args.max_tasks < 1:
         raise CLIError("--max-tasks must be >= 1")
-    if args.task_frames < 0:
+    if args.task_frames is not None and args.task_frames < 0:
         raise CLIError("--task-frames must be >= 0 (0 = whole sequences)")
     if args.retries < 0:
         raise CLIError("--retries must be >= 0")
@@ -114,25 +152,52 @@ def run_input(args) -> int:
     from floxels_ext.lidar.dataset.ray_runner import early_workers
 
     _check_options(args, dataset=False)
+    engine_count(args)  # --engines contradicts --ray: said before Ray starts
     with early_workers(args) as workers:  # they start while the dataset is listed and planned
         return _run_input(args, workers)
 
 
 def _run_input(args, workers) -> int:
+    from floxels_ext.lidar.dataset.engines import early_engines
+    from floxels_ext.lidar.pipeline.run_args import require_input_and_out
+
+    require_input_and_out(args)
+    engines = engine_count(args)
+    device = None
+    if engines > 1:
+        import torch
+
+        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    # engines 1..N-1 start now: their start (process, imports, CUDA context) overlaps the listing
+    with early_engines(args, engines, device) as pool:
+        return _run_tasks(args, workers, engines, pool)
+
+
+def _run_tasks(args, workers, engines: int, pool) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
     from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
 
-    from floxels_ext.lidar.pipeline.run_args import require_input_and_out
-
-    require_input_and_out(args)
     specs = discover_dataset(args.input, args.out, args.sequences)
-    _check_options(args, specs is not None)
+    _check_options(args, specs is not None, engines)
+    align = args.chunk or 64  # 64: half the run's default chunk
+    if args.ray is not None:
+        task_frames = RAY_TASK_FRAMES if args.task_frames is None else args.task_frames
+    elif engines > 1:  # tasks of one chunk: the method's calls are those of one engine, none cut
+        from floxels_ext.lidar.dataset.layout import DEFAULT_CHUNK
+
+        task_frames = (args.chunk or DEFAULT_CHUNK) if args.task_frames is None else args.task_frames
+    else:
+        task_frames = 0
     if specs is None:
         if args.sequences:
             raise CLIError(f"--sequences selects sequences of a dataset, but {args.input} is one sequence")
         if args.ray is None:
-            return run_sequence(args)
+            from floxels_ext.lidar.dataset.tasks import task_size
+
+            # KISS-ICP runs over a whole sequence once: one task (as plan_tasks does)
+            size = 0 if args.odometry or args.chunk is not None and args.chunk < 1 else task_size(task_frames, align)
+            return run_sequence(args, pool, size)
         specs = [SequenceSpec(Path(args.input).resolve(), Path("."),
                               Path(args.poses) if args.poses else None, Path(args.calib) if args.calib else None)]
     from floxels_ext.lidar.pipeline.run_args import resolve_preset
@@ -148,8 +213,7 @@ def _run_input(args, workers) -> int:
     from floxels_ext.output_paths import check_writable_dir
 
     check_writable_dir(out, "--out")  # before any sequence is opened (a read-only place)
-    task_frames = args.task_frames if args.ray is not None else 0
-    tasks, problems = plan_tasks(specs, out, args, task_frames=task_frames, align=args.chunk or 64)  # 64: half the run's default chunk
+    tasks, problems = plan_tasks(specs, out, args, task_frames=task_frames, align=align)
     if problems:
         raise CLIError(f"{len(problems)} of the {len(specs)} sequences cannot run (fix them or leave them out "
                        f"with --sequences):\n  " + "\n  ".join(problems))
@@ -162,7 +226,7 @@ def _run_input(args, workers) -> int:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
         return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers)
-    return run_dataset(tasks, args, n_sequences=len(specs))
+    return run_dataset(tasks, args, n_sequences=len(specs), engines=pool)
 
 
 def _check_written_tasks(tasks, args) -> None:

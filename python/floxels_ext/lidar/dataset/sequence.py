@@ -9,9 +9,6 @@ method's options, the preprocessing settings, the reader pools and stage times.
 
 from __future__ import annotations
 
-import json
-import os
-import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -167,53 +164,11 @@ def failure_lines(job: SeqJob) -> list[str]:
 
 
 def write_sequence_summary(job: SeqJob, ctx: DatasetContext, wall: float | None = None) -> Path | None:
-    """The sequence's ``run_summary.json`` (``task.summary``, default in its output directory);
-    returns its path (None when it could not be written: said as a warning). Warns first about
-    frames with non-finite rows. The stage times are the whole stream's so far (the sequences
-    of a dataset share them); ``wall``: the run's seconds, default from the moment the stream
-    took the sequence to its last frame written."""
-    args, seq, info = ctx.args, job.seq, job.info
-    settle_failures(job)
-    todo = set(job.todo)
-    nonfinite = {i: k for i, k in job.loader.nonfinite.items() if i in todo}
-    if nonfinite:
-        first = sorted(nonfinite)[:3]
-        ctx.report(f"floxels: warning: {len(nonfinite)} frame(s) have rows with NaN/inf coordinates (their flow "
-                   f"is NaN): " + ", ".join(f"{seq.frames[i].path.name} ({nonfinite[i]} rows)" for i in first)
-                   + (" ..." if len(nonfinite) > 3 else ""))
-    if wall is None:
-        wall = max(0.0, job.t_end - job.t_start)
-    times = job.times
-    lines = failure_lines(job)
-    counts = {i: c for i, c in sorted(job.loader.counts.items()) if i in todo}
-    summary = {"input": str(seq.root), "out": str(info["out"]), "method": args.method, "device": ctx.device,
-               "frames": len(seq), "selected": len(info["selected"]), "written": job.written,
-               "skipped": info["skipped"], "failed": len(job.failed),
-               "failures": [{"frame": seq.frames[i].name, "message": m} for i, m in zip(sorted(job.failed), lines)],
-               "nonfinite_rows": {seq.frames[i].name: k for i, k in sorted(nonfinite.items())},
-               # frames with points but none left to optimise (counted in "failed" too)
-               "no_points_after_crop": [seq.frames[i].name for i in sorted(job.loader.empty_crop) if _owned(job, i)],
-               # frames whose few far points blow up a distance transform (warned about once)
-               "far_outliers": [seq.frames[i].name for i in sorted(job.loader.stray) if _owned(job, i)],
-               # per estimated frame: points kept (optimised), removed as ground, removed as
-               # outliers (far below the ground / far above the sensor), cropped (or non-finite)
-               "point_classes": {seq.frames[i].name: c for i, c in counts.items()},
-               "outliers": sum(c["outlier"] for c in counts.values()),
-               "wall_s": round(wall, 4),
-               "frames_per_s": round(job.written / wall, 3) if wall > 0 and job.written else None,
-               "s_per_frame_mean": round(statistics.mean(times), 6) if times else None,
-               "s_per_frame_median": round(statistics.median(times), 6) if times else None,
-               "stages_s": ctx.stages.as_dict(), "workers": ctx.workers, "writers": ctx.writers,
-               "worker_kind": ctx.kind, "writer_kind": ctx.kind, "preprocess_device": ctx.pre_device or "cpu",
-               "settings": json.loads(json.dumps(info["settings"], default=str))}
-    task = info["task"]
-    path = Path(task.summary) if task.summary else Path(info["out"]) / "run_summary.json"
-    try:
-        from floxels_ext.output_paths import replace_atomically
+    """The sequence's ``run_summary.json`` (``task.summary``, default in its output directory)
+    from this one job (``summary``: the format, and the merge of several tasks' parts); returns
+    its path (None when it could not be written: said as a warning). The stage times are the
+    whole stream's so far (the sequences of a dataset share them); ``wall``: the run's seconds,
+    default from the moment the stream took the sequence to its last frame written."""
+    from floxels_ext.lidar.dataset.summary import summary_part, write_summary
 
-        text = json.dumps(summary, indent=2) + "\n"
-        replace_atomically(path.with_name(f".{path.name}.{os.getpid()}.tmp"), path, lambda t: t.write_text(text))
-    except OSError as e:
-        ctx.report(f"floxels: warning: cannot write the summary {path}: {e}")
-        return None
-    return path
+    return write_summary(summary_part(job, ctx), ctx.report, wall=wall)

@@ -30,7 +30,7 @@ import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks"]
+__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks", "split_task", "task_size"]
 
 
 @dataclass
@@ -60,6 +60,9 @@ class Task:
     # the sequence as ``discover_input`` listed it when the task was made here (``floxels run
     # SEQ``), so that opening it does not list it again; None: opened from ``seq``
     found: object = field(default=None, repr=False, compare=False)
+    # the run has said the sequence's start lines (``floxels run SEQ`` cut into tasks for its
+    # engines): the engine that opens the task says none of them again
+    said: bool = False
 
     @property
     def label(self) -> str:
@@ -265,7 +268,7 @@ def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, 
 
     tasks: list[Task] = []
     problems: list[str] = []
-    size = 0 if task_frames <= 0 else -(-task_frames // align) * align
+    size = task_size(task_frames, align)
     for s in specs:
         try:
             seq = discover_input(s.path, poses_file=s.poses, calib=s.calib, bin_columns=args.bin_columns,
@@ -288,8 +291,30 @@ def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, 
         if args.odometry:  # one task per sequence: KISS-ICP runs over the whole sequence once
             step = stop - start
         # cut every `step` frames from the first selected one, where the run's own batches start
-        cuts = [*range(start, stop, step), stop]
-        for a, b in zip(cuts[:-1], cuts[1:]):
+        for a, b in _cuts(start, stop, step):
             tasks.append(Task(s, out_dir, a, b, [f.name for f in seq.frames[a:b]],
                               frame_paths=[str(f.path) for f in seq.frames[a:b]], selection=(start, stop)))
     return tasks, problems
+
+
+def task_size(task_frames: int, align: int) -> int:
+    """``task_frames`` rounded up to a multiple of ``align`` (0: whole sequences)."""
+    return 0 if task_frames <= 0 else -(-task_frames // align) * align
+
+
+def _cuts(start: int, stop: int, step: int) -> list[tuple[int, int]]:
+    cuts = [*range(start, stop, step or stop - start), stop]
+    return list(zip(cuts[:-1], cuts[1:]))
+
+
+def split_task(task: Task, size: int) -> list[Task]:
+    """``task`` (``floxels run SEQ``'s, its sequence listed: ``found``) cut into tasks of
+    ``size`` frames from its first one, as :func:`plan_tasks` cuts a dataset's sequences;
+    each notes that the run has said its start lines (``said``)."""
+    import dataclasses
+
+    k0 = task.start
+    return [dataclasses.replace(task, start=a, stop=b, names=task.names[a - k0:b - k0],
+                                frame_paths=task.frame_paths[a - k0:b - k0], todo=[], said=True,
+                                selection=task.selection or (task.start, task.stop))
+            for a, b in _cuts(task.start, task.stop, size)]

@@ -82,15 +82,18 @@ def run_jobs(jobs: Iterable, ctx, *, on_frame: Callable[[object, int], None],
 
 def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
               on_frame: Callable[[object, int], None] = lambda job, i: None,
-              on_sequence: Callable[[object, str, object, list], None] = lambda task, outcome, job, lines: None
-              ) -> dict:
+              on_sequence: Callable[[object, str, object, list], None] = lambda task, outcome, job, lines: None,
+              engine: int | None = None) -> dict:
     """Runs every task of ``tasks`` (an iterable; it may wait for the next task) and returns
     {"written", "failed": [lines], "sequences": {outcome: count}, "stages", "device"}.
 
     ``on_frame(job, i)``: frame ``i`` of ``job`` written or failed; ``on_sequence(task, outcome,
     job, lines)``: a task ended, ``outcome`` "done", "failed" (``job`` None when it could not be
     opened; ``lines`` name the failures) or "skipped" (nothing to do); each ended task but a
-    skipped one has written its ``run_summary.json``. Both may run on the pipeline's threads."""
+    skipped one has written its ``run_summary.json``. Both may run on the pipeline's threads.
+    ``engine``: this pipeline is one of the run's engines (``engines``): a task's summary is
+    not written but left in ``job.info["summary"]`` (``summary.summary_part``, also for a
+    skipped task) for the run to merge with the other tasks of its sequence."""
     from floxels_ext.errors import CLIError
     from floxels_ext.evaluation.seqio import SequenceFormatError
     from floxels_ext.lidar.dataset.sequence import failure_lines, open_sequence, write_sequence_summary
@@ -111,7 +114,8 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
     def jobs():
         for task in tasks:
             try:
-                job = open_sequence(task, ctx)
+                # a task of a sequence whose start lines the run has said (engines) says none
+                job = open_sequence(task, ctx, say=(lambda msg: None) if task.said else None)
             except (CLIError, SequenceFormatError, MissingDependencyError, OSError, ValueError) as e:
                 report(f"floxels: error: {task.label}: {e}")
                 ended(task, "failed", None, [f"{task.label}: {e}"])
@@ -120,10 +124,15 @@ def run_tasks(tasks: Iterable, args, *, report: Callable[[str], None],
 
     def finish(job) -> None:
         task = job.info["task"]
+        if engine is not None:
+            from floxels_ext.lidar.dataset.summary import summary_part
+
+            job.info["summary"] = summary_part(job, ctx, engine)  # its failures settled
         if not job.todo:
             ended(task, "skipped", job)
             return
-        write_sequence_summary(job, ctx)
+        if engine is None:
+            write_sequence_summary(job, ctx)
         ended(task, "failed" if job.failed else "done", job, failure_lines(job))
 
     run_jobs(jobs(), ctx, on_frame=on_frame, on_finish=finish)

@@ -51,7 +51,10 @@ def set_aside_orphans(seq, out: Path, report) -> None:
         dest = out / ORPHANS
         dest.mkdir(exist_ok=True)
         for p in orphans:
-            os.replace(p, dest / p.name)
+            try:
+                os.replace(p, dest / p.name)
+            except FileNotFoundError:
+                pass  # moved meanwhile by another task of this sequence (engines, Ray workers)
         report(f"moved {len(orphans)} output(s) of frames no longer in the input (deleted or renamed since: "
                f"{_names([p.name for p in orphans])}) to {dest}, out of the run's outputs")
     if foreign:

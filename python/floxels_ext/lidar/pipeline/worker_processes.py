@@ -1,4 +1,5 @@
-"""Worker processes of ``floxels run`` (readers with ``--worker-kind process``, writers).
+"""Worker processes of ``floxels run`` (readers with ``--worker-kind process``, writers) and the
+fork server that also starts its engine processes (``--engines``, ``dataset/engines``).
 
 They come from a fork server (``multiprocessing``'s "forkserver"), not a plain fork of the run:
 the run is multi-threaded and has used torch (and CUDA) by then, and a forked copy of it
@@ -13,9 +14,14 @@ from __future__ import annotations
 import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 
-__all__ = ["process_pool"]
+__all__ = ["process_pool", "forkserver_context"]
 
-_PRELOAD = ["floxels_ext.lidar.pipeline.frame_loader", "floxels_ext.lidar.pipeline.frame_writer"]
+# what the fork server imports once for every child: the readers' and writers' modules, and
+# torch with the engine (``floxels run --engines``: each engine process then starts in about the
+# time of its CUDA context, not of torch's import)
+_PRELOAD = ["floxels_ext.lidar.pipeline.frame_loader", "floxels_ext.lidar.pipeline.frame_writer", "torch",
+            "floxels_ext.ops", "floxels_ext.methods", "floxels_ext.lidar.dataset.worker",
+            "floxels_ext.lidar.dataset.engine_process"]
 
 
 def _init(initializer, initargs) -> None:
@@ -35,10 +41,17 @@ def _nothing() -> None:
 def process_pool(workers: int, initializer, initargs: tuple) -> ProcessPoolExecutor:
     """``workers`` processes from the fork server, each running ``initializer(*initargs)``
     (pickled: module-level functions and picklable state only); started before returning."""
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(_PRELOAD)
+    ctx = forkserver_context()
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init,
                                initargs=(initializer, initargs))
     for f in [pool.submit(_nothing) for _ in range(workers)]:
         f.result()
     return pool
+
+
+def forkserver_context():
+    """``multiprocessing``'s fork-server context with the package preloaded (one list for every
+    caller: the fork server takes the list of its first start)."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(_PRELOAD)
+    return ctx
