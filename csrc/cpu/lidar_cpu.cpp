@@ -82,8 +82,7 @@ void drop_outliers(const lidar::Rows<T>& p, int64_t N, const OutlierRule& o, con
   std::fill(grid.begin(), grid.end(), kInf);
   for (int64_t i = 0; i < N; ++i) {
     if (g.cell[i] < 0 || g.outlier[i]) continue;
-    const double z = p.z(i);
-    if (z < grid[g.cell[i]]) grid[g.cell[i]] = z;
+    grid[g.cell[i]] = std::min(grid[g.cell[i]], p.z(i));  // no branch on it, as in build_ground
   }
 }
 
@@ -123,8 +122,10 @@ template <typename T>
     const int64_t b = int64_t((small ? lidar::floor_exact(qb) : std::floor(qb)) - lo_c[1]);
     const int64_t c = a * W + b;
     g.cell[i] = c;
-    const double z = p.z(i);
-    if (z < grid[c]) grid[c] = z;  // std::min's result, stored only when it changes
+    // std::min (a minsd), stored every time: the branch it replaces mispredicted on real scans
+    // (the KITTI sweeps: 4.6 -> 3.8 ms a scan with drop_outliers' loop alike; simulated scans
+    // unchanged, bench/RESULTS.md); the same value (finite z, no NaN to order)
+    grid[c] = std::min(grid[c], p.z(i));
   }
   drop_outliers(p, N, orule, lo_c, cell_size, window_cells, g, grid);
   // separable square filters (exact: min and max round nothing), constant border as scipy's
