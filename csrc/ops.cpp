@@ -194,6 +194,10 @@ TORCH_LIBRARY(floxels, m) {
   // |flow| > dynamic_threshold (float32 arithmetic).
   m.def("frame_flow(Tensor flow, Tensor mask, Tensor nonfinite, Tensor rotation, float dynamic_threshold) "
         "-> (Tensor, Tensor)");
+  // The .bin reader's scan-order score of points (N, 3), any strides (the x y z columns of a
+  // reading of a file's rows): median over x, y, z of median |row step| / interquartile range,
+  // on the finite rows; NaN under 16 of them (floxels_ext/lidar/io/readers.py, _disorder).
+  m.def("scan_disorder(Tensor points) -> float");
 
   // --- build information ---
   // True when this library was built with FLOXELS_PROFILING=ON (CMakeLists.txt): only such a

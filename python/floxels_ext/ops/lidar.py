@@ -1,7 +1,8 @@
 """The lidar pipeline's CPU ops (``floxels run``'s per-frame host work): fake registrations and
 wrappers. References: :func:`floxels_ext.lidar.preprocess.preprocess_mask_numpy` (cropping and
-ground removal), :func:`floxels_ext.lidar.preprocess.transform_points` and the numpy code in
-``tests/ops/test_lidar_ops.py`` (flow back into a frame's rows).
+ground removal), :func:`floxels_ext.lidar.preprocess.transform_points`, the numpy code in
+``tests/ops/test_lidar_ops.py`` (flow back into a frame's rows) and in
+``tests/lidar/test_bin_disorder_reference.py`` (the .bin reader's scan-order score).
 
 Lidar rows may hold NaN/inf coordinates (kept so outputs line up with the file): these ops
 accept them (False in the mask, NaN after a transform) instead of refusing them like the
@@ -15,7 +16,8 @@ import torch
 from floxels_ext.ops._checks import check_point_rows
 from floxels_ext.ops._lib import ops_ns
 
-__all__ = ["lidar_keep_mask", "lidar_point_classes", "rigid_transform", "lidar_select", "frame_flow"]
+__all__ = ["lidar_keep_mask", "lidar_point_classes", "rigid_transform", "lidar_select", "frame_flow",
+           "scan_disorder"]
 
 
 @torch.library.register_fake("floxels::lidar_keep_mask")
@@ -128,3 +130,11 @@ def frame_flow(flow: torch.Tensor, mask: torch.Tensor, nonfinite: torch.Tensor, 
                                  torch.as_tensor(rotation, dtype=torch.float32), float(dynamic_threshold))
     except RuntimeError as e:
         raise ValueError(str(e).split("\n")[0].removeprefix("floxels: frame_flow: ")) from None
+
+
+def scan_disorder(points: torch.Tensor) -> float:
+    """The .bin reader's scan-order score of ``points`` (N, 3) float32/float64, any strides:
+    for each of x, y, z over the finite rows, the median |step| between consecutive rows over
+    the interquartile range (``np.percentile``'s), and the median of the three; NaN with fewer
+    than 16 finite rows (:func:`floxels_ext.lidar.io.readers._disorder`)."""
+    return float(ops_ns.scan_disorder(_host_points(points)))
