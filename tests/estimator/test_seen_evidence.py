@@ -49,6 +49,10 @@ def test_seen_evidence_rescues_partly_seen_groups_unless_they_follow_the_sensor(
     ev = seen_evidence(weak - rf, (weak - rf) > 0.02, rf, weak, labels, cells, observed, w, seen_mean=True,
                        keep_unseen=False, **kw)
     assert ev.explained.tolist() == [False, False, False, False, False]
+    # ... with keep_unseen it awaits the rigid refinement's confirmation, as a hidden group does
+    ev = seen_evidence(weak - rf, (weak - rf) > 0.02, rf, weak, labels, cells, observed, w, seen_mean=True,
+                       keep_unseen=True, **kw)
+    assert ev.hidden.tolist() == [True, True, True, True, False] and ev.explained.tolist() == ev.hidden.tolist()
     # hidden needs most points behind a nearer return where the occluded bits are given
     occ = torch.tensor([0, 0, 0b01, 0, 0], dtype=torch.int32)
     ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, w, seen_mean=False, keep_unseen=True,

@@ -257,9 +257,13 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
         # saw the group is sqrt(sum_seen w_t^2 / sum w_t^2) / share times as noisy, and its margin
         # grows so. Without it (the whole window's margin), static structure beside the sensor at a
         # sequence's end, seen by the nearest scan only in part (between a 32-beam lidar's rings),
-        # passed on sampling-level gains (bench/RESULTS.md, "Where the static error lives")
+        # passed on sampling-level gains (bench/RESULTS.md, "Where the static error lives"). A group
+        # between the two margins (weak evidence) keeps its flow only where the rigid refinement
+        # confirms it, as a hidden group does (``keep_unseen``; estimator/post.py): a moving
+        # fragment a few scans saw is refined and fits, static structure at a few cm/frame is not
         noise = (run_mean(seen_w[:, 1]) / max(sum(v * v for v in w), 1e-300)).sqrt() / div
-        rescued = seen & ~explained & (gain_n > torch.maximum(rz_n * ratio, (margin * noise).to(rz_n.dtype)))
+        above = seen & ~explained & (gain_n > torch.maximum(rz_n * ratio, torch.full_like(rz_n, margin)))
+        rescued = above & (gain_n > torch.maximum(rz_n * ratio, (margin * noise).to(rz_n.dtype)))
         if sensor_velocity is not None and flow is not None:
             f = flow.to(torch.float64)
             v = sensor_velocity.to(f)
@@ -268,12 +272,16 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
             along = f @ unit
             across = (f - along[:, None] * unit).norm(dim=1)
             follows = (speed > 0.05) & (along > 0) & (across <= FOLLOW_RATIO * f.norm(dim=1))
-            rescued &= run_mean(follows.to(torch.float64)) < 0.5
+            not_following = run_mean(follows.to(torch.float64)) < 0.5
+            rescued &= not_following
+            above &= not_following
         explained = explained | rescued
     if keep_unseen:
         hidden = ~seen & ~explained
         if occluded is not None:
             hidden &= run_mean((occluded != 0).to(torch.float64)) >= 0.5
+        if seen_mean:
+            hidden |= above & ~rescued
         explained = explained | hidden
     return MotionEvidence(score, explained, rf, rz, hidden)
 
