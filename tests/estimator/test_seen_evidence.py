@@ -71,6 +71,20 @@ def test_sensor_velocity_is_the_least_squares_line():
     assert torch.allclose(sensor_velocity([s[0], None, s[3]], [-2, -1, 2]), torch.tensor([2.0, 0, 0], dtype=torch.float64))
 
 
+def _cropped(seq, frame: int, max_range: float = 30.0):
+    """A simulated sequence as the API takes it: protocol-cropped scans, poses, removed ground;
+    and frame ``frame`` with its kept rows."""
+    scans, grounds = [], []
+    for fr in seq.frames:
+        scans.append(fr.points[protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=max_range)]
+                     .astype(np.float32))
+        grounds.append(fr.points[fr.ground.astype(bool) & protocol_mask(fr.points, fr.pose[:3, 3], max_range=max_range)]
+                       .astype(np.float32))
+    fr = seq.frames[frame]
+    keep = protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=max_range)
+    return scans, np.stack([f.pose for f in seq.frames]), grounds, fr, keep
+
+
 def _behind(n=6):
     """A 32-beam sequence: the ego at 0.86 m/frame between two walls, a car 16 m behind it at
     0.92 m/frame; protocol-cropped scans, poses, removed ground, car mask and flow of frame 0."""
@@ -79,15 +93,8 @@ def _behind(n=6):
     for y in (-7.0, 7.0):
         s.add((200, 0.5, 3.0), BACKGROUND, 0.0, y)
     seq = simulate_sequence(s, num_frames=n, seed=0, beams=32, azimuth_steps=1024)
-    scans, grounds = [], []
-    for fr in seq.frames:
-        scans.append(fr.points[protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=30.0)]
-                     .astype(np.float32))
-        grounds.append(fr.points[fr.ground.astype(bool) & protocol_mask(fr.points, fr.pose[:3, 3], max_range=30.0)]
-                       .astype(np.float32))
-    fr = seq.frames[0]
-    keep = protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=30.0)
-    return scans, np.stack([f.pose for f in seq.frames]), grounds, fr.instance[keep] == 0, fr.flow[keep]
+    scans, poses, grounds, fr, keep = _cropped(seq, 0)
+    return scans, poses, grounds, fr.instance[keep] == 0, fr.flow[keep]
 
 
 @pytest.fixture(scope="module")
@@ -120,15 +127,8 @@ def _parked_row(n=5):
     for y in (-9.0, 9.0):
         s.add((200, 0.5, 3.0), BACKGROUND, 0.0, y)
     seq = simulate_sequence(s, num_frames=n, seed=0, beams=32, azimuth_steps=1024)
-    scans, grounds = [], []
-    for fr in seq.frames:
-        scans.append(fr.points[protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=30.0)]
-                     .astype(np.float32))
-        grounds.append(fr.points[fr.ground.astype(bool) & protocol_mask(fr.points, fr.pose[:3, 3], max_range=30.0)]
-                       .astype(np.float32))
-    fr = seq.frames[-1]
-    keep = protocol_mask(fr.points, fr.pose[:3, 3], ground=fr.ground, max_range=30.0)
-    return scans, np.stack([f.pose for f in seq.frames]), grounds, fr.flow[keep]
+    scans, poses, grounds, fr, keep = _cropped(seq, -1)
+    return scans, poses, grounds, fr.flow[keep]
 
 
 def test_parked_cars_at_a_sequence_end_are_not_rescued_on_sampling_level_gains():
