@@ -252,7 +252,7 @@ class Engines:
 
         import torch
 
-        from floxels_ext.lidar.dataset.run import common_options
+        from floxels_ext.lidar.dataset.tasks import common_options
         from floxels_ext.lidar.dataset.worker import run_tasks
 
         lock = threading.Lock()

@@ -22,12 +22,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_dataset_arguments", "run_input", "common_options"]
+__all__ = ["add_dataset_arguments", "run_input"]
 
-# run options that a task sets itself (per sequence / per task) or that belong to the driver
-_DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
-                "ray", "gpus_per_task", "cpus_per_task", "max_tasks", "task_frames", "retries", "sequences",
-                "keep_workers", "engines"}
 
 
 MAX_ENGINES = 8  # engines on one device: more contexts than this only queue behind each other
@@ -82,11 +78,6 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
-
-
-def common_options(args) -> dict:
-    """The run options every task of the job shares (all but the per-task and driver ones)."""
-    return {k: v for k, v in vars(args).items() if k not in _DRIVER_KEYS}
 
 
 def engine_count(args) -> int:
@@ -221,6 +212,8 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
         t.todo = list(t.names) if args.force else \
             [n for n in t.names if not (t.out_dir / f"{n}.npz").is_file()]
     _check_written_tasks([t for t in tasks if not t.todo], args)
+    from floxels_ext.lidar.dataset.tasks import common_options
+
     common = common_options(args)
     if args.ray is not None:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray

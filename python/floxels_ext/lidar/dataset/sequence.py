@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from floxels_ext.lidar.dataset.stream import SeqJob
+from floxels_ext.lidar.dataset.summary import failure_lines, settle_failures  # noqa: F401 (this module's API)
 
 __all__ = ["DatasetContext", "open_sequence", "resume_todo", "settle_failures", "failure_lines",
            "write_sequence_summary"]
@@ -133,34 +134,6 @@ def _with(args, **changes):
     for k, v in changes.items():
         setattr(ns, k, v)
     return ns
-
-
-def _owned(job: SeqJob, i: int) -> bool:
-    """Whether a frame that could not be read counts as one of ``job``'s failures: its own
-    frames, and neighbours outside what the run selects (``--frames``: no task owns them),
-    read as support scans; a neighbour that is another task's frame is that task's."""
-    task = job.info["task"]
-    a, b = task.selection or (0, job.n)
-    return task.start <= i < task.stop or not a <= i < b
-
-
-def settle_failures(job: SeqJob) -> None:
-    """Adds the frames ``job``'s loader could not use (unreadable, empty after cropping) to its
-    failures: a support scan's too, so that a run with an unreadable frame never ends as if all
-    were well (:func:`_owned`)."""
-    for i, msg in list(job.loader.errors.items()):
-        if _owned(job, i):
-            job.failed.setdefault(i, msg)
-
-
-def failure_lines(job: SeqJob) -> list[str]:
-    """One line per failed frame, naming its file."""
-    out = []
-    for i in sorted(job.failed):
-        path = str(job.seq.frames[i].path)
-        msg = job.failed[i]
-        out.append(msg if msg.startswith(path) else f"{path}: {msg}")
-    return out
 
 
 def write_sequence_summary(job: SeqJob, ctx: DatasetContext, wall: float | None = None) -> Path | None:

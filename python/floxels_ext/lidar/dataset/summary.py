@@ -16,7 +16,36 @@ import os
 import statistics
 from pathlib import Path
 
-__all__ = ["summary_part", "merge_parts", "write_summary", "summary_path", "SequenceParts"]
+__all__ = ["summary_part", "merge_parts", "write_summary", "summary_path", "SequenceParts", "settle_failures",
+           "failure_lines"]
+
+
+def _owned(job, i: int) -> bool:
+    """Whether a frame that could not be read counts as one of ``job``'s failures: its own
+    frames, and neighbours outside what the run selects (``--frames``: no task owns them),
+    read as support scans; a neighbour that is another task's frame is that task's."""
+    task = job.info["task"]
+    a, b = task.selection or (0, job.n)
+    return task.start <= i < task.stop or not a <= i < b
+
+
+def settle_failures(job) -> None:
+    """Adds the frames ``job``'s loader could not use (unreadable, empty after cropping) to its
+    failures: a support scan's too, so that a run with an unreadable frame never ends as if all
+    were well (:func:`_owned`)."""
+    for i, msg in list(job.loader.errors.items()):
+        if _owned(job, i):
+            job.failed.setdefault(i, msg)
+
+
+def failure_lines(job) -> list[str]:
+    """One line per failed frame, naming its file."""
+    out = []
+    for i in sorted(job.failed):
+        path = str(job.seq.frames[i].path)
+        msg = job.failed[i]
+        out.append(msg if msg.startswith(path) else f"{path}: {msg}")
+    return out
 
 
 def summary_path(task, out) -> Path:
@@ -26,9 +55,7 @@ def summary_path(task, out) -> Path:
 
 def summary_part(job, ctx, engine: int = 0) -> dict:
     """What ``job`` (a ``stream.SeqJob`` whose frames are all done) adds to its sequence's
-    summary; its failures settled first (``sequence.settle_failures``)."""
-    from floxels_ext.lidar.dataset.sequence import _owned, failure_lines, settle_failures
-
+    summary; its failures settled first (:func:`settle_failures`)."""
     settle_failures(job)
     seq, info, args = job.seq, job.info, ctx.args
     todo = set(job.todo)

@@ -30,7 +30,18 @@ import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks", "split_task", "task_size"]
+__all__ = ["common_options", "SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks", "split_task",
+           "task_size"]
+
+# run options that a task sets itself (per sequence / per task) or that belong to the driver
+_DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
+                "ray", "gpus_per_task", "cpus_per_task", "max_tasks", "task_frames", "retries", "sequences",
+                "keep_workers", "engines"}
+
+
+def common_options(args) -> dict:
+    """The run options every task of the job shares (all but the per-task and driver ones)."""
+    return {k: v for k, v in vars(args).items() if k not in _DRIVER_KEYS}
 
 
 @dataclass
