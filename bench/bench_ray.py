@@ -117,9 +117,7 @@ def run_procs(data: Path, seqs: int, k: int, w: int, flags: list[str], cpus: int
     threads = str(max(1, cpus // n))
     procs, t0, t0_wall = [], time.perf_counter(), time.time()
     for i in range(n):
-        lst = out / f"list{i}.txt"
-        lst.write_text("".join(f"{data}/sequences/{j:02d}/velodyne --poses {data}/poses/{j:02d}.txt\n"
-                               for j in range(i, seqs, n)))
+        lst = sequence_list(data, out / f"list{i}.txt", range(i, seqs, n))
         env = dict(os.environ, CUDA_VISIBLE_DEVICES=str(i // w), OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
         procs.append(subprocess.Popen([sys.executable, "-m", "floxels_ext", "run", str(lst), "--out", str(out / f"p{i}"),
                                        *flags], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
@@ -160,12 +158,17 @@ def job_workers(out: Path) -> list[dict]:
     return [{k: w.get(k) for k in keep} for w in info.get("workers", [])]
 
 
-def subset_list(data: Path, seqs: int, n: int) -> Path:
-    """A list file of the dataset's first ``n`` sequences (KITTI poses given per line)."""
-    n = min(n, seqs)
-    path = data / f"first{n}.txt"
-    path.write_text("".join(f"sequences/{i:02d}/velodyne --poses poses/{i:02d}.txt\n" for i in range(n)))
+def sequence_list(data: Path, path: Path, indices) -> Path:
+    """A list file of the dataset's sequences ``indices`` (KITTI poses given per line)."""
+    path.write_text("".join(f"{data}/sequences/{i:02d}/velodyne --poses {data}/poses/{i:02d}.txt\n"
+                            for i in indices))
     return path
+
+
+def subset_list(data: Path, seqs: int, n: int) -> Path:
+    """A list file of the dataset's first ``n`` sequences."""
+    n = min(n, seqs)
+    return sequence_list(data, data / f"first{n}.txt", range(n))
 
 
 def retire_pool() -> None:
