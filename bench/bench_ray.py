@@ -103,16 +103,20 @@ def steady_fps(out: Path) -> float | None:
     return (b - a) / (t[b] - t[a]) if t[b] > t[a] else None
 
 
-def run_procs(data: Path, seqs: int, k: int, w: int, flags: list[str], cpus: int, out: Path) -> dict:
+def run_procs(data: Path, seqs: int, k: int, w: int, flags: list[str], cpus: int, out: Path, engines: int = 1) -> dict:
     """The control without Ray: k x w independent plain ``floxels run`` processes, w of them on
     each of k GPUs (CUDA_VISIBLE_DEVICES), each over every (k x w)-th sequence (a list file), each
     with cpus / (k x w) CPU threads. Whatever Ray adds (or takes) is the gap to the rayKxW row;
     what the host loses to more processes is the gap between this row's steady rate and k x the
-    1-GPU one. Fresh processes: compare the steady rate (fps_steady), not the wall's."""
+    1-GPU one. Fresh processes: compare the steady rate (fps_steady), not the wall's.
+    ``engines`` E > 1: w / E processes a GPU, each ``--engines E`` (one process's engines share
+    a GPU as w Ray workers do): the layout of one Ray worker a GPU running local engines."""
     import subprocess
 
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
+    w = max(1, w // engines)
+    flags = [*flags, "--engines", str(engines)]
     n = k * w
     threads = str(max(1, cpus // n))
     procs, t0, t0_wall = [], time.perf_counter(), time.time()
@@ -240,6 +244,9 @@ def main() -> None:
                     help="Ray rows with W workers sharing each GPU (--gpus-per-task 1/W; rows ray<K>x<W> for W > 1; "
                          "each W's efficiency against its own 1-GPU row; the cold and subset rows use the first W). "
                          "Default 1")
+    ap.add_argument("--procs-engines", type=int, nargs="+", default=[1], metavar="E",
+                    help="procs rows with W/E processes a GPU of --engines E each (rows procs<K>x<W>e<E> for E > 1; "
+                         "default 1: W single-engine processes a GPU, like the W Ray workers)")
     ap.add_argument("--data", type=Path, help="dataset directory (made if missing or different; default: temporary)")
     ap.add_argument("--compare", type=int, default=2, help="sequences whose Ray outputs are compared (default 2)")
     ap.add_argument("--rounds", type=int, default=1, help="repeat the Ray (and procs) rows this many times, "
@@ -358,8 +365,10 @@ def main() -> None:
                         free_cluster()
                         if cuda:
                             torch.cuda.empty_cache()
-                        record(f"procs{k}{tag}{sfx}", run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs"),
-                               gpus=k, workers_per_gpu=w)
+                        for e in args.procs_engines:
+                            record(f"procs{k}{tag}{'' if e == 1 else f'e{e}'}{sfx}",
+                                   run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs", e),
+                                   gpus=k, workers_per_gpu=w, engines=e)
         for r in rows:  # scaling efficiency against the same W's 1-GPU warm row (cold rows too: their start counts)
             base = bases.get(r.get("workers_per_gpu"))
             if r["mode"].startswith(("ray", "cold")) and base is not None:
@@ -376,16 +385,18 @@ def main() -> None:
     if "procs" in args.modes and "ray" not in args.modes:  # the control alone
         for k in (gpus if cuda else [1]):
             for w in (args.workers_per_gpu if cuda else [1]):
-                record(f"procs{k}" + ("" if w == 1 else f"x{w}"),
-                       run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs"), gpus=k, workers_per_gpu=w)
+                for e in args.procs_engines:
+                    record(f"procs{k}" + ("" if w == 1 else f"x{w}") + ("" if e == 1 else f"e{e}"),
+                           run_procs(data, seqs, k, w, flags, cpus, tmp / "out_procs", e), gpus=k, workers_per_gpu=w,
+                           engines=e)
     # the steady rates' efficiency, per family (ray, procs) against its own 1-GPU row of the same W
     fam = lambda r: "procs" if r["mode"].startswith("procs") else "ray" if r["mode"].startswith("ray") else None  # noqa: E731
     base: dict = {}
     for r in rows:
         if fam(r) and r["gpus"] == 1 and "/" not in r["mode"]:
-            base.setdefault((fam(r), r.get("workers_per_gpu")), r)
+            base.setdefault((fam(r), r.get("workers_per_gpu"), r.get("engines", 1)), r)
     for r in rows:
-        b = base.get((fam(r), r.get("workers_per_gpu")))
+        b = base.get((fam(r), r.get("workers_per_gpu"), r.get("engines", 1)))
         if fam(r) and "/" not in r["mode"] and b is not None and b.get("fps_steady") and r.get("fps_steady"):
             r["efficiency_steady"] = r["fps_steady"] / (r["gpus"] * b["fps_steady"])
     print(f"\n{'mode':<10}{'GPUs':>5}{'wall s':>9}{'frames':>8}{'frames/s':>10}{'first s':>9}{'all 1st':>8}"

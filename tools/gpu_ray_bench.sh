@@ -16,6 +16,7 @@
 # WPG="1 2": also the rows with 2 workers sharing each GPU (bench_ray --workers-per-gpu; the first
 # value's rows come first, and the cold and subset rows use it).
 # MODES="long ray procs": also the control without Ray (bench_ray --modes procs: K x W plain runs).
+# PROCS_E="1 2": also procs rows of W/2 processes a GPU with --engines 2 each (bench_ray --procs-engines).
 # ROUNDS=R repeats the Ray (and procs) rows R times, interleaved; SPY=N py-spy dumps of N busy workers of each kind.
 #   OUT=... [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] [MODES="long ray"] tools/gpu_ray_bench.sh
 set -u
@@ -48,7 +49,7 @@ cold=${COLD:-$(echo $GPUS | awk '{print $NF}')}; coldf="--cold $cold"; [ "$cold"
 t=$(( $(left) - 45 ))
 log "bench_ray: --gpus $GPUS --workers-per-gpu ${WPG:-1} --cold $cold --subset ${SUBSET:-16} --subset-gpus 2, limit $t s"
 timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-gpu ${WPG:-1} --modes ${MODES:-long ray} \
-  --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
+  --procs-engines ${PROCS_E:-1} --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
   > $OUT/bench_ray.log 2>&1
 log "bench_ray rc=$?"
 mkdir -p $W/hs; touch $W/hs/stop; wait $HS
