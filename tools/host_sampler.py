@@ -32,6 +32,7 @@ import os
 import re
 import shutil
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -167,6 +168,8 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
     prev_cpu = _cpu_total()
     prev_threads: dict[int, dict[int, int]] = {}
     prev_times: dict[int, tuple[int, int]] = {}
+    prev_t: dict[int, float] = {}  # when each process was last read: loads are over the real span
+    # (a sample late by seconds, the host saturated, once divided seconds of ticks by the interval)
     names: dict[int, str] = {}
     ncpu = os.cpu_count() or 1
     with open(out / "samples.jsonl", "w") as log:
@@ -186,11 +189,12 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
                 prev_threads[pid] = cur
                 times, times_before = _proc_times(pid), prev_times.get(pid)
                 prev_times[pid] = times
-                if before is None:
+                span, prev_t[pid] = now - prev_t.get(pid, now), now
+                if before is None or span <= 0:
                     continue
-                d = {tid: (cur[tid] - before.get(tid, cur[tid])) / HZ / interval for tid in cur}
-                sys_cores = (times[1] - times_before[1]) / HZ / interval if times_before else 0.0
-                rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), sys=sys_cores, threads=len(cur),
+                d = {tid: (cur[tid] - before.get(tid, cur[tid])) / HZ / span for tid in cur}
+                sys_cores = (times[1] - times_before[1]) / HZ / span if times_before else 0.0
+                rows[str(pid)] = dict(cmd=procs[pid], cores=sum(d.values()), sys=sys_cores, span=round(span, 3), threads=len(cur),
                                       busy02=sum(v > 0.2 for v in d.values()), busy08=sum(v > 0.8 for v in d.values()),
                                       main=d.get(pid, 0.0), top=sorted(d.values(), reverse=True)[:6],
                                       top_named=[[THREAD_NAMES.get(t, "?"), round(v, 3)] for t, v in
@@ -201,7 +205,8 @@ def sample(out: Path, interval: float, stop_file: Path | None, duration: float, 
                         and spy_pattern.search(procs[pid])):
                     spied.add(pid)
                     spied_kinds[key] = spied_kinds.get(key, 0) + 1
-                    _spy(out, pid, procs[pid])
+                    # beside the sampling (a dump takes seconds: inline, it stalled the samples)
+                    threading.Thread(target=_spy, args=(out, pid, procs[pid]), daemon=True).start()
             try:
                 load = os.getloadavg()[0]
             except OSError:
@@ -250,11 +255,12 @@ def summarise(out: Path, windows: list[dict]) -> list[dict]:
                 procs.setdefault(pid, []).append(p)
         prow = []
         for pid, ps in procs.items():
-            cores = sum(p["cores"] for p in ps) / len(ps)
+            span = sum(p.get("span", 1.0) for p in ps)  # each sample weighs its own span
+            cores = sum(p["cores"] * p.get("span", 1.0) for p in ps) / span
             if cores < 0.05:
                 continue
             prow.append(dict(pid=pid, cmd=ps[0]["cmd"][:60], cores=round(cores, 2),
-                             sys=round(sum(p.get("sys", 0.0) for p in ps) / len(ps), 2),
+                             sys=round(sum(p.get("sys", 0.0) * p.get("span", 1.0) for p in ps) / span, 2),
                              threads=max(p["threads"] for p in ps),
                              busy02=round(sum(p["busy02"] for p in ps) / len(ps), 1),
                              busy08=round(sum(p["busy08"] for p in ps) / len(ps), 1),

@@ -115,3 +115,52 @@ def test_default_two_workers_a_gpu():
     assert task_slots([nodes[0]["Resources"]], 0.5, 8.0) == 8
     assert _resources(ray, args(gpus_per_task=1.0)) == (1.0, 16.0, "cuda")
     assert _resources(ray, args(device="cpu")) == (0.0, 1.0, "cpu")
+
+
+def test_claim_waits_for_the_starting_jobs_release():
+    """A worker that a job started and dropped before it was up: that job's release and the next
+    job's claim reach it together once it is up, in either order; the claim waits for the release
+    instead of leaving the worker idle while the next job starts another (~6 s on a GPU host)."""
+    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
+    w.warm.join()
+    threading.Timer(0.2, w.release, args=("A",)).start()
+    t = time.monotonic()
+    assert w.claim("B") and w.owner == "B"
+    assert time.monotonic() - t < ray_worker.HANDOVER_S
+    kept = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")  # its job keeps it: no release comes
+    kept.warm.join()
+    assert not kept.claim("B") and kept.owner == "A"
+
+
+def test_job_short_of_workers_waits_for_the_pools_starting_ones():
+    """The pool's workers that do not answer a claim at once are still starting: a job short of
+    workers waits for them (up to STARTING_WAIT_S) rather than starting new ones beside them."""
+    from types import SimpleNamespace
+
+    from floxels_ext.lidar.dataset import ray_pool
+
+    class Ref:
+        def __init__(self, at, ok):
+            self.at, self.ok = at, ok
+
+    waits = []
+
+    def wait(refs, num_returns, timeout):  # a claim answers `at` seconds after it was sent
+        waits.append(timeout)
+        ready = sorted((r for r in refs if r.at <= timeout), key=lambda r: r.at)[:num_returns]
+        return ready, [r for r in refs if r not in ready]
+
+    def worker(at, ok):
+        return SimpleNamespace(claim=SimpleNamespace(remote=lambda job: Ref(at, ok)),
+                               release=SimpleNamespace(remote=lambda job: None))
+
+    handles = {"up": worker(0.01, True), "busy": worker(0.01, False), "starting": worker(5.0, True),
+               "late": worker(60.0, True)}
+    fake = SimpleNamespace(wait=wait, get=lambda r: r.ok, exceptions=SimpleNamespace(RayError=RuntimeError))
+    pool = ray_pool.Workers(fake, 0.5, 8.0, "cuda", keep_s=None, t0=0.0)
+    pool._handle = handles.get
+    got = pool._claim(list(handles), 3)
+    assert sorted(s.name for s in got) == ["starting", "up"]
+    assert waits == [ray_pool.CLAIM_WAIT_S, ray_pool.STARTING_WAIT_S]
+    waits.clear()
+    assert [s.name for s in pool._claim(["up", "busy"], 1)] == ["up"] and waits == [ray_pool.CLAIM_WAIT_S]

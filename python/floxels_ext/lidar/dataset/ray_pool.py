@@ -24,7 +24,8 @@ from pathlib import Path
 __all__ = ["NAMESPACE", "Workers", "Slot", "pool_key"]
 
 NAMESPACE = "floxels"
-CLAIM_WAIT_S = 2.0  # a pooled worker answers a claim in milliseconds; one still starting is skipped
+CLAIM_WAIT_S = 2.0  # a pooled worker answers a claim in milliseconds (one handed over: HANDOVER_S)
+STARTING_WAIT_S = 8.0  # a worker of the pool still starting answers once up: sooner than a new one would
 
 
 def _code_stamp() -> str:
@@ -99,22 +100,34 @@ class Workers:
             return None
 
     def _claim(self, names: list[str], n: int) -> list[Slot]:
+        """Claims up to n of the pool's workers ``names``. Those that do not answer within
+        CLAIM_WAIT_S are still starting (a job that ended before they were up started them): when
+        the job is short of workers it waits up to STARTING_WAIT_S for as many as it lacks, since
+        a new worker would take longer to start and the waiting ones would hold the resources
+        it needs (measured: half of a 4-GPU job's workers started anew, ~6 s late)."""
         handles = {nm: h for nm in names if (h := self._handle(nm)) is not None}
         refs = {h.claim.remote(self.job): nm for nm, h in handles.items()}
-        ready, _ = self.ray.wait(list(refs), num_returns=len(refs), timeout=CLAIM_WAIT_S) if refs else ([], [])
-        got = []
+        got: list[Slot] = []
+        self._answers(refs, handles, got, n, len(refs), CLAIM_WAIT_S)
+        if refs and len(got) < n:
+            self._answers(refs, handles, got, n, min(len(refs), n - len(got)), STARTING_WAIT_S)
+        # a claim answered too late is given back by the worker itself (OWNER_TIMEOUT)
+        return got
+
+    def _answers(self, refs: dict, handles: dict, got: list, n: int, k: int, timeout: float) -> None:
+        """Waits for k of the claims ``refs`` (at most ``timeout``) and takes the granted ones
+        into ``got`` up to n (a surplus one is released); answered claims leave ``refs``."""
+        ready, _ = self.ray.wait(list(refs), num_returns=k, timeout=timeout) if k else ([], [])
         for ref in ready:
+            nm = refs.pop(ref)
             try:
                 ok = self.ray.get(ref)
             except self.ray.exceptions.RayError:
                 continue
-            nm = refs[ref]
             if ok and len(got) < n:
                 got.append(Slot(nm, handles[nm], True, time.time(), claimed=True))
             elif ok:
                 handles[nm].release.remote(self.job)
-        # a claim answered too late is given back by the worker itself (OWNER_TIMEOUT)
-        return got
 
     def start(self, n: int) -> None:
         pooled = self._pooled() if self.keep_s else []
