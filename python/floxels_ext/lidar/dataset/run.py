@@ -20,6 +20,7 @@ and the Ray driver sweeps the rest before launching and after the last task.
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 __all__ = ["add_dataset_arguments", "run_input"]
@@ -208,9 +209,14 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
     if problems:
         raise CLIError(f"{len(problems)} of the {len(specs)} sequences cannot run (fix them or leave them out "
                        f"with --sequences):\n  " + "\n  ".join(problems))
+    written: dict = {}  # out_dir -> names of its outputs: one listing a sequence, not a stat a frame
     for t in tasks:  # what is left to do (the run skips written frames the same way)
-        t.todo = list(t.names) if args.force else \
-            [n for n in t.names if not (t.out_dir / f"{n}.npz").is_file()]
+        if args.force:
+            t.todo = list(t.names)
+            continue
+        if t.out_dir not in written:
+            written[t.out_dir] = _written_names(t.out_dir)
+        t.todo = [n for n in t.names if n not in written[t.out_dir]]
     _check_written_tasks([t for t in tasks if not t.todo], args)
     from floxels_ext.lidar.dataset.tasks import common_options
 
@@ -220,6 +226,16 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
 
         return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers)
     return run_dataset(tasks, args, n_sequences=len(specs), engines=pool)
+
+
+def _written_names(d: Path) -> set[str]:
+    """The frame names with an output file ``NAME.npz`` in ``d`` (a link counts, as ``is_file``
+    does when it leads to a file); none when ``d`` does not exist yet."""
+    try:
+        with os.scandir(d) as it:
+            return {e.name[:-4] for e in it if e.name.endswith(".npz") and e.is_file()}
+    except (FileNotFoundError, NotADirectoryError):
+        return set()
 
 
 def _check_written_tasks(tasks, args) -> None:
