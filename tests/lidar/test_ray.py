@@ -75,6 +75,17 @@ def _assert_same(out: Path, ref: Path):
     assert not [p for p in out.rglob(".*.tmp")], "temporary files left"
 
 
+def _assert_summaries(out: Path, ref: Path):
+    """Each sequence's run_summary.json counts its whole run, as the local run's does (each
+    task of a sequence cut into tasks once wrote its own frames' summary over the others')."""
+    keys = ("frames", "selected", "written", "skipped", "failed")
+    refs = sorted(p.relative_to(ref) for p in ref.rglob("run_summary.json"))
+    assert refs and refs == sorted(p.relative_to(out) for p in out.rglob("run_summary.json"))
+    for rel in refs:
+        a, b = (json.loads((d / rel).read_text()) for d in (out, ref))
+        assert {k: a[k] for k in keys} == {k: b[k] for k in keys}, rel
+
+
 def _pool() -> list[str]:
     return [a["name"] for a in ray.util.list_named_actors(all_namespaces=True) if a["namespace"] == "floxels"]
 
@@ -102,6 +113,7 @@ def test_ray_equals_local_and_warm_pool(cluster, dataset, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "3 sequences, 12 frames, 0 already done, 12 to estimate in 6 task(s) on Ray" in err
     _assert_same(out, local)
+    _assert_summaries(out, local)
     first = json.loads((out / "ray_job_summary.json").read_text())
     assert first["frames_written"] == 12 and first["tasks"]["done"] == 6
     pids = {w["pid"] for w in first["workers"]}

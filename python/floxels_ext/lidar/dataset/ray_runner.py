@@ -209,6 +209,7 @@ def _job_summary(path: Path, info: dict) -> None:
 def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
+    from floxels_ext.lidar.dataset.summary import SequenceParts, write_summary
     from floxels_ext.lidar.pipeline.progress import DatasetProgress
 
     ray = workers.ray
@@ -259,6 +260,14 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
         bar.sequence("skipped")
     failures: list[str] = []
     deaths: list[str] = []
+    # each sequence's run_summary.json, written once from the parts of all its tasks (a sequence
+    # longer than a task had the summary of whichever task ended last: its frames only)
+    parts = SequenceParts(todo_tasks, tasks)
+
+    def task_ended(k: int, outcome: str, part: dict | None) -> None:
+        done = parts.add(todo_tasks[k], outcome, part)
+        if done is not None and done[1] is not None and done[0] != "skipped":
+            write_summary(done[1], lambda msg: bar.message(msg) if verbosity >= 0 else None)
     results: list[dict] = []
     done_frames = shown = 0
 
@@ -272,7 +281,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
             if ev[0] in ("need", "idle"):
                 waiting.append((slot, ev[0]))
             elif ev[0] == "ended":
-                _, k, outcome, lines = ev
+                _, k, outcome, lines, part = ev
+                task_ended(k, outcome, part)
                 slot.leases.discard(k)
                 ended[k] = (outcome, lines)
                 live.pop(k, None)
@@ -364,6 +374,9 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
         raise
     bar.close()
     unfinished = [todo_tasks[k] for k in range(len(todo_tasks)) if k not in ended]
+    for k in range(len(todo_tasks)):  # the summaries of sequences with a task no worker finished: what ran
+        if k not in ended:
+            task_ended(k, "failed", None)
     for t in unfinished:
         failures.append(f"{t.label}: no worker left to run it; {_missing_report(t, since)}")
     left = sum(remove_temps(d) for d in out_dirs)  # from workers killed mid-write

@@ -337,8 +337,8 @@ class FloxelsWorker:
             if i not in j.failed:
                 ch.count(j.info["task"].lease)
 
-        def ended(task, outcome, j, lines) -> None:
-            ch.emit("ended", task.lease, outcome, list(lines))
+        def ended(task, outcome, j, lines) -> None:  # with the task's summary part: the driver merges a sequence's
+            ch.emit("ended", task.lease, outcome, list(lines), j.info.get("summary") if j is not None else None)
 
         def tasks(first):
             for k, task in ch.tasks(first):
@@ -357,7 +357,10 @@ class FloxelsWorker:
             stamps["pipeline"] = time.time()
             first = None
             while True:  # one stream while tasks are queued; after it drains, wait for requeued ones
-                r = run_tasks(tasks(first), args, report=report, on_frame=on_frame, on_sequence=ended)
+                # engine: a task's summary part goes back to the driver, which writes each sequence's
+                # run_summary.json once from the parts of all its tasks (whichever worker ran them)
+                r = run_tasks(tasks(first), args, report=report, on_frame=on_frame, on_sequence=ended,
+                              engine=f"{socket.gethostname()}:{os.getpid()}")
                 res["written"] += r["written"]
                 res["failed"] += r["failed"]
                 res["stages"], res["streams"] = r["stages"], res["streams"] + 1
