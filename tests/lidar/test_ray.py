@@ -244,3 +244,22 @@ def test_worker_killed_then_rerun(cluster, dataset, tmp_path, capsys, workers, r
     after = output_stamps(out)
     assert {p: after[p] for p in before} == before, "a frame was written twice"
     _assert_same(out, local)
+
+
+def test_tail_tasks_halved_same_outputs(cluster, dataset, tmp_path, monkeypatch, capsys):
+    """The tasks handed out last are halved (at multiples of --chunk) so that the workers end
+    together: more tasks than planned, and the outputs and each sequence's summary are the
+    local run's."""
+    from floxels_ext.lidar.dataset import ray_runner
+
+    lst, local = dataset
+    monkeypatch.setattr(ray_runner, "TAIL_SPLIT_FRAMES", 1)  # 4-frame sequences: halves of 2, then of 1
+    out = tmp_path / "ray"
+    assert cli.main(["run", str(lst), "--out", str(out), "--ray", "--max-tasks", "2", "--keep-workers", "0",
+                     *FLAGS]) == 0
+    err = capsys.readouterr().err
+    assert "12 to estimate in 3 task(s) on Ray" in err
+    job = json.loads((out / "ray_job_summary.json").read_text())
+    assert job["tasks"]["done"] > 3 and job["frames_written"] == 12
+    _assert_same(out, local)
+    _assert_summaries(out, local)

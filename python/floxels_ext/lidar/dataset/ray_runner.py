@@ -40,6 +40,7 @@ from pathlib import Path
 __all__ = ["run_on_ray", "early_workers", "connect", "task_slots", "format_timeline"]
 
 POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (the driver's heartbeat)
+TAIL_SPLIT_FRAMES = 32  # a task handed out near the job's end is halved while each half keeps this many
 
 
 # Default GPUs a worker asks for on a GPU cluster: two workers share each GPU. One worker leaves
@@ -206,10 +207,14 @@ def _job_summary(path: Path, info: dict) -> None:
         print(f"floxels: warning: cannot write {path}: {e}", file=sys.stderr)
 
 
-def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
+def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int = 0) -> int:
+    """``align`` > 0: tasks handed out while the queue holds fewer than the workers are halved
+    at a multiple of ``align`` (``tasks.halve_task``), the second half queued first, so that the
+    workers end together; 0: tasks are never cut (whole sequences asked for, KISS-ICP)."""
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
     from floxels_ext.lidar.dataset.summary import SequenceParts, write_summary
+    from floxels_ext.lidar.dataset.tasks import halve_task
     from floxels_ext.lidar.pipeline.progress import DatasetProgress
 
     ray = workers.ray
@@ -255,8 +260,9 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
     ended: dict[int, tuple[str, list]] = {}
     live: dict[int, int] = {}   # frames the workers reported for tasks not ended yet
     replacements = args.retries
-    bar = DatasetProgress(todo, len(tasks), verbosity=verbosity)
-    for _ in range(len(tasks) - len(todo_tasks)):
+    skipped_tasks = len(tasks) - len(todo_tasks)  # nothing to do; the others: todo_tasks (it grows where tasks are halved)
+    bar = DatasetProgress(todo, n_sequences, verbosity=verbosity)  # sequences counted once all their tasks ended
+    for _ in {SequenceParts._key(t) for t in tasks} - {SequenceParts._key(t) for t in todo_tasks}:
         bar.sequence("skipped")
     failures: list[str] = []
     deaths: list[str] = []
@@ -266,7 +272,10 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
 
     def task_ended(k: int, outcome: str, part: dict | None) -> None:
         done = parts.add(todo_tasks[k], outcome, part)
-        if done is not None and done[1] is not None and done[0] != "skipped":
+        if done is None:
+            return
+        bar.sequence(done[0])
+        if done[1] is not None and done[0] != "skipped":
             write_summary(done[1], lambda msg: bar.message(msg) if verbosity >= 0 else None)
     results: list[dict] = []
     done_frames = shown = 0
@@ -286,7 +295,6 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
                 slot.leases.discard(k)
                 ended[k] = (outcome, lines)
                 live.pop(k, None)
-                bar.sequence(outcome)
                 failures.extend(lines)
                 done_frames += _count_written(todo_tasks[k], since)
             elif ev[0] == "closed":
@@ -347,6 +355,11 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
                 slot, what = w
                 if queue:
                     k = queue.popleft()
+                    if align and len(queue) < len(runs) and (h := halve_task(todo_tasks[k], align, TAIL_SPLIT_FRAMES)):
+                        todo_tasks[k] = h[0]
+                        todo_tasks.append(h[1])
+                        parts.add_task(h[1])
+                        queue.appendleft(len(todo_tasks) - 1)
                     slot.leases.add(k)
                     answer = (k, todo_tasks[k])
                 else:  # a stream asking drains now (its tasks end); a drained one waits for a death's
@@ -384,10 +397,10 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers) -> int:
     counts = {o: 0 for o in ("done", "skipped", "failed")}
     for outcome, _ in ended.values():
         counts[outcome] += 1
-    counts["skipped"] += len(tasks) - len(todo_tasks)
+    counts["skipped"] += skipped_tasks
     counts["failed"] += len(unfinished)
     written = done_frames
-    print(f"done: {n_sequences} sequences in {len(tasks)} task(s) ({counts['done']} done, {counts['skipped']} skipped, "
+    print(f"done: {n_sequences} sequences in {skipped_tasks + len(todo_tasks)} task(s) ({counts['done']} done, {counts['skipped']} skipped, "
           f"{counts['failed']} failed), {written} frame(s) written by {len(results) + len(deaths)} worker(s) in "
           f"{wall:.1f} s ({written / wall if wall > 0 else 0:.2f} frames/s), {total - todo} skipped (already done), "
           f"{len(failures)} failure(s)" + (f"; {len(deaths)} worker(s) lost" if deaths else "")

@@ -224,7 +224,8 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
     if args.ray is not None:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
-        return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers)
+        split = 0 if args.odometry or task_frames <= 0 else align  # (KISS-ICP: whole sequences)
+        return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers, align=split)
     return run_dataset(tasks, args, n_sequences=len(specs), engines=pool)
 
 

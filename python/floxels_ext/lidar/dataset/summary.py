@@ -177,6 +177,10 @@ class SequenceParts:
         self.parts: dict[str, list] = {}
         self.outcomes: dict[str, set] = {}
 
+    def add_task(self, task) -> None:
+        """One more task of a sequence already counted (a task cut in two after the start)."""
+        self.left[self._key(task)] += 1
+
     @staticmethod
     def _key(task) -> str:
         return str(summary_path(task, task.out_dir))

@@ -331,3 +331,27 @@ def split_task(task: Task, size: int) -> list[Task]:
                                 frame_paths=task.frame_paths[a - k0:b - k0], todo=[], said=True,
                                 selection=task.selection or (task.start, task.stop))
             for a, b in _cuts(task.start, task.stop, size)]
+
+
+def halve_task(task: Task, align: int, min_frames: int) -> tuple[Task, Task] | None:
+    """``task`` cut in two at the cut nearest its middle where :func:`plan_tasks` could have cut
+    it (a multiple of ``align`` from the selection's first frame: every window and batch stays
+    the run's), each part at least ``min_frames`` frames with some left to do; None where no
+    such cut exists. The Ray driver halves the tasks it hands out last, so that the workers end
+    together (a job's tail: whole 150-frame sequences ended up to ~1.3 s apart on 4 GPUs)."""
+    import dataclasses
+
+    a0 = (task.selection or (task.start, task.stop))[0]
+    m = max(1, min_frames)
+    cuts = [c for c in range(task.start + m, task.stop - m + 1) if (c - a0) % max(1, align) == 0]
+    if not cuts:
+        return None
+    cut = min(cuts, key=lambda c: (abs(2 * c - task.start - task.stop), c))
+    todo = set(task.todo)
+    parts = []
+    for a, b in ((task.start, cut), (cut, task.stop)):
+        names = task.names[a - task.start:b - task.start]
+        parts.append(dataclasses.replace(task, start=a, stop=b, names=names, todo=[n for n in names if n in todo],
+                                         frame_paths=task.frame_paths[a - task.start:b - task.start]))
+    return None if not (parts[0].todo and parts[1].todo) else (parts[0], parts[1])
+
