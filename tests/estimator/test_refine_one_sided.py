@@ -1,10 +1,11 @@
 """The refinement's searched start in one-sided windows (a sequence's first or last frame;
 estimator/refine.py, ``one_sided_halves``): it is taken only where it explains the side's nearer
-and farther scans each no worse than the start from the flow. The case it fixes (bench/RESULTS.md, "`accurate` on one-sided windows"): an
-oncoming bus passes beside the ego, and each scan's 3 m crop around its sensor cuts a hole in the
-bus's side; the front part's true motion carries it into the near scans' holes (unmatched), while
-a motion of several m/frame slides it along the flat side onto the bus's rear part in the near,
-heavily weighted scans (and off the bus in the far ones): a lower cost than the truth's."""
+and farther scans each no worse than the start from the flow. The case it fixes
+(bench/RESULTS.md, "`accurate` on one-sided windows"): an oncoming bus passes beside the ego,
+and each scan's 3 m crop around its sensor cuts a hole in the bus's side; the front part's true
+motion carries it into the near scans' holes (unmatched), while a motion of several m/frame
+slides it along the flat side onto the bus's rear part in the near, heavily weighted scans (and
+off the bus in the far ones): a lower cost than the truth's."""
 
 import numpy as np
 import pytest
