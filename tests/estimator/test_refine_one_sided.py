@@ -17,6 +17,7 @@ from floxels_ext.ops import dbscan
 from test_refine import _supports  # the support scans' distance transforms
 from test_refine_sided import turning_car
 
+CUDA = pytest.param("cuda", marks=pytest.mark.cuda)
 STEP = 0.15
 EGO = 0.75    # the sensor's speed (m/frame) along x
 CROP = 3.0    # each scan keeps the points at least this far from its sensor (horizontally)
@@ -45,14 +46,15 @@ def test_one_sided_halves():
     assert one_sided_halves(_supports(passing_bus(offsets=range(2)), 0, [0, 1])) is None  # one scan
 
 
+@pytest.mark.parametrize("device", ["cpu", CUDA])
 @pytest.mark.parametrize("v", [-0.5, -0.75])
-def test_one_sided_refinement_refuses_an_alias_along_a_passing_side(v, monkeypatch):
+def test_one_sided_refinement_refuses_an_alias_along_a_passing_side(v, device, monkeypatch):
     offsets = list(range(6))  # the sequence's first frame: future scans only
     scans = passing_bus(v)
-    P = torch.from_numpy(scans[0])
+    P = torch.from_numpy(scans[0]).to(device)
     flow = torch.zeros_like(P)
     flow[:, 0] = v  # the optimiser's flow: right
-    labels, sup = dbscan(P, 0.5, 4), _supports(scans, 0, offsets)
+    labels, sup = dbscan(P, 0.5, 4), _supports(scans, 0, offsets, device=device)
     assert int(labels.max()) == 1  # the hole splits the side into the bus's front and rear parts
     out = rigid_refine(P, flow, labels, sup, sided=True, search=True)
     assert (out - flow).norm(dim=1).max() < 0.1
