@@ -55,6 +55,7 @@ GROUND_RUN = "tests/lidar/test_ground_returns.py"
 REFINE = E + "test_refine.py"
 SIDED = E + "test_refine_sided.py"
 SEARCH = E + "test_refine_search.py"
+ONE_SIDED = E + "test_refine_one_sided.py"
 LONG = E + "test_long_windows.py"
 SEEN = E + "test_seen_evidence.py"
 SPREAD = E + "test_spread.py"
@@ -196,11 +197,15 @@ MUTATIONS = [
     ("refinement never searched", POST, "search=cfg.refine_search,", "search=False,", [ACC, SEARCH]),
     # refine.py
     ("the sided check looks at the past only (46)", REFINE_PY,
-     "for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):",
-     "for side in ([s for s in supports if s.t < 0],):", [SIDED, ACC]),
+     "accept &= ~_worse_on_a_side(([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]),",
+     "accept &= ~_worse_on_a_side(([s for s in supports if s.t < 0],),", [SIDED, ACC]),
     ("the sided check looks at the future only", REFINE_PY,
-     "for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):",
-     "for side in ([s for s in supports if s.t > 0],):", [SIDED, ACC]),
+     "accept &= ~_worse_on_a_side(([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]),",
+     "accept &= ~_worse_on_a_side(([s for s in supports if s.t > 0],),", [SIDED, ACC]),
+    ("a one-sided window's searched start not checked on its halves (47)", REFINE_PY,
+     "halves = one_sided_halves(supports) if sided else None", "halves = None", [ONE_SIDED]),
+    ("a one-sided window's halves: the nearer scans only (47)", REFINE_PY,
+     "return [side[:half], side[half:]] if half else None", "return [side[:half]] if half else None", [ONE_SIDED]),
     ("refinement keeps the start of higher cost", REFINE_PY, "lower = sel & (cur_s < cur)",
      "lower = sel & (cur_s > cur)", [SEARCH, REFINE]),
     ("static clusters refined (speed floor 0)", REFINE_PY, "REFINE_MIN_SPEED = 0.1", "REFINE_MIN_SPEED = 0.0",

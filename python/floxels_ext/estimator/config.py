@@ -108,7 +108,9 @@ class FloxelsConfig:
                                      # turning cars; no effect with refine_max_supports=0)
     refine_search: bool = False      # ... started also from each moving cluster's searched velocity
                                      # (the velocity search over the refined clusters), keeping the
-                                     # lower-cost motion: the loop is local (refine.rigid_refine)
+                                     # lower-cost motion: the loop is local (refine.rigid_refine; in
+                                     # a one-sided window, with refine_sided, only a motion that explains
+                                     # the near and the far scans each no worse: issue 47)
     refine_level: bool = False       # ... also solved with no vertical velocity, the lower cost kept
                                      # (refine.rigid_refine; issue 47)
     refine_spread: float = 0.0       # m: the accepted rigid motions offered to the points within this

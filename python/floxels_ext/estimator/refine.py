@@ -17,7 +17,8 @@ not every class: bench/RESULTS.md).
   started from the cluster's mean Floxels flow. A DT-based ICP (point-to-surface distances
   from the EDT, their gradients as normals): directions the scans do not constrain (a flat
   side sliding along itself) have no gradient and keep the start value (damping). With
-  ``search``, also started from the cluster's searched velocity; the lower cost wins.
+  ``search``, also started from the cluster's searched velocity; the lower cost wins (in a
+  one-sided window, only where it explains the nearer and the farther scans each no worse).
 
 Both score a motion with the robust residual ``min(DT_t(p + t u), tau)`` over the loss's
 support scans, weighted like the loss (``w(t) = 1/t^2``); a cluster's result is kept only if it
@@ -36,7 +37,7 @@ import torch
 from floxels_ext.estimator.host_reads import Steps, rows_where, run_one
 
 __all__ = ["Support", "supports_of", "robust_residual", "cluster_velocity_search", "vertex_init", "rigid_refine",
-           "rigid_refine_steps", "RigidMotions"]
+           "rigid_refine_steps", "RigidMotions", "one_sided_halves"]
 
 F = torch.ops.floxels
 
@@ -239,6 +240,39 @@ def _packed(supports: list[Support]):
             [s.t for s in supports], [s.w for s in supports])
 
 
+def one_sided_halves(supports: list[Support]) -> list[list[Support]] | None:
+    """A window whose support scans lie on one side of the target (a sequence's first or last
+    frame): that side's nearer and farther half (by |t|; the odd scan joins the farther half).
+    None where the window has scans on both sides, or one scan.
+
+    The refinement's searched start must explain both halves no worse than the start from the
+    flow (:func:`rigid_refine_steps`). The true constant motion explains the near and the far
+    scans alike; an alias along the object's own surface fits the near, heavily weighted (1/t^2)
+    scans at the far ones' cost: an oncoming bus beside the ego crosses each scan's 3 m crop, its
+    front part's true motion lands in the near scans' crop (unmatched), and a motion of ~4.8
+    m/frame slides it along its flat side onto its own rear part there (bench/RESULTS.md,
+    "`accurate` on one-sided windows"). In a window with both sides, the sides' test judges the
+    kept motion on the past and on the future scans instead."""
+    if any(s.t < 0 for s in supports) and any(s.t > 0 for s in supports):
+        return None
+    side = sorted(supports, key=lambda s: abs(s.t))
+    half = len(side) // 2
+    return [side[:half], side[half:]] if half else None
+
+
+def _worse_on_a_side(sides, q: torch.Tensor, cid: torch.Tensor, C: int, u: torch.Tensor, ref: torch.Tensor,
+                     tau: float) -> torch.Tensor:
+    """(C,) bool: the clusters whose per-row motion ``u`` explains some group of ``sides`` (lists of
+    support scans; empty ones skipped) worse than ``ref`` does: the summed loss-weighted squared
+    robust residuals of the cluster's sample rows ``q`` (grouped by cluster ``cid``)."""
+    worse = torch.zeros(C, dtype=torch.bool, device=q.device)
+    for side in sides:
+        if side:
+            d = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, ref, tau, True)
+            worse |= ~(_segment_sum(C, cid, d) <= 0)  # (a NaN sum counts as worse)
+    return worse
+
+
 def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor, tau: float,
                        squared: bool, observed: torch.Tensor | None = None) -> torch.Tensor:
     """Per point, ``sum_k w_k c(min(DT_k(q + t_k u), tau))`` over the support scans, with
@@ -326,7 +360,10 @@ def rigid_refine(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
     :func:`cluster_velocity_search`, over these clusters only), and the cluster takes the motion
     of the two with the lower cost. The loop is local: from a flow stopped short it can settle in
     a partial match, e.g. a far car's points on its own next-frame surface (AV2 pair: 0.30 m/frame
-    with a 4 degree/frame yaw, against the label's 0.80 and the scans' 0.84).
+    with a 4 degree/frame yaw, against the label's 0.80 and the scans' 0.84). With ``sided``, in a
+    window with one side (a sequence's first or last frame), the searched motion is taken only
+    where it also explains that side's nearer and its farther scans each no worse than the
+    other start's motion (:func:`one_sided_halves`: an alias trades one for the other).
 
     Every cluster is solved at once by ``floxels::rigid_lm`` (kernels/rigid_lm.h: per step the
     clusters' normal equations from one look-up per support scan, sums in a fixed order, and a
@@ -388,6 +425,10 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
         start = torch.cat([best[:, :2].to(dt), torch.zeros(C, 1, device=dev, dtype=dt)], 1)
         theta_s, cur_s, vz_s = lm.solve(start, mean_flow[:, 2].contiguous())
         lower = sel & (cur_s < cur)
+        halves = one_sided_halves(supports) if sided else None
+        if halves is not None:  # a one-sided window: the searched motion must not trade its halves
+            lower &= ~_worse_on_a_side(halves, q, cid, C, _planar(theta_s[cid], rel, vz_s[cid]),
+                                       _planar(theta[cid], rel, vz[cid]), tau)
         theta, cur = torch.where(lower[:, None], theta_s, theta), torch.where(lower, cur_s, cur)
         vz = torch.where(lower, vz_s, vz)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
@@ -396,12 +437,8 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     fits = accept.clone()
     if sided:
-        u = _planar(theta[cid], rel, vz[cid])
-        f = flow[rows]
-        for side in ([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]):
-            if side:  # summed loss-weighted residuals of the sample points: rigid minus the flow's
-                worse = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, f, tau, True)
-                accept &= _segment_sum(C, cid, worse) <= 0
+        accept &= ~_worse_on_a_side(([s for s in supports if s.t < 0], [s for s in supports if s.t > 0]), q, cid, C,
+                                    _planar(theta[cid], rel, vz[cid]), flow[rows], tau)
     cl = lab.clamp_min(0)
     take = (lab >= 0) & accept[cl]
     rigid = _planar(theta[cl], points - cen[cl], vz[cl])
