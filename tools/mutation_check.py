@@ -58,7 +58,6 @@ SEARCH = E + "test_refine_search.py"
 ONE_SIDED = E + "test_refine_one_sided.py"
 LONG = E + "test_long_windows.py"
 SEEN = E + "test_seen_evidence.py"
-SLIDE = E + "test_sliding_side.py"
 SPREAD = E + "test_spread.py"
 UNSEEN_T = E + "test_unseen.py"
 HOSTR = E + "test_host_reads.py"
@@ -254,10 +253,6 @@ MUTATIONS = [
     ("max_offset ignored (47)", WINDOWS, "if max_offset > 0:", "if False:", [LONG]),
     ("seen_mean rescues groups that follow the sensor (47)", EVIDENCE,
      "rescued &= not_following", "pass", [SEEN]),
-    ("no whole-window witness for groups the sights reject (47)", EVIDENCE,
-     "hidden |= whole & ~explained & not_following", "pass", [SLIDE]),
-    ("whole-window witness for flows that follow the sensor (47)", EVIDENCE,
-     "hidden |= whole & ~explained & not_following", "hidden |= whole & ~explained", [SLIDE]),
     ("seen_mean's margin that of the whole window (47)", EVIDENCE,
      "(margin * noise).to(rz_n.dtype)", "(margin + 0 * noise).to(rz_n.dtype)", [SEEN]),
     ("hidden groups kept wherever they land (47)", "python/floxels_ext/estimator/unseen.py",

@@ -4,17 +4,17 @@ only), nothing behind it but sky and road: each later scan "saw" a point's old p
 or beyond, estimator/sight.py) where the bus's own side still covers it, a few cm from the point,
 and the part the bus left is seen by none. On the scans that saw it zero flow fits better than the
 bus's true motion, the sighted test rejected the optimiser's correct flow and the bus kept none.
-Every scan counted, the flow wins clearly; such a group is now weak evidence (``hidden``) and keeps
-its flow where the rigid refinement confirms it (estimator/evidence.py, estimator/unseen.py)."""
+Every scan counted, the flow wins clearly. Not fixed yet (xfail, strict): treating such a group as
+weak evidence (``hidden``, kept where the rigid refinement confirms it) fixed this bus and seed 62's
+but raised the tuning seeds' static EPE 3x (bench/RESULTS.md, issue 47's fifth-session section
+"a long side sliding along itself")."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from floxels_ext.estimator import FloxelsConfig, estimate_sequence
-from floxels_ext.estimator.evidence import seen_evidence
 from floxels_ext.evaluation.protocol import protocol_mask
 from floxels_ext.evaluation.sim import Scene, Track, simulate_sequence
 from floxels_ext.evaluation.sim.scene import BACKGROUND, CAR, OTHER_VEHICLE
@@ -49,6 +49,8 @@ def bus():
     return _oncoming_bus()
 
 
+@pytest.mark.xfail(strict=True, reason="issue 47: the sights' bias on a long side sliding along itself; the "
+                   "whole window's witness (branch acc-hidden, reverted) fixed it but raised static EPE")
 def test_an_oncoming_bus_keeps_its_motion_at_the_first_frame(bus):
     scans, poses, grounds, mask, truth = bus
     assert mask.sum() > 300 and np.allclose(truth[mask], [-2.2, 0.0, 0.0], atol=0.05)
@@ -61,26 +63,3 @@ def test_an_oncoming_bus_keeps_its_motion_at_the_first_frame(bus):
                              ground_points=grounds)[0]
     assert np.linalg.norm(flow[mask] - truth[mask], axis=1).mean() > 1.5
 
-
-def test_the_whole_windows_witness_marks_rejected_groups_hidden_unless_they_follow_the_sensor():
-    # two groups (runs of labels), both seen by scan 0 only and rejected on it (zero flow fits what
-    # scan 0 saw better); the whole window's test (``whole``) explains group 0 only
-    labels = torch.tensor([0, 0, 1, 1])
-    cells = torch.zeros(4, dtype=torch.int64)
-    observed = torch.tensor([0b01] * 4, dtype=torch.int32)
-    rz, rf = torch.full((4,), 0.03), torch.full((4,), 0.04)
-    score, explained = rz - rf, torch.zeros(4, dtype=torch.bool)
-    whole = torch.tensor([True, True, False, False])
-    kw = dict(margin=0.02, ratio=0.05, seen_mean=True, keep_unseen=True, occluded=torch.zeros(4, dtype=torch.int32))
-    oncoming = torch.tensor([[-2.2, 0.0, 0.0]] * 4)
-    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, [0.8, 0.2], flow=oncoming,
-                       sensor_velocity=torch.tensor([2.5, 0.0, 0.0]), whole=whole, **kw)
-    assert ev.hidden.tolist() == [True, True, False, False] and ev.explained.tolist() == ev.hidden.tolist()
-    # a flow along the sensor's motion (static structure whose visible band follows it) gets no witness
-    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, [0.8, 0.2], flow=-oncoming,
-                       sensor_velocity=torch.tensor([2.5, 0.0, 0.0]), whole=whole, **kw)
-    assert not ev.hidden.any() and not ev.explained.any()
-    # nor without the whole window's verdict (as before)
-    ev = seen_evidence(score, explained, rf, rz, labels, cells, observed, [0.8, 0.2], flow=oncoming,
-                       sensor_velocity=torch.tensor([2.5, 0.0, 0.0]), **kw)
-    assert not ev.hidden.any()
