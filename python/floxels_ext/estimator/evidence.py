@@ -185,17 +185,15 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
         [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
         norm, float(truncation), float(margin), float(ratio), observed)
     if observed is not None and (seen_mean or keep_unseen):
-        # a scan counted where it saw the point's own place, or the flow's claim (its moved place,
-        # ``moved``) while nothing stood in front of the own place (``occluded``: hidden, zero flow
-        # cannot be judged there): seen_evidence's second witness of a group the scans that saw its
-        # own place reject (a long side sliding along itself; below)
+        # a scan counted where it saw the point's own place or the flow's claim, its moved place
+        # (``moved``): seen_evidence's second witness of a group the scans that saw its own place
+        # reject (a long side sliding along itself; below)
         whole = None
         if keep_unseen and sensor_velocity is not None and moved is not None:
             whole = F.dt_evidence(
                 points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells,
                 list(dts), [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
-                norm, float(truncation), float(margin), float(ratio),
-                observed | (moved if occluded is None else moved & ~occluded))[1]
+                norm, float(truncation), float(margin), float(ratio), observed | moved)[1]
         return seen_evidence(score, explained, rf, rz, labels, cells, observed, norm,
                              margin=margin, ratio=ratio, seen_mean=seen_mean, keep_unseen=keep_unseen,
                              occluded=occluded, flow=flow, sensor_velocity=sensor_velocity, whole=whole)
@@ -308,7 +306,7 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
             # structure seen in a band that follows it passes the whole window's test), is weak
             # evidence: it keeps its flow only where the rigid refinement confirms it, as a
             # hidden group (estimator/post.py, estimator/unseen.py)
-            hidden |= whole & seen & ~explained & not_following
+            hidden |= whole & ~explained & not_following
         explained = explained | hidden
     return MotionEvidence(score, explained, rf, rz, hidden)
 
