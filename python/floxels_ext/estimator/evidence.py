@@ -160,7 +160,7 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
                  weights: Sequence[float], *, dt_cell: float, truncation: float, margin: float = 0.02,
                  ratio: float = 0.05, observed: torch.Tensor | None = None, seen_mean: bool = False,
                  keep_unseen: bool = False, occluded: torch.Tensor | None = None,
-                 sensor_velocity: torch.Tensor | None = None, moved: torch.Tensor | None = None) -> MotionEvidence:
+                 sensor_velocity: torch.Tensor | None = None) -> MotionEvidence:
     """:func:`motion_evidence` for groups that are runs of consecutive points: equal ``labels``
     (DBSCAN, (N,) int32/int64) and, for label -1 (or ``labels`` None), equal ``cells`` ((N,)
     int32/int64, any stride: e.g. the compact index of each point's lower flow-grid corner) --
@@ -185,25 +185,15 @@ def run_evidence(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor 
         [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
         norm, float(truncation), float(margin), float(ratio), observed)
     if observed is not None and (seen_mean or keep_unseen):
-        # a scan counted where it saw the point's own place or the flow's claim, its moved place
-        # (``moved``): seen_evidence's second witness of a group the scans that saw its own place
-        # reject (a long side sliding along itself; below)
-        whole = None
-        if keep_unseen and sensor_velocity is not None and moved is not None:
-            whole = F.dt_evidence(
-                points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells,
-                list(dts), [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
-                norm, float(truncation), float(margin), float(ratio), observed | moved)[1]
         return seen_evidence(score, explained, rf, rz, labels, cells, observed, norm,
                              margin=margin, ratio=ratio, seen_mean=seen_mean, keep_unseen=keep_unseen,
-                             occluded=occluded, flow=flow, sensor_velocity=sensor_velocity, whole=whole)
+                             occluded=occluded, flow=flow, sensor_velocity=sensor_velocity)
     return MotionEvidence(score, explained, rf, rz)
 
 
 def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *, margin: float, ratio: float,
                   seen_mean: bool, keep_unseen: bool, occluded: torch.Tensor | None = None,
-                  flow: torch.Tensor | None = None, sensor_velocity: torch.Tensor | None = None,
-                  whole: torch.Tensor | None = None) -> MotionEvidence:
+                  flow: torch.Tensor | None = None, sensor_velocity: torch.Tensor | None = None) -> MotionEvidence:
     """The evidence of :func:`run_evidence` judged on what the support scans saw.
 
     ``floxels::dt_evidence`` sums each point's residual over the scans that saw it, weighted by
@@ -258,16 +248,6 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
     mean_share = run_mean(share)
     seen = mean_share > 0
     hidden = None
-    not_following = None
-    if sensor_velocity is not None and flow is not None:
-        f = flow.to(torch.float64)
-        v = sensor_velocity.to(f)
-        speed = v.norm()
-        unit = v / speed.clamp_min(1e-9)
-        along = f @ unit
-        across = (f - along[:, None] * unit).norm(dim=1)
-        follows = (speed > 0.05) & (along > 0) & (across <= FOLLOW_RATIO * f.norm(dim=1))
-        not_following = run_mean(follows.to(torch.float64)) < 0.5
     if seen_mean:
         div = torch.where(seen, mean_share, torch.ones_like(mean_share))
         gain_n = (score.to(torch.float64) / div).to(score.dtype)
@@ -284,7 +264,15 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
         noise = (run_mean(seen_w[:, 1]) / max(sum(v * v for v in w), 1e-300)).sqrt() / div
         above = seen & ~explained & (gain_n > torch.maximum(rz_n * ratio, torch.full_like(rz_n, margin)))
         rescued = above & (gain_n > torch.maximum(rz_n * ratio, (margin * noise).to(rz_n.dtype)))
-        if not_following is not None:
+        if sensor_velocity is not None and flow is not None:
+            f = flow.to(torch.float64)
+            v = sensor_velocity.to(f)
+            speed = v.norm()
+            unit = v / speed.clamp_min(1e-9)
+            along = f @ unit
+            across = (f - along[:, None] * unit).norm(dim=1)
+            follows = (speed > 0.05) & (along > 0) & (across <= FOLLOW_RATIO * f.norm(dim=1))
+            not_following = run_mean(follows.to(torch.float64)) < 0.5
             rescued &= not_following
             above &= not_following
         explained = explained | rescued
@@ -294,19 +282,6 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
             hidden &= run_mean((occluded != 0).to(torch.float64)) >= 0.5
         if seen_mean:
             hidden |= above & ~rescued
-        if whole is not None and not_following is not None:
-            # the sights' own bias: a scan "saw" a point's place where it has a return there or
-            # beyond. Where a moving object still covers part of its old place (a long side sliding
-            # along itself), that return is the object itself, a few cm from the point: the scans
-            # that saw the group are those where zero flow fits, and the part it left, open to the
-            # sky or between the rings, is seen by none. Every scan counted, the flow wins clearly
-            # (an oncoming bus beside a first frame: 0.13 m against zero flow's 0.28 at t = 1, but
-            # 0.088 against 0.063 on what t = 1 saw). A group the sighted test rejects and the
-            # whole window's test explains, whose flow does not follow the sensor (static
-            # structure seen in a band that follows it passes the whole window's test), is weak
-            # evidence: it keeps its flow only where the rigid refinement confirms it, as a
-            # hidden group (estimator/post.py, estimator/unseen.py)
-            hidden |= whole & ~explained & not_following
         explained = explained | hidden
     return MotionEvidence(score, explained, rf, rz, hidden)
 

@@ -13,7 +13,7 @@ from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.evidence import MotionEvidence, run_evidence, sensor_velocity
 from floxels_ext.estimator.host_reads import Steps, run_one, run_steps
 from floxels_ext.estimator.refine import rigid_refine_steps, supports_of
-from floxels_ext.estimator.sight import moved_bits, observed_bits
+from floxels_ext.estimator.sight import observed_bits
 from floxels_ext.estimator.spread import spread_rigid_steps
 from floxels_ext.estimator.unseen import hidden_keeps
 from floxels_ext.ops.solver import SolverProblem
@@ -101,9 +101,7 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
                         problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
                         truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
                         observed=observed, seen_mean=cfg.evidence_seen_mean, keep_unseen=cfg.evidence_keep_unseen,
-                        occluded=occluded, moved=None if problem.sights is None or not cfg.evidence_keep_unseen
-                        else moved_bits(problem.points, flow, problem.sights, problem.time_offsets),
-                        sensor_velocity=None if problem.sights is None or not cfg.evidence_seen_mean
+                        occluded=occluded, sensor_velocity=None if problem.sights is None or not cfg.evidence_seen_mean
                         else sensor_velocity([None if s is None else s.sensor for s in problem.sights],
                                              problem.time_offsets))
 

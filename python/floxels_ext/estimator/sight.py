@@ -31,7 +31,7 @@ import torch
 
 from floxels_ext.ops._small import device_values
 
-__all__ = ["Sight", "scan_sight", "observed_bits", "moved_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN"]
+__all__ = ["Sight", "scan_sight", "observed_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN"]
 
 AZ_BIN = math.radians(0.5)   # range image bins: coarser than a 64-beam lidar's rays, so that a
 EL_BIN = math.radians(0.5)   # bin holds a return wherever the scan has one nearby
@@ -160,21 +160,3 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
     # distinct bits: the sums are their ORs
     return ((ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32),
             (front.to(torch.int32) << shifts).sum(0, dtype=torch.int32))
-
-
-def moved_bits(points: torch.Tensor, flow: torch.Tensor, sights: list[Sight | None], offsets) -> torch.Tensor:
-    """(n,) int32: bit k set where support scan k could see the point's *moved* place
-    ``p + t_k f`` (the flow's claim at that scan's time; a scan without a sight counts everywhere).
-    The evidence test's second witness (estimator/evidence.py): a scan sees a moving object's old
-    place through the object itself where it still covers it, and the part it left, against the
-    sky or between the rings, not at all; its moved place is seen where the object is."""
-    p = points.to(torch.float32)
-    f = flow.to(torch.float32)
-    n = p.shape[0]
-    bits = torch.zeros(n, dtype=torch.int32, device=p.device)
-    for k, (s, t) in enumerate(zip(sights, offsets)):
-        if s is None:
-            bits |= torch.ones(n, dtype=torch.int32, device=p.device) << k
-        else:
-            bits |= _seen(p + float(t) * f, [s], [k])[0]
-    return bits
