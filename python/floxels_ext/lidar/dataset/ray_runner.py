@@ -114,13 +114,12 @@ def _resources(ray, args) -> tuple[float, float, str]:
 
 def _rewrites(tasks) -> bool:
     """Whether any frame to do already has an output (recomputed: its inputs changed)."""
+    from floxels_ext.lidar.dataset.tasks import written_names
+
     present: dict = {}
     for t in tasks:
         if t.out_dir not in present:
-            try:
-                present[t.out_dir] = {e.name[:-4] for e in os.scandir(t.out_dir) if e.name.endswith(".npz")}
-            except OSError:
-                present[t.out_dir] = set()
+            present[t.out_dir] = written_names(t.out_dir)
         if any(n in present[t.out_dir] for n in t.todo):
             return True
     return False
@@ -128,10 +127,9 @@ def _rewrites(tasks) -> bool:
 
 def _count_written(task, since: float | None) -> int:
     """Frames of task.todo whose output file exists (written after ``since`` when given: --force)."""
-    try:
-        present = {e.name[:-4] for e in os.scandir(task.out_dir) if e.name.endswith(".npz")}
-    except OSError:
-        return 0
+    from floxels_ext.lidar.dataset.tasks import written_names
+
+    present = written_names(task.out_dir)
     names = [n for n in task.todo if n in present]
     if since is None:
         return len(names)
@@ -262,7 +260,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
     replacements = args.retries
     skipped_tasks = len(tasks) - len(todo_tasks)  # nothing to do; the others: todo_tasks (it grows where tasks are halved)
     bar = DatasetProgress(todo, n_sequences, verbosity=verbosity)  # sequences counted once all their tasks ended
-    for _ in {SequenceParts._key(t) for t in tasks} - {SequenceParts._key(t) for t in todo_tasks}:
+    for _ in {SequenceParts.key(t) for t in tasks} - {SequenceParts.key(t) for t in todo_tasks}:
         bar.sequence("skipped")
     failures: list[str] = []
     deaths: list[str] = []

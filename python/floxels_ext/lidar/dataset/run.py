@@ -20,7 +20,6 @@ and the Ray driver sweeps the rest before launching and after the last task.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 __all__ = ["add_dataset_arguments", "run_input"]
@@ -168,7 +167,7 @@ def _run_input(args, workers) -> int:
 def _run_tasks(args, workers, engines: int, pool) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
-    from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks
+    from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks, written_names
 
     specs = discover_dataset(args.input, args.out, args.sequences)
     _check_options(args, specs is not None, engines)
@@ -215,7 +214,7 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
             t.todo = list(t.names)
             continue
         if t.out_dir not in written:
-            written[t.out_dir] = _written_names(t.out_dir)
+            written[t.out_dir] = written_names(t.out_dir)
         t.todo = [n for n in t.names if n not in written[t.out_dir]]
     _check_written_tasks([t for t in tasks if not t.todo], args)
     from floxels_ext.lidar.dataset.tasks import common_options
@@ -227,16 +226,6 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
         split = 0 if args.odometry or task_frames <= 0 else align  # (KISS-ICP: whole sequences)
         return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers, align=split)
     return run_dataset(tasks, args, n_sequences=len(specs), engines=pool)
-
-
-def _written_names(d: Path) -> set[str]:
-    """The frame names with an output file ``NAME.npz`` in ``d`` (a link counts, as ``is_file``
-    does when it leads to a file); none when ``d`` does not exist yet."""
-    try:
-        with os.scandir(d) as it:
-            return {e.name[:-4] for e in it if e.name.endswith(".npz") and e.is_file()}
-    except (FileNotFoundError, NotADirectoryError):
-        return set()
 
 
 def _check_written_tasks(tasks, args) -> None:

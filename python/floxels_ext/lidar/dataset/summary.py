@@ -170,26 +170,27 @@ class SequenceParts:
         self.left: dict[str, int] = {}
         self.unrun: dict[str, int] = {}
         for t in run:
-            self.left[self._key(t)] = self.left.get(self._key(t), 0) + 1
+            self.left[self.key(t)] = self.left.get(self.key(t), 0) + 1
         for t in planned:
-            if id(t) not in ran and self._key(t) in self.left:
-                self.unrun[self._key(t)] = self.unrun.get(self._key(t), 0) + len(t.names)
+            if id(t) not in ran and self.key(t) in self.left:
+                self.unrun[self.key(t)] = self.unrun.get(self.key(t), 0) + len(t.names)
         self.parts: dict[str, list] = {}
         self.outcomes: dict[str, set] = {}
 
     def add_task(self, task) -> None:
         """One more task of a sequence already counted (a task cut in two after the start)."""
-        self.left[self._key(task)] += 1
+        self.left[self.key(task)] += 1
 
     @staticmethod
-    def _key(task) -> str:
+    def key(task) -> str:
+        """The sequence a task belongs to: its summary's path."""
         return str(summary_path(task, task.out_dir))
 
     def add(self, task, outcome: str, part: dict | None) -> tuple[str, dict | None] | None:
         """A task ended; once it was its sequence's last: (the sequence's outcome, "failed" if a
         task failed, "done" if one ran, else "skipped"; its merged part, None when no task of it
         could be opened)."""
-        k = self._key(task)
+        k = self.key(task)
         self.left[k] -= 1
         self.outcomes.setdefault(k, set()).add(outcome)
         if part is not None:

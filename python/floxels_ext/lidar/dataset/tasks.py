@@ -27,11 +27,11 @@ from __future__ import annotations
 import fnmatch
 import os
 import shlex
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 __all__ = ["common_options", "SequenceSpec", "Task", "discover_dataset", "is_sequence_dir", "plan_tasks", "split_task",
-           "task_size"]
+           "task_size", "written_names"]
 
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
@@ -310,6 +310,17 @@ def plan_tasks(specs: list[SequenceSpec], out: Path, args, *, task_frames: int, 
     return tasks, problems
 
 
+def written_names(d: Path) -> set[str]:
+    """The frame names with an output file ``NAME.npz`` in ``d`` (a link counts when it leads to
+    a file, as ``Path.is_file``); none when ``d`` cannot be listed (not made yet). One listing a
+    directory, not a stat a frame: the driver asks for every frame of a dataset."""
+    try:
+        with os.scandir(d) as it:
+            return {e.name[:-4] for e in it if e.name.endswith(".npz") and e.is_file()}
+    except OSError:
+        return set()
+
+
 def task_size(task_frames: int, align: int) -> int:
     """``task_frames`` rounded up to a multiple of ``align`` (0: whole sequences)."""
     return 0 if task_frames <= 0 else -(-task_frames // align) * align
@@ -324,13 +335,15 @@ def split_task(task: Task, size: int) -> list[Task]:
     """``task`` (``floxels run SEQ``'s, its sequence listed: ``found``) cut into tasks of
     ``size`` frames from its first one, as :func:`plan_tasks` cuts a dataset's sequences;
     each notes that the run has said its start lines (``said``)."""
-    import dataclasses
-
-    k0 = task.start
-    return [dataclasses.replace(task, start=a, stop=b, names=task.names[a - k0:b - k0],
-                                frame_paths=task.frame_paths[a - k0:b - k0], todo=[], said=True,
-                                selection=task.selection or (task.start, task.stop))
+    return [_part(task, a, b, todo=[], said=True, selection=task.selection or (task.start, task.stop))
             for a, b in _cuts(task.start, task.stop, size)]
+
+
+def _part(task: Task, a: int, b: int, **changes) -> Task:
+    """``task``'s frames [a, b) as a task of their own (names and input paths cut alike)."""
+    k0 = task.start
+    return replace(task, start=a, stop=b, names=task.names[a - k0:b - k0],
+                   frame_paths=task.frame_paths[a - k0:b - k0], **changes)
 
 
 def halve_task(task: Task, align: int, min_frames: int) -> tuple[Task, Task] | None:
@@ -339,8 +352,6 @@ def halve_task(task: Task, align: int, min_frames: int) -> tuple[Task, Task] | N
     the run's), each part at least ``min_frames`` frames with some left to do; None where no
     such cut exists. The Ray driver halves the tasks it hands out last, so that the workers end
     together (a job's tail: whole 150-frame sequences ended up to ~1.3 s apart on 4 GPUs)."""
-    import dataclasses
-
     a0 = (task.selection or (task.start, task.stop))[0]
     m = max(1, min_frames)
     cuts = [c for c in range(task.start + m, task.stop - m + 1) if (c - a0) % max(1, align) == 0]
@@ -348,10 +359,7 @@ def halve_task(task: Task, align: int, min_frames: int) -> tuple[Task, Task] | N
         return None
     cut = min(cuts, key=lambda c: (abs(2 * c - task.start - task.stop), c))
     todo = set(task.todo)
-    parts = []
-    for a, b in ((task.start, cut), (cut, task.stop)):
-        names = task.names[a - task.start:b - task.start]
-        parts.append(dataclasses.replace(task, start=a, stop=b, names=names, todo=[n for n in names if n in todo],
-                                         frame_paths=task.frame_paths[a - task.start:b - task.start]))
+    parts = [_part(task, a, b) for a, b in ((task.start, cut), (cut, task.stop))]
+    for p in parts:
+        p.todo = [n for n in p.names if n in todo]
     return None if not (parts[0].todo and parts[1].todo) else (parts[0], parts[1])
-
