@@ -151,12 +151,17 @@ def compare(out: Path, ref: Path, rels: list[str]) -> dict:
                 frac_over_1cm=float((d > 0.01).mean()) if d.size else 0.0, masks_equal=masks)
 
 
-def job_workers(out: Path) -> list[dict]:
-    """Each worker's start timeline etc. from the job's ray_job_summary.json (driver-written)."""
+def job_info(out: Path) -> dict:
+    """The job's ray_job_summary.json (driver-written), {} when there is none."""
     try:
-        info = json.loads((out / "ray_job_summary.json").read_text())
+        return json.loads((out / "ray_job_summary.json").read_text())
     except (OSError, ValueError):
-        return []
+        return {}
+
+
+def job_workers(out: Path) -> list[dict]:
+    """Each worker's start timeline etc. from the job's ray_job_summary.json."""
+    info = job_info(out)
     keep = ("name", "host", "pid", "gpus", "warm", "claimed", "written", "streams", "timeline",
             "threads", "warm_error")
     return [{k: w.get(k) for k in keep} for w in info.get("workers", [])]
@@ -331,6 +336,7 @@ def main() -> None:
                 def ray_row(name, argv, out, **kw):
                     row = record(name, run_job(argv, out), gpus=k, ray_init_s=init_s, workers_per_gpu=w, **kw)
                     row["workers"] = job_workers(out)
+                    row["all_tasks_ended_s"] = job_info(out).get("all_tasks_ended_s")  # the driver knew
                     row["workers_asked"] = n  # against those that wrote frames: fewer means some never started
                     row["workers_writing"] = sum(1 for x in row["workers"] if (x.get("written") or 0) > 0)
                     return row

@@ -3,9 +3,12 @@ laid end to end as segments (:class:`Layout`), the method's scans over it (:clas
 read and transformed ahead, across sequence ends) and its targets (:class:`Targets`).
 
 A segment is one chunk of one sequence: ``--chunk`` targets (:func:`plan_chunks`) and their
-support scans, in one world frame re-centred on the chunk's first readable frame
-(:func:`snap_anchor`), so every window and anchor is the same whichever way the frames are
-cut into tasks (a whole sequence, ``--frames``, a resumed run, a Ray task).
+support scans, in one world frame re-centred near a frame fixed by the chunk's place in its
+sequence (:class:`Segment`: the first readable frame of its block of ``--chunk`` frames,
+counted from the run's first selected frame, support scans before it included), so every
+window and anchor is the same whichever way the frames are cut into tasks (a whole sequence,
+a resumed run, an engine's or a Ray task, a task halved at a job's end). The anchor is all
+that a chunk shares: the same targets grouped otherwise give the same bytes.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import numpy as np
 from floxels_ext.lidar.preprocess.transform import transform_points
 
 __all__ = ["Layout", "StreamScans", "Targets", "DEFAULT_CHUNK", "READ_AHEAD", "TRANSFORM_AHEAD", "ANCHOR_GRID",
-           "snap_anchor", "chunk_anchor", "plan_chunks"]
+           "snap_anchor", "chunk_anchor", "plan_chunks", "block_start"]
 
 # Targets per method call by default. Long calls: each call starts and drains the method's
 # pipeline (estimate_sequence prepares the next batch while the device optimises one), which cost
@@ -71,38 +74,67 @@ def chunk_anchor(p) -> np.ndarray:
     return snap_anchor(base)
 
 
-def plan_chunks(todo: list[int], chunk: int | None) -> list[list[int]]:
-    """Targets per segment: ``chunk`` at a time (None: ``DEFAULT_CHUNK``)."""
+def plan_chunks(todo: list[int], chunk: int | None, origin: int = 0) -> list[list[int]]:
+    """Targets per segment: those of one block of ``chunk`` frames (None: ``DEFAULT_CHUNK``)
+    counted from frame ``origin`` (the run's first selected frame), so that a target's chunk,
+    and so its anchor, do not depend on where its task starts or which frames are left to do
+    (before: ``chunk`` consecutive targets from the task's first one; a task cut at 64 frames
+    or a resumed run re-centred its frames elsewhere: flow up to 2 cm off, bytes differing with
+    a Ray job's timing)."""
     size = chunk or DEFAULT_CHUNK
-    return [todo[k:k + size] for k in range(0, len(todo), size)]
+    out: list[list[int]] = []
+    for i in todo:
+        if out and (i - origin) // size == (out[-1][0] - origin) // size:
+            out[-1].append(i)
+        else:
+            out.append([i])
+    return out
+
+
+def block_start(i: int, chunk: int | None, origin: int = 0) -> int:
+    """First frame of the block of ``plan_chunks`` that holds frame ``i``."""
+    size = chunk or DEFAULT_CHUNK
+    return origin + (i - origin) // size * size
 
 
 class Segment:
     """One chunk of one job (``stream.SeqJob``): frames ``[lo, hi)`` at stream indices
     ``[g, g + hi - lo)``; ``segment`` is the method's view of it."""
 
-    def __init__(self, job, lo: int, hi: int, g: int, targets: list[int], num_scans: int) -> None:
+    def __init__(self, job, lo: int, hi: int, g: int, targets: list[int], num_scans: int,
+                 anchor_from: int | None = None) -> None:
         from floxels_ext.estimator.windows import Segment
 
         self.job, self.lo, self.hi, self.g, self.targets = job, lo, hi, g, targets
+        # where the anchor frame is looked for: the window start of its block's first target
+        # (= lo for a chunk that starts its block, as every chunk of a whole run does)
+        self.anchor_from = lo if anchor_from is None else min(lo, anchor_from)
         times = None if job.times_s is None else job.times_s[lo:hi]
         self.segment = Segment(g, g + hi - lo, times)
         self._anchor: list = []
         self._lock = threading.Lock()
 
     def anchor(self):
-        """The chunk's world-frame origin: its first readable frame's position on the anchor
-        grid, None when no frame of it is readable; waits for the reads."""
+        """The chunk's world-frame origin: the position on the anchor grid of the first readable
+        frame from ``anchor_from`` on (its block's, whichever task holds it), None when no
+        frame of the chunk itself is readable; waits for the reads."""
         with self._lock:
             if not self._anchor:
-                a = None
-                for i in range(self.lo, self.hi):
-                    p = self.job.loader.get(i)
-                    if p is not None:
-                        a = chunk_anchor(p)
-                        break
-                self._anchor.append(a)
+                loader = self.job.loader
+                first = next((i for i in range(self.lo, self.hi) if loader.get(i) is not None), None)
+                if first is not None:  # frames of the block before this chunk (another task's)
+                    first = next((i for i in range(self.anchor_from, self.lo) if loader.get(i) is not None), first)
+                self._anchor.append(None if first is None else chunk_anchor(loader.get(first)))
             return self._anchor[0]
+
+
+def _origin(job) -> int:
+    """The frame the run's chunk blocks count from: its selection's first frame (``--frames``;
+    a task's ``selection``), 0 for a job without a task."""
+    task = job.info.get("task")
+    if task is None:
+        return 0
+    return (getattr(task, "selection", None) or (task.start, task.stop))[0]
 
 
 class Layout:
@@ -137,9 +169,11 @@ class Layout:
                     continue
                 self.jobs.append(job)
                 pad = self.num_scans - 1
-                for c in plan_chunks(job.todo, self.chunk):
+                origin = _origin(job)
+                for c in plan_chunks(job.todo, self.chunk, origin):
                     lo, hi = max(0, c[0] - pad), min(job.n, c[-1] + pad + 1)
-                    self.segs.append(Segment(job, lo, hi, self.end, c, self.num_scans))
+                    at = max(0, block_start(c[0], self.chunk, origin) - pad)
+                    self.segs.append(Segment(job, lo, hi, self.end, c, self.num_scans, anchor_from=at))
                     self.starts.append(self.end)
                     self.end += hi - lo
                 return True

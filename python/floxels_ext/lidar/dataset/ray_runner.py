@@ -40,7 +40,7 @@ from pathlib import Path
 __all__ = ["run_on_ray", "early_workers", "connect", "task_slots", "format_timeline"]
 
 POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (the driver's heartbeat)
-TAIL_SPLIT_FRAMES = 32  # a task handed out near the job's end is halved while each half keeps this many
+TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is halved while each half keeps this many
 
 
 # Default GPUs a worker asks for on a GPU cluster: two workers share each GPU. One worker leaves
@@ -190,7 +190,8 @@ def format_timeline(tl: dict) -> str:
     names = {"requested": "requested", "process": "process", "imported": "imported", "init": "init",
              "torch": "torch + ops", "init_done": "init done", "warm_imports": "imports", "cuda_context": "CUDA context",
              "warm_done": "warm-up done", "run": "run", "pipeline": "pipeline", "first_task": "first task",
-             "first_output": "first output", "last_output": "last output", "end": "end"}
+             "first_output": "first output", "last_output": "last output", "task_ended": "tasks ended",
+             "end": "end"}
     order = list(names)
     steps = sorted((v, order.index(k), k) for k, v in tl.items() if k in names and isinstance(v, (int, float)))
     return ", ".join(f"{names[k]} {v:+.2f}" for v, _, k in steps)
@@ -207,8 +208,9 @@ def _job_summary(path: Path, info: dict) -> None:
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int = 0) -> int:
     """``align`` > 0: tasks handed out while the queue holds fewer than the workers are halved
-    at a multiple of ``align`` (``tasks.halve_task``), the second half queued first, so that the
-    workers end together; 0: tasks are never cut (whole sequences asked for, KISS-ICP)."""
+    at a multiple of ``align`` (``tasks.halve_task``; 1: anywhere, the outputs do not depend on
+    the cut), the second half queued first, so that the workers end together; 0: tasks are
+    never cut (whole sequences asked for, KISS-ICP)."""
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
     from floxels_ext.lidar.dataset.summary import SequenceParts, write_summary
@@ -277,6 +279,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
             write_summary(done[1], lambda msg: bar.message(msg) if verbosity >= 0 else None)
     results: list[dict] = []
     done_frames = shown = 0
+    t_all_ended = None  # when the driver learnt that every task had ended
 
     def on_poll(slot, events, frames) -> bool:
         nonlocal done_frames
@@ -349,6 +352,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                     except ray.exceptions.RayError as e:
                         on_death(slot, e)
             all_ended = len(ended) == len(todo_tasks)
+            if all_ended and t_all_ended is None:
+                t_all_ended = time.time()
             for w in sorted(waiting, key=lambda w: len(w[0].leases)):  # a worker holding none first
                 slot, what = w
                 if queue:
@@ -411,6 +416,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                   + (f"; warm-up failed: {r['warm_error']}" if r.get("warm_error") else ""), file=sys.stderr)
     _job_summary(Path(args.out) / "ray_job_summary.json", {
         "input": str(args.input), "started": workers.t0, "wall_s": round(wall, 3), "frames_written": written,
+        "all_tasks_ended_s": None if t_all_ended is None else round(t_all_ended - workers.t0, 3),
         "frames_per_s": round(written / wall, 3) if wall > 0 else None, "tasks": counts, "failures": len(failures),
         "lost_workers": deaths, "pool": {"keep_s": workers.keep_s, "key": workers.key, "retired": workers.retired},
         "resources": {"gpus": workers.gpus, "cpus": workers.cpus, "device": workers.device},

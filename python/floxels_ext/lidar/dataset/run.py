@@ -223,7 +223,9 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
     if args.ray is not None:
         from floxels_ext.lidar.dataset.ray_runner import run_on_ray
 
-        split = 0 if args.odometry or task_frames <= 0 else align  # (KISS-ICP: whole sequences)
+        # tail halves may cut anywhere: a chunk's anchor is its block's (layout.plan_chunks),
+        # whichever task holds it (KISS-ICP, --task-frames 0: whole sequences, never cut)
+        split = 0 if args.odometry or task_frames <= 0 else 1
         return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers, align=split)
     return run_dataset(tasks, args, n_sequences=len(specs), engines=pool)
 

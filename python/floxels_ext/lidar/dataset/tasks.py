@@ -347,10 +347,10 @@ def _part(task: Task, a: int, b: int, **changes) -> Task:
 
 
 def halve_task(task: Task, align: int, min_frames: int) -> tuple[Task, Task] | None:
-    """``task`` cut in two at the cut nearest its middle where :func:`plan_tasks` could have cut
-    it (a multiple of ``align`` from the selection's first frame: every window and batch stays
-    the run's), each part at least ``min_frames`` frames with some left to do; None where no
-    such cut exists. The Ray driver halves the tasks it hands out last, so that the workers end
+    """``task`` cut in two at the cut nearest its middle that is a multiple of ``align`` from
+    the selection's first frame (1: any frame; every window and chunk anchor stays the run's
+    wherever the cut, ``layout.plan_chunks``), each part at least ``min_frames`` frames with
+    some left to do; None where no such cut exists. The Ray driver halves the tasks it hands out last, so that the workers end
     together (a job's tail: whole 150-frame sequences ended up to ~1.3 s apart on 4 GPUs)."""
     a0 = (task.selection or (task.start, task.stop))[0]
     m = max(1, min_frames)
