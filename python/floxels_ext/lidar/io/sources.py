@@ -76,6 +76,11 @@ def _lidar_files(d: Path, ext: str | None) -> list[Path]:
     kinds = sorted({p.suffix.lower() for p in files})
     if len(kinds) > 1:
         raise InputError(f"{d} holds frames of several formats ({', '.join(kinds)}); choose one with --ext")
+    stems = [os.path.splitext(p.name)[0] for p in files]
+    if stems and all(t.isdigit() and len(t) == len(stems[0]) for t in stems):
+        # KITTI's and most datasets' zero-padded numbers: natural order is the names' order, without
+        # a regular expression a file (a dataset lists 12,000 names before its first task)
+        return sorted(files, key=lambda f: f.name)
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
