@@ -225,6 +225,14 @@ def test_engine_option_mistakes_exit_2(seq, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_default_engines_by_device_and_cores():
+    from floxels_ext.lidar.dataset.run import default_engines
+
+    assert default_engines("cpu", 64) == 1
+    assert default_engines("cuda", 8) == 2 and default_engines("cuda:1", 15) == 2
+    assert default_engines("cuda", 16) == 3 and default_engines("cuda", 64) == 3
+
+
 def test_engine_threads_share_the_host():
     # a GPU engine: at most 4 torch threads (not an OpenMP team per core), its share of readers
     assert engines_mod.engine_threads(16, 2, gpu=True) == {"cpus": 8, "torch": 4, "readers": 6, "writers": 2}
@@ -246,14 +254,15 @@ def test_handout_in_order_and_handed_back():
 
 @pytest.mark.cuda
 def test_two_engines_on_one_gpu_give_one_engine_s_bytes(tmp_path, monkeypatch, capsys):
-    """On the GPU (the default there is 2 engines): both engines take tasks (engine 1 the
-    first), and every output equals the one engine's byte for byte."""
+    """On the GPU (the default there is 2 engines, 3 on a host of 16+ cores): the engines take
+    tasks (engine 1 the first), and every output equals the one engine's byte for byte."""
     from floxels_ext.evaluation.sim import simulate_sequence
+    from floxels_ext.lidar.dataset.run import default_engines
 
     save_sequence(tmp_path / "seq", simulate_sequence("urban", 24, 5, beams=32, azimuth_steps=720))
     base = ["run", str(tmp_path / "seq"), "--device", "cuda", "--chunk", "8", "-q"]
     assert cli.main([*base, "--out", str(tmp_path / "one"), "--engines", "1"]) == 0
     _Spy(monkeypatch, engine1_first=True)
     assert cli.main([*base, "--out", str(tmp_path / "two"), "--task-frames", "8"]) == 0
-    assert "2 engine(s)" in capsys.readouterr().err
+    assert f"{default_engines('cuda')} engine(s)" in capsys.readouterr().err
     _same(tmp_path / "two", tmp_path / "one")

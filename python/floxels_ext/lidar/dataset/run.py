@@ -2,7 +2,7 @@
 here as one task (``local.run_sequence``); a dataset (a directory of sequences or a list file)
 as one task per sequence through one pipeline here (``local.run_dataset``), or through one per
 worker on a Ray cluster (``ray_runner``), as does any INPUT with ``--ray``. With ``--engines N``
-(default 2 on CUDA) the sequences are cut into tasks of ``--task-frames`` for N engines on this
+(default on CUDA 3 with 16+ cores, else 2) the sequences are cut into tasks of ``--task-frames`` for N engines on this
 machine's device (``engines``). All of them run their tasks through the same engine
 (``worker``, ``stream``).
 
@@ -27,6 +27,11 @@ __all__ = ["add_dataset_arguments", "run_input"]
 
 
 MAX_ENGINES = 8  # engines on one device: more contexts than this only queue behind each other
+# Default engines on a GPU: each one's readers, writers and optimiser thread keep ~4 cores busy;
+# on a host of at least THREE_ENGINE_CORES cores a third engine filled the GPU's remaining gaps
+# (one H100, 16 cores, 768 frames: three engines faster in 8 of 8 runs, `paper` 1.02-1.58x,
+# `accurate` 1.08-1.38x; bench/RESULTS.md, C5)
+THREE_ENGINE_CORES = 16
 RAY_TASK_FRAMES = 192
 
 
@@ -73,16 +78,29 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                    help="engines on this machine's one device: the run's own process is engine 0 and starts at "
                         "once, N-1 processes start beside it and take tasks (--task-frames) from one queue when "
                         "ready. Two keep a GPU busy through each other's host steps (1.41x the frames/s of one, "
-                        "measured); the outputs are the same bytes whatever N. Default: 2 on CUDA, 1 on the CPU "
-                        f"(whose cores one engine already uses); 1: one engine in this process; at most {MAX_ENGINES}")
+                        "measured; three on a host of 16+ cores, 1.02-1.58x two); the outputs are the same bytes "
+                        "whatever N. Default on CUDA: 3 with 16+ cores, else 2; 1 on the CPU (whose cores one engine "
+                        f"already uses); 1: one engine in this process; at most {MAX_ENGINES}")
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
 
 
+def default_engines(device: str, cores: int | None = None) -> int:
+    """``--engines``' default on ``device`` for a host of ``cores`` cores (None: this one's)."""
+    if not device.startswith("cuda"):
+        return 1
+    if cores is None:
+        import os
+
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 3 if cores >= THREE_ENGINE_CORES else 2
+
+
 def engine_count(args) -> int:
-    """``--engines``, checked (CLIError), or its default: 2 on CUDA, else 1 (also with --ray,
-    whose workers are the engines, and with --worker-kind process)."""
+    """``--engines``, checked (CLIError), or its default: on CUDA 3 with at least
+    THREE_ENGINE_CORES cores, else 2; 1 on the CPU (also with --ray, whose workers are the
+    engines, and with --worker-kind process)."""
     from floxels_ext.errors import CLIError
 
     n = args.engines
@@ -92,7 +110,7 @@ def engine_count(args) -> int:
         import torch
 
         device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-        return 2 if device.startswith("cuda") else 1
+        return default_engines(device)
     if args.ray is not None:
         raise CLIError("--engines runs engines on this machine; it contradicts --ray, whose workers are the engines "
                        "(--gpus-per-task 0.5: two a GPU)")
