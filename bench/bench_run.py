@@ -224,6 +224,8 @@ def main() -> None:
                                               *cli_extra])
                         windows.append({"name": f"{key} (run {rep + 1})", "t0": t_start, "t1": time.time()})
                     finally:
+                        # ~2.5 MB a frame: 3 repeats x 4 variants x 768 frames filled a 64 GiB disk (F6)
+                        shutil.rmtree(tmp / f"out_{key}_{rep}", ignore_errors=True)
                         for k, v in saved.items():
                             if v is None:
                                 os.environ.pop(k, None)
