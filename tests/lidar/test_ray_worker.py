@@ -132,29 +132,6 @@ def test_claim_waits_for_the_starting_jobs_release():
     assert not kept.claim("B") and kept.owner == "A"
 
 
-def test_claim_waits_while_the_dropped_workers_run_starts():
-    """The starting job's ``run`` may come first: it waits for the worker's warm-up, then learns
-    it has no task and releases it. A claim in that window waits for the release (it found the
-    worker "running" and gave up at once: the next job then started 4 of its 8 workers anew,
-    E6); a worker its starting job has given a task is refused at once."""
-    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
-    w.warm.join()
-    w.running, w.jobs = True, 1  # run("A") started: still in its warm-up wait
-    threading.Timer(0.3, w.release, args=("A",)).start()
-    assert w.claim("B") and w.owner == "B"
-    busy = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
-    busy.warm.join()
-    busy.running, busy.jobs = True, 1
-    busy._took_task()  # its job's stream took a task: it is that job's
-    t = time.monotonic()
-    assert not busy.claim("B") and busy.owner == "A" and time.monotonic() - t < 0.5
-    waiting = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
-    waiting.warm.join()
-    threading.Timer(0.3, waiting._took_task).start()  # a task comes while the claim waits
-    t = time.monotonic()
-    assert not waiting.claim("B") and time.monotonic() - t < 1.0
-
-
 def test_job_short_of_workers_waits_for_the_pools_starting_ones():
     """The pool's workers that do not answer a claim at once are still starting: a job short of
     workers waits for them (up to STARTING_WAIT_S) rather than starting new ones beside them."""
