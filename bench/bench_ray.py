@@ -210,6 +210,30 @@ def free_cluster(timeout: float = 90.0) -> float:
     return time.perf_counter() - t0
 
 
+def settle_pool(n: int, timeout: float = 30.0) -> float:
+    """Waits until the warm pool holds ``n`` idle workers (a warm-up job can end before all of
+    its workers are up: those still starting, or still inside the dropped job's ``run``, would
+    then start inside the measured row, E6); seconds waited."""
+    import ray
+
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < timeout:
+        idle = 0
+        for a in ray.util.list_named_actors(all_namespaces=True):
+            if a["namespace"] != "floxels":
+                continue
+            try:
+                idle += bool(ray.get(ray.get_actor(a["name"], namespace="floxels").info.remote(), timeout=5)["idle"])
+            except (ValueError, KeyError, ray.exceptions.RayError):
+                pass
+        if idle >= n:
+            break
+        time.sleep(0.25)
+    else:
+        print(f"  (the pool has fewer than {n} idle workers after {timeout:.0f} s)", flush=True)
+    return time.perf_counter() - t0
+
+
 def start_ray(cpus: int, gpus: int, address: str | None) -> float:
     import ray
 
@@ -353,14 +377,17 @@ def main() -> None:
                             subset=args.subset)
                     shutil.rmtree(tmp / "out_sub", ignore_errors=True)
                     run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")  # fills the pool
+                    settle_pool(n)
                     ray_row(f"ray{k}{tag}/{args.subset}", ["run", str(subset), *flags, *extra], tmp / "out_sub",
                             subset=args.subset)
                     shutil.rmtree(tmp / "out_sub", ignore_errors=True)
                 if k in gpus:  # warm workers (the pool the warm-up job filled): the steady state
                     freed = free_cluster()
                     run_job(["run", str(warm), *sel, *flags, *extra], tmp / f"warm_ray{k}")
+                    settled = settle_pool(n)  # every worker of the row warm, as the row's name says
                     out = tmp / f"out_ray{k}"
-                    row = ray_row(f"ray{k}{tag}{sfx}", ["run", str(data), *sel, *flags, *extra], out, freed_s=freed)
+                    row = ray_row(f"ray{k}{tag}{sfx}", ["run", str(data), *sel, *flags, *extra], out, freed_s=freed,
+                                  settled_s=settled)
                     if local is not None:
                         row.update(compare(out, tmp / "out_local",
                                            [f"sequences/{i:02d}/velodyne" for i in range(args.compare)]))

@@ -94,10 +94,23 @@ RAY_UNIT = "tests/lidar/test_ray_worker.py"
 RAY_SAME = "tests/lidar/test_ray.py::test_ray_equals_local_and_warm_pool"
 RAY_TAIL = "tests/lidar/test_ray.py::test_tail_tasks_halved_same_outputs"
 HALVE = "tests/lidar/test_tasks_halve.py"
+ANCHORS = "tests/lidar/test_chunk_anchors.py"
+RAY_HALF = "tests/lidar/test_ray.py::test_tail_halves_inside_a_chunk_same_bytes"
+DATASET_RUN = "python/floxels_ext/lidar/dataset/run.py"
+ENGINES_DEFAULT = "tests/lidar/test_run_engines.py::test_default_engines_by_device_and_cores"
 
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34; of those
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
+    # ---- issues 44 / 42, sixth session: chunks anchored at their block, the engines' default ----
+    ("chunks of consecutive targets, not blocks", LAYOUT,
+     "if out and (i - origin) // size == (out[-1][0] - origin) // size:", "if out and len(out[-1]) < size:",
+     [ANCHORS]),
+    ("chunk anchored at its own first frame", LAYOUT,
+     "self.anchor_from = lo if anchor_from is None else min(lo, anchor_from)", "self.anchor_from = lo",
+     [ANCHORS, RAY_HALF]),
+    ("three engines on any CUDA host", DATASET_RUN, "return 3 if cores >= THREE_ENGINE_CORES else 2", "return 3",
+     [ENGINES_DEFAULT]),
     # ---- issue 44, fifth session: the warm pool's hand-over, one summary a sequence, the tail ----
     ("claim does not wait for a dropped worker's release", RAY_WORKER,
      "self.handed.wait_for(lambda: self.owner != self.started_for or self.running, timeout=HANDOVER_S)", "pass",

@@ -310,7 +310,8 @@ class FloxelsWorker:
         except Exception:  # noqa: BLE001 - informational only
             gpus = []
         return {"host": socket.gethostname(), "pid": os.getpid(), "node": ctx.get_node_id(), "gpus": gpus,
-                "jobs": self.jobs, "threads": dict(self.threads), "stamps": dict(self.stamps)}
+                "jobs": self.jobs, "idle": self.owner is None and not self.running, "threads": dict(self.threads),
+                "stamps": dict(self.stamps)}
 
     def poll(self, job: str, timeout: float = 1.0) -> tuple[list, dict]:
         """The driver's long poll: ([events], {task id: frames written}) (module docstring)."""
