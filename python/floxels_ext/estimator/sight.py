@@ -15,7 +15,15 @@ the plain evidence test keeps that motion (bench/RESULTS.md, "What each support 
   far (``SEEN_MARGIN``): a static point there would have been hit. A nearer return (occlusion) or
   none (the beams missed it) says nothing. The scan's ground returns, which preprocessing removed
   from the points the loss sees, count too where they are given (``ground_points=``): a return
-  from the road behind a pedestrian's old place shows the place empty.
+  from the road behind a pedestrian's old place shows the place empty. A direction bin with no
+  return at all (the rings of a sparse lidar pass above and below the place) counts as seen where
+  the place was *seen through*: the nearest returns above and below it in its azimuth column
+  (within ``THROUGH_BINS``; one side may have none, the sky) all lie beyond it (``SEEN_MARGIN``),
+  so the beams next to it passed the place and it is empty. A surface the rings skip (a low
+  barrier between two rings' range bands) shows returns *at* its range in the bins next to it,
+  or nearer ones (the road in front of it): no evidence either way, as before (issue 47: an
+  oncoming bus's vacated place, open to the sky between the rings, is seen empty; a far barrier
+  between the rings is not).
 
 The point's own position decides, never where a motion takes it, so no motion can escape a
 scan's residual by leaving its sight. Everything runs on the device without a host
@@ -31,11 +39,13 @@ import torch
 
 from floxels_ext.ops._small import device_values
 
-__all__ = ["Sight", "scan_sight", "observed_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN"]
+__all__ = ["Sight", "scan_sight", "observed_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN", "THROUGH_BINS"]
 
 AZ_BIN = math.radians(0.5)   # range image bins: coarser than a 64-beam lidar's rays, so that a
 EL_BIN = math.radians(0.5)   # bin holds a return wherever the scan has one nearby
 SEEN_MARGIN = 0.5            # m: a return this much nearer than the point still counts as seeing it
+THROUGH_BINS = 4             # elevation bins (2 degrees) searched above and below an empty bin for the
+                             # beams next to it: a 32-beam lidar's rings ~1 degree apart, a 16-beam one's 2
 NUM_AZ = int(round(2 * math.pi / AZ_BIN))
 NUM_EL = int(round(math.pi / EL_BIN)) + 1
 CHUNK_ELEMENTS = 1 << 23     # observed_bits: scans tested together, at most this many (scan, point) pairs
@@ -147,9 +157,11 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
         imgs = torch.stack([sights[j].image for j in image])  # (I, bins)
         idx, rr = _bins((rel if len(image) == K else rel[image]).reshape(-1, 3))
         idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
-        ret = imgs.view(-1)[idx]
-        near = rr.view(len(image), n) - SEEN_MARGIN
-        seen = where_scans(image, ret >= near, True)
+        flat = imgs.view(-1)
+        ret = flat[idx]
+        rr = rr.view(len(image), n)
+        near = rr - SEEN_MARGIN
+        seen = where_scans(image, (ret >= near) | _through(flat, idx, ret, rr + SEEN_MARGIN), True)
         ok = seen if ok is None else ok & seen
         front = where_scans(image, (ret >= 0) & (ret < near), False)
     if ok is None:
@@ -160,3 +172,23 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
     # distinct bits: the sums are their ORs
     return ((ok.to(torch.int32) << shifts).sum(0, dtype=torch.int32),
             (front.to(torch.int32) << shifts).sum(0, dtype=torch.int32))
+
+
+def _through(flat: torch.Tensor, idx: torch.Tensor, ret: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """(I, n) bool: the point's bin (``idx`` into the stacked range images ``flat``, its return
+    ``ret``, -1 where none) is empty and the nearest returns above and below it in its azimuth
+    column, within ``THROUGH_BINS`` (at least one of the two), all lie at ``far`` or beyond: the
+    beams next to the place passed it (see the module's docstring)."""
+    ie = idx % NUM_EL  # the elevation bin (each image is NUM_EL-bin columns)
+    through = ret < 0
+    found = torch.zeros_like(through)
+    for sign in (1, -1):
+        side = torch.full_like(ret, -1.0)  # the nearest return on this side, -1 while none
+        for d in range(1, THROUGH_BINS + 1):
+            e = ie + sign * d
+            inside = (e >= 0) & (e < NUM_EL)
+            v = torch.where(inside, flat[(idx + sign * d).clamp(0, flat.numel() - 1)], torch.full_like(ret, -1.0))
+            side = torch.where(side < 0, v, side)
+        found |= side >= 0
+        through &= (side < 0) | (side >= far)
+    return through & found
