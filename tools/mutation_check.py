@@ -257,6 +257,10 @@ MUTATIONS = [
     ("range image bins 2 degrees", SIGHT_PY, "AZ_BIN = math.radians(0.5)", "AZ_BIN = math.radians(2.0)", [SIGHT]),
     ("removed ground left out of the range images", SIGHT_PY,
      "with_ground = image and ground is not None and ground.shape[0] > 0", "with_ground = False", [GSIGHT]),
+    ("empty bins never seen through (47)", SIGHT_PY, "THROUGH_BINS = 4 ", "THROUGH_BINS = 0 ",
+     [SIGHT, E + "test_sliding_side.py"]),
+    ("seen through past a surface at the place's range (47)", SIGHT_PY, "through &= (side < 0) | (side >= far)",
+     "through &= (side < 0) | (side >= 0)", [SIGHT]),
     # issue 47: the accurate preset's new fields and the code they switch on
     ("accurate regularisers by count (47)", CFG, '"reg_scale": "weights", "max_offset"', '"reg_scale": "support", "max_offset"',
      [ACC]),
