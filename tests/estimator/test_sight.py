@@ -179,7 +179,8 @@ def _at(az_bin: int, el_bin: int, r: float) -> list[float]:
     return [r * math.cos(el) * math.cos(az), r * math.cos(el) * math.sin(az), r * math.sin(el)]
 
 
-def test_scan_sight_sees_through_the_gap_between_two_rings():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_scan_sight_sees_through_the_gap_between_two_rings(device):
     """An empty direction bin (the rings of a sparse lidar pass above and below it) counts as seen
     where the nearest returns above and below it in its azimuth column lie beyond the place (the
     beams next to it passed it: the place is empty; one side may have none, the sky), not where
@@ -198,9 +199,9 @@ def test_scan_sight_sees_through_the_gap_between_two_rings():
     }
     pts = [_at(a, el, r) for a, rets in columns.items() for el, r in rets]
     pts += [_at(300, el, 30.0) for el in range(e - 10, e + 10)]  # elsewhere: every bin has a return
-    s = scan_sight(torch.tensor(pts, dtype=torch.float32), np.zeros(3), band=False, image=True)
+    s = scan_sight(torch.tensor(pts, dtype=torch.float32, device=device), np.zeros(3), band=False, image=True)
     q = torch.tensor([_at(a, e, 10.0) for a in columns] + [_at(400, e, 19.8), _at(300, e + 20, 10.0)],
-                     dtype=torch.float32)
+                     dtype=torch.float32, device=device)
     # 19.8 m: the wall at 20 m is not beyond it by SEEN_MARGIN; bin e + 20 of column 300: 10 bins
     # above its last return
     assert observed_bits(q, [s]).tolist() == [1, 0, 1, 0, 0, 0, 1, 0, 0]
