@@ -54,15 +54,17 @@ CHUNK_ELEMENTS = 1 << 23     # observed_bits: scans tested together, at most thi
 @dataclass
 class Sight:
     """One support scan's sight: its sensor (3,), its range band (2,: r_min, r_max) or None, its
-    range image (NUM_AZ * NUM_EL,: farthest return per bin, -1 where none) or None; float32 on
+    range image (NUM_AZ * NUM_EL,: farthest return per bin, -1 where none) or None and with it
+    ``near``, the nearest return per bin (-1 where none; the seen-through test); float32 on
     the scan's device."""
 
     sensor: torch.Tensor
     band: torch.Tensor | None
     image: torch.Tensor | None
+    near: torch.Tensor | None = None
 
     def tensors(self) -> list[torch.Tensor]:
-        return [t for t in (self.sensor, self.band, self.image) if t is not None]
+        return [t for t in (self.sensor, self.band, self.image, self.near) if t is not None]
 
 
 def _bins(rel: torch.Tensor, horiz: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,17 +92,21 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
         rel = torch.cat([rel, ground.to(device=points.device, dtype=torch.float32) - s])
     # (column views of rel: the same element-wise path as before the ground joined them)
     horiz = torch.hypot(rel[:, 0], rel[:, 1]) if band or image else None
-    b = img = None
+    b = img = near = None
     if band:
         b = torch.stack(list(torch.aminmax(horiz[:n])))
     if image:
         idx, rr = _bins(rel, horiz)
+        far = rr
         if with_ground:  # non-finite ground rows: no return (no host synchronisation; the points are finite)
             ok = torch.isfinite(rel).all(dim=1)
-            idx, rr = torch.where(ok, idx, torch.zeros_like(idx)), torch.where(ok, rr, torch.full_like(rr, -1.0))
+            idx = torch.where(ok, idx, torch.zeros_like(idx))
+            far, rr = torch.where(ok, rr, torch.full_like(rr, -1.0)), torch.where(ok, rr, torch.full_like(rr, math.inf))
         img = torch.full((NUM_AZ * NUM_EL,), -1.0, dtype=torch.float32, device=points.device)
-        img.scatter_reduce_(0, idx, rr, "amax")  # a maximum: the same bits in any order
-    return Sight(s, b, img)
+        img.scatter_reduce_(0, idx, far, "amax")  # a maximum: the same bits in any order
+        near = torch.full_like(img, math.inf).scatter_reduce_(0, idx, rr, "amin")
+        near = torch.where(img >= 0, near, torch.full_like(near, -1.0))
+    return Sight(s, b, img, near)
 
 
 def observed_bits(points: torch.Tensor, sights: list[Sight | None], occluded: bool = False):
@@ -155,13 +161,13 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
     image = [j for j, s in enumerate(sights) if s.image is not None]
     if image:
         imgs = torch.stack([sights[j].image for j in image])  # (I, bins)
+        nears = torch.stack([sights[j].near for j in image])
         idx, rr = _bins((rel if len(image) == K else rel[image]).reshape(-1, 3))
         idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
-        flat = imgs.view(-1)
-        ret = flat[idx]
+        ret = imgs.view(-1)[idx]
         rr = rr.view(len(image), n)
         near = rr - SEEN_MARGIN
-        seen = where_scans(image, (ret >= near) | _through(flat, idx, ret, rr + SEEN_MARGIN), True)
+        seen = where_scans(image, (ret >= near) | _through(nears.view(-1), idx, ret, rr + SEEN_MARGIN), True)
         ok = seen if ok is None else ok & seen
         front = where_scans(image, (ret >= 0) & (ret < near), False)
     if ok is None:
@@ -175,10 +181,13 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
 
 
 def _through(flat: torch.Tensor, idx: torch.Tensor, ret: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
-    """(I, n) bool: the point's bin (``idx`` into the stacked range images ``flat``, its return
-    ``ret``, -1 where none) is empty and the nearest returns above and below it in its azimuth
-    column, within ``THROUGH_BINS`` (at least one of the two), all lie at ``far`` or beyond: the
-    beams next to the place passed it (see the module's docstring)."""
+    """(I, n) bool: the point's bin (``idx`` into the stacked nearest-return images ``flat``, its
+    return ``ret``, -1 where none) is empty and the nearest non-empty bins above and below it in
+    its azimuth column, within ``THROUGH_BINS`` (at least one of the two), have every return at
+    ``far`` or beyond: the beams next to the place passed it (see the module's docstring). The
+    nearest return of a bin, not its farthest: a bin at a barrier's top edge holds both the
+    barrier and the road beyond it (the farthest alone read the barrier's own points as seen
+    through: simulated highway, tuning seed 0, a median barrier group kept the ego's motion)."""
     ie = idx % NUM_EL  # the elevation bin (each image is NUM_EL-bin columns)
     through = ret < 0
     found = torch.zeros_like(through)
