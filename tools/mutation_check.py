@@ -261,6 +261,9 @@ MUTATIONS = [
      [SIGHT, E + "test_sliding_side.py"]),
     ("seen through past a surface at the place's range (47)", SIGHT_PY, "through &= (side < 0) | (side >= far)",
      "through &= (side < 0) | (side >= 0)", [SIGHT]),
+    ("seen through with sky on one side (47)", SIGHT_PY, "found &= side >= 0", "found |= side >= 0", [SIGHT]),
+    ("seen through on the neighbours' farthest return (47)", SIGHT_PY,
+     "near = torch.where(img >= 0, near, torch.full_like(near, -1.0))", "near = img", [SIGHT]),
     # issue 47: the accurate preset's new fields and the code they switch on
     ("accurate regularisers by count (47)", CFG, '"reg_scale": "weights", "max_offset"', '"reg_scale": "support", "max_offset"',
      [ACC]),

@@ -183,15 +183,15 @@ def _at(az_bin: int, el_bin: int, r: float) -> list[float]:
 def test_scan_sight_sees_through_the_gap_between_two_rings(device):
     """An empty direction bin (the rings of a sparse lidar pass above and below it) counts as seen
     where the nearest returns above and below it in its azimuth column lie beyond the place (the
-    beams next to it passed it: the place is empty; one side may have none, the sky), not where
-    they lie at its range (a surface the rings skip: a low barrier between two rings' range
+    beams next to it passed it: the place is empty), not with sky on one side (the top of a tree
+    or pole the rings both missed), not where they lie at its range (a surface the rings skip: a low barrier between two rings' range
     bands), nor where one is nearer (the road in front of it), nor where the column has none
     within THROUGH_BINS (issue 47: an oncoming bus's vacated place between the rings)."""
     e = 180  # the horizon's elevation bin; rings 2 bins (1 degree) apart: e - 2 and e + 2
     columns = {  # azimuth bin: the column's returns (elevation bin, range)
         400: [(e - 2, 20.0), (e + 2, 20.0)],  # a wall 20 m away behind the place
         410: [(e - 2, 10.1), (e + 2, 10.1)],  # a surface at the place's range (the rings skip it)
-        420: [(e - 2, 20.0)],                 # sky above, the far wall below
+        420: [(e - 2, 20.0)],                 # sky above, the far wall below: a small surface both rings missed?
         430: [(e - 2, 6.0), (e + 2, 20.0)],   # something nearer below
         440: [],                              # no return in the column at all
         450: [(e - 5, 20.0), (e + 5, 20.0)],  # the nearest returns 2.5 degrees away: beyond THROUGH_BINS
@@ -204,7 +204,7 @@ def test_scan_sight_sees_through_the_gap_between_two_rings(device):
                      dtype=torch.float32, device=device)
     # 19.8 m: the wall at 20 m is not beyond it by SEEN_MARGIN; bin e + 20 of column 300: 10 bins
     # above its last return
-    assert observed_bits(q, [s]).tolist() == [1, 0, 1, 0, 0, 0, 1, 0, 0]
+    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 0, 0, 0, 1, 0, 0]
     _, front = observed_bits(q, [s], occluded=True)
     assert front.tolist() == [0] * 9  # an empty bin is never "something in front"
 
