@@ -196,6 +196,7 @@ def test_scan_sight_sees_through_the_gap_between_two_rings(device):
         440: [],                              # no return in the column at all
         450: [(e - 5, 20.0), (e + 5, 20.0)],  # the nearest returns 2.5 degrees away: beyond THROUGH_BINS
         460: [(e - 1, 20.0), (e + 2, 20.0), (e + 3, 10.0)],  # the nearest on each side decide
+        470: [(e - 2, 10.1), (e - 2, 20.0), (e + 2, 20.0)],  # a bin with a surface and what lies beyond its edge
     }
     pts = [_at(a, el, r) for a, rets in columns.items() for el, r in rets]
     pts += [_at(300, el, 30.0) for el in range(e - 10, e + 10)]  # elsewhere: every bin has a return
@@ -204,9 +205,9 @@ def test_scan_sight_sees_through_the_gap_between_two_rings(device):
                      dtype=torch.float32, device=device)
     # 19.8 m: the wall at 20 m is not beyond it by SEEN_MARGIN; bin e + 20 of column 300: 10 bins
     # above its last return
-    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 0, 0, 0, 1, 0, 0]
+    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 0, 0, 0, 1, 0, 0, 0]
     _, front = observed_bits(q, [s], occluded=True)
-    assert front.tolist() == [0] * 9  # an empty bin is never "something in front"
+    assert front.tolist() == [0] * 10  # an empty bin is never "something in front"
 
 
 def test_scan_sight_band_is_horizontal_range():
