@@ -205,7 +205,7 @@ def test_scan_sight_sees_through_the_gap_between_two_rings(device):
                      dtype=torch.float32, device=device)
     # 19.8 m: the wall at 20 m is not beyond it by SEEN_MARGIN; bin e + 20 of column 300: 10 bins
     # above its last return
-    assert observed_bits(q, [s]).tolist() == [1, 0, 0, 0, 0, 0, 1, 0, 0, 0]
+    assert observed_bits(q, [s]).tolist() == [1, 0, 1, 0, 0, 0, 1, 0, 0, 0]
     _, front = observed_bits(q, [s], occluded=True)
     assert front.tolist() == [0] * 10  # an empty bin is never "something in front"
 

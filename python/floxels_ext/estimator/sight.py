@@ -18,12 +18,14 @@ the plain evidence test keeps that motion (bench/RESULTS.md, "What each support 
   from the road behind a pedestrian's old place shows the place empty. A direction bin with no
   return at all (the rings of a sparse lidar pass above and below the place) counts as seen where
   the place was *seen through*: the nearest returns above and below it in its azimuth column
-  (within ``THROUGH_BINS``, both sides) all lie beyond it (``SEEN_MARGIN``), so the beams next
-  to it passed the place and it is empty. A surface the rings skip (a low barrier between two
-  rings' range bands) shows returns *at* its range in the bins next to it, or nearer ones (the
-  road in front of it); a place with sky on one side (the top of a tree, of a pole) could be a
-  small surface both rings missed: no evidence either way, as before (issue 47: an oncoming
-  bus's vacated place between the rings is seen empty; a far barrier between them is not).
+  (within ``THROUGH_BINS``) all lie beyond it (``SEEN_MARGIN``), so the beams next to it passed
+  the place and it is empty; above it the column may also be empty all the way up (sky, or
+  above the beams' reach). A surface the rings skip (a low barrier between two rings' range
+  bands) shows returns *at* its range in the bins next to it, or nearer ones (the road in front
+  of it); a gap with returns higher up in its column but none near it (foliage) may hide a
+  surface the rings missed: no evidence either way, as before (issue 47: an oncoming bus's
+  vacated place, between the rings or under the sky, is seen empty; a far barrier between the
+  rings is not).
 
 The point's own position decides, never where a motion takes it, so no motion can escape a
 scan's residual by leaving its sight. Everything runs on the device without a host
@@ -55,16 +57,18 @@ CHUNK_ELEMENTS = 1 << 23     # observed_bits: scans tested together, at most thi
 class Sight:
     """One support scan's sight: its sensor (3,), its range band (2,: r_min, r_max) or None, its
     range image (NUM_AZ * NUM_EL,: farthest return per bin, -1 where none) or None and with it
-    ``near``, the nearest return per bin (-1 where none; the seen-through test); float32 on
+    (the seen-through test) ``near``, the nearest return per bin (-1 where none), and ``top``
+    (NUM_AZ,) int64, each azimuth column's highest bin with a return (-1 where none); float32 on
     the scan's device."""
 
     sensor: torch.Tensor
     band: torch.Tensor | None
     image: torch.Tensor | None
     near: torch.Tensor | None = None
+    top: torch.Tensor | None = None
 
     def tensors(self) -> list[torch.Tensor]:
-        return [t for t in (self.sensor, self.band, self.image, self.near) if t is not None]
+        return [t for t in (self.sensor, self.band, self.image, self.near, self.top) if t is not None]
 
 
 def _bins(rel: torch.Tensor, horiz: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,7 +96,7 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
         rel = torch.cat([rel, ground.to(device=points.device, dtype=torch.float32) - s])
     # (column views of rel: the same element-wise path as before the ground joined them)
     horiz = torch.hypot(rel[:, 0], rel[:, 1]) if band or image else None
-    b = img = near = None
+    b = img = near = top = None
     if band:
         b = torch.stack(list(torch.aminmax(horiz[:n])))
     if image:
@@ -106,7 +110,9 @@ def scan_sight(points: torch.Tensor, sensor, band: bool, image: bool, ground: to
         img.scatter_reduce_(0, idx, far, "amax")  # a maximum: the same bits in any order
         near = torch.full_like(img, math.inf).scatter_reduce_(0, idx, rr, "amin")
         near = torch.where(img >= 0, near, torch.full_like(near, -1.0))
-    return Sight(s, b, img, near)
+        el = torch.arange(NUM_EL, device=points.device)
+        top = torch.where(img.view(NUM_AZ, NUM_EL) >= 0, el, -1).amax(dim=1)
+    return Sight(s, b, img, near, top)
 
 
 def observed_bits(points: torch.Tensor, sights: list[Sight | None], occluded: bool = False):
@@ -162,12 +168,13 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
     if image:
         imgs = torch.stack([sights[j].image for j in image])  # (I, bins)
         nears = torch.stack([sights[j].near for j in image])
+        tops = torch.stack([sights[j].top for j in image])  # (I, NUM_AZ)
         idx, rr = _bins((rel if len(image) == K else rel[image]).reshape(-1, 3))
         idx = idx.view(len(image), n) + torch.arange(len(image), device=p.device)[:, None] * imgs.shape[1]
         ret = imgs.view(-1)[idx]
         rr = rr.view(len(image), n)
         near = rr - SEEN_MARGIN
-        seen = where_scans(image, (ret >= near) | _through(nears.view(-1), idx, ret, rr + SEEN_MARGIN), True)
+        seen = where_scans(image, (ret >= near) | _through(nears.view(-1), tops, idx, ret, rr + SEEN_MARGIN), True)
         ok = seen if ok is None else ok & seen
         front = where_scans(image, (ret >= 0) & (ret < near), False)
     if ok is None:
@@ -180,19 +187,21 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
             (front.to(torch.int32) << shifts).sum(0, dtype=torch.int32))
 
 
-def _through(flat: torch.Tensor, idx: torch.Tensor, ret: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+def _through(flat: torch.Tensor, tops: torch.Tensor, idx: torch.Tensor, ret: torch.Tensor,
+             far: torch.Tensor) -> torch.Tensor:
     """(I, n) bool: the point's bin (``idx`` into the stacked nearest-return images ``flat``, its
-    return ``ret``, -1 where none) is empty and the nearest non-empty bins above and below it in
-    its azimuth column, within ``THROUGH_BINS`` (both), have every return at ``far`` or beyond:
-    the beams next to the place passed it (see the module's docstring). Both sides: with sky on
-    one side, the static foliage of the AV2 pair's trees 5-7 m up (40 points) took 0.66 m/frame
-    (the rings on the other side passed through its gaps). The
-    nearest return of a bin, not its farthest: a bin at a barrier's top edge holds both the
-    barrier and the road beyond it (the farthest alone read the barrier's own points as seen
-    through: simulated highway, tuning seed 0, a median barrier group kept the ego's motion)."""
+    return ``ret``, -1 where none) is empty; the nearest non-empty bin below it in its azimuth
+    column, within ``THROUGH_BINS``, and the nearest above it there, have every return at
+    ``far`` or beyond (the beams next to the place passed it; see the module's docstring); above,
+    the column may also hold no return at all (``tops``: each column's highest non-empty bin, the
+    sky, or above the beams' reach). Not sky within a column that has returns higher up: in the
+    AV2 pair's trees, 5-7 m up, the gaps between the foliage's returns read as sky above and the
+    rings below passed through it; 40 static points took 0.66 m/frame. The nearest return of a
+    bin, not its farthest: a bin at a barrier's top edge holds both the barrier and the road
+    beyond it (the farthest alone read the barrier's own points as seen through: simulated
+    highway, tuning seed 0, a median barrier group kept the ego's motion)."""
     ie = idx % NUM_EL  # the elevation bin (each image is NUM_EL-bin columns)
     through = ret < 0
-    found = torch.ones_like(through)  # a return on each side
     for sign in (1, -1):
         side = torch.full_like(ret, -1.0)  # the nearest return on this side, -1 while none
         for d in range(1, THROUGH_BINS + 1):
@@ -200,6 +209,15 @@ def _through(flat: torch.Tensor, idx: torch.Tensor, ret: torch.Tensor, far: torc
             inside = (e >= 0) & (e < NUM_EL)
             v = torch.where(inside, flat[(idx + sign * d).clamp(0, flat.numel() - 1)], torch.full_like(ret, -1.0))
             side = torch.where(side < 0, v, side)
-        found &= side >= 0
-        through &= (side < 0) | (side >= far)
-    return through & found
+        ok = side >= far
+        if sign > 0:  # above: or nothing above at all in the column
+            ok |= (side < 0) & (ie > tops.view(-1)[idx // NUM_EL])
+        through &= ok
+    # the open place reaches the azimuth columns beside it at its elevation (no return there, or
+    # only beyond it): a hole in foliage has the foliage beside it
+    local = idx % (NUM_AZ * NUM_EL)
+    ia = local // NUM_EL
+    for step in (-1, 1):  # (azimuth wraps around)
+        v = flat[idx - local + ((ia + step) % NUM_AZ) * NUM_EL + ie]
+        through &= (v < 0) | (v >= far)
+    return through
