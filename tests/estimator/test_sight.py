@@ -183,31 +183,36 @@ def _at(az_bin: int, el_bin: int, r: float) -> list[float]:
 def test_scan_sight_sees_through_the_gap_between_two_rings(device):
     """An empty direction bin (the rings of a sparse lidar pass above and below it) counts as seen
     where the nearest returns above and below it in its azimuth column lie beyond the place (the
-    beams next to it passed it: the place is empty), not with sky on one side (the top of a tree
-    or pole the rings both missed), not where they lie at its range (a surface the rings skip: a low barrier between two rings' range
-    bands), nor where one is nearer (the road in front of it), nor where the column has none
-    within THROUGH_BINS (issue 47: an oncoming bus's vacated place between the rings)."""
+    beams next to it passed it: the place is empty), or below it beyond and nothing above it in
+    the column at all (sky); not where they lie at its range (a surface the rings skip: a low
+    barrier between two rings' range bands), nor where one is nearer (the road in front of it),
+    nor where the column has none below within THROUGH_BINS, nor with a gap above and returns
+    higher up (foliage), nor where the column beside it holds a return at its range at its
+    elevation (a hole in foliage) (issue 47: an oncoming bus's vacated place between the rings)."""
     e = 180  # the horizon's elevation bin; rings 2 bins (1 degree) apart: e - 2 and e + 2
     columns = {  # azimuth bin: the column's returns (elevation bin, range)
         400: [(e - 2, 20.0), (e + 2, 20.0)],  # a wall 20 m away behind the place
         410: [(e - 2, 10.1), (e + 2, 10.1)],  # a surface at the place's range (the rings skip it)
-        420: [(e - 2, 20.0)],                 # sky above, the far wall below: a small surface both rings missed?
+        420: [(e - 2, 20.0)],                 # sky above, the far wall below
         430: [(e - 2, 6.0), (e + 2, 20.0)],   # something nearer below
         440: [],                              # no return in the column at all
         450: [(e - 5, 20.0), (e + 5, 20.0)],  # the nearest returns 2.5 degrees away: beyond THROUGH_BINS
         460: [(e - 1, 20.0), (e + 2, 20.0), (e + 3, 10.0)],  # the nearest on each side decide
         470: [(e - 2, 10.1), (e - 2, 20.0), (e + 2, 20.0)],  # a bin with a surface and what lies beyond its edge
+        480: [(e - 2, 20.0), (e + 6, 10.0)],  # a gap above, then a return higher up: not sky
+        490: [(e - 2, 20.0), (e + 2, 20.0)],  # as 400, but the column beside it (491) ...
     }
-    pts = [_at(a, el, r) for a, rets in columns.items() for el, r in rets]
+    beside = [(491, e, 10.1)]                 # ... holds a return at the place's range at its elevation
+    pts = [_at(a, el, r) for a, rets in columns.items() for el, r in rets] + [_at(*b) for b in beside]
     pts += [_at(300, el, 30.0) for el in range(e - 10, e + 10)]  # elsewhere: every bin has a return
     s = scan_sight(torch.tensor(pts, dtype=torch.float32, device=device), np.zeros(3), band=False, image=True)
     q = torch.tensor([_at(a, e, 10.0) for a in columns] + [_at(400, e, 19.8), _at(300, e + 20, 10.0)],
                      dtype=torch.float32, device=device)
     # 19.8 m: the wall at 20 m is not beyond it by SEEN_MARGIN; bin e + 20 of column 300: 10 bins
-    # above its last return
-    assert observed_bits(q, [s]).tolist() == [1, 0, 1, 0, 0, 0, 1, 0, 0, 0]
+    # above its last return (sky above, but nothing below within THROUGH_BINS)
+    assert observed_bits(q, [s]).tolist() == [1, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]
     _, front = observed_bits(q, [s], occluded=True)
-    assert front.tolist() == [0] * 10  # an empty bin is never "something in front"
+    assert front.tolist() == [0] * 12  # an empty bin is never "something in front"
 
 
 def test_scan_sight_band_is_horizontal_range():
