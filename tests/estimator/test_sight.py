@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from floxels_ext.estimator import FloxelsConfig, estimate_flow, estimate_sequence
-from floxels_ext.estimator.sight import AZ_BIN, EL_BIN, SEEN_MARGIN, observed_bits, scan_sight
+from floxels_ext.estimator.sight import AZ_BIN, EL_BIN, SEEN_MARGIN, THROUGH_BINS, observed_bits, scan_sight
 
 EGO = 1.5     # m/frame along x
 CAR = -1.0    # m/frame: oncoming, in the lane at y = -2
@@ -169,6 +169,50 @@ def test_sight_constants_are_pinned():
     # rays), a return 0.5 m nearer than a point still counts as seeing it
     assert SEEN_MARGIN == 0.5
     assert (AZ_BIN, EL_BIN) == (math.radians(0.5), math.radians(0.5))
+    assert THROUGH_BINS == 4  # 2 degrees above and below an empty bin
+
+
+def _at(az_bin: int, el_bin: int, r: float) -> list[float]:
+    """The point at range r in the centre of the range image's direction bin (az_bin, el_bin)."""
+    az = (az_bin + 0.5) * AZ_BIN - math.pi
+    el = (el_bin + 0.5) * EL_BIN - math.pi / 2
+    return [r * math.cos(el) * math.cos(az), r * math.cos(el) * math.sin(az), r * math.sin(el)]
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_scan_sight_sees_through_the_gap_between_two_rings(device):
+    """An empty direction bin (the rings of a sparse lidar pass above and below it) counts as seen
+    where the nearest returns above and below it in its azimuth column lie beyond the place (the
+    beams next to it passed it: the place is empty), or below it beyond and nothing above it in
+    the column at all (sky); not where they lie at its range (a surface the rings skip: a low
+    barrier between two rings' range bands), nor where one is nearer (the road in front of it),
+    nor where the column has none below within THROUGH_BINS, nor with a gap above and returns
+    higher up (foliage), nor where the column beside it holds a return at its range at its
+    elevation (a hole in foliage) (issue 47: an oncoming bus's vacated place between the rings)."""
+    e = 180  # the horizon's elevation bin; rings 2 bins (1 degree) apart: e - 2 and e + 2
+    columns = {  # azimuth bin: the column's returns (elevation bin, range)
+        400: [(e - 2, 20.0), (e + 2, 20.0)],  # a wall 20 m away behind the place
+        410: [(e - 2, 10.1), (e + 2, 10.1)],  # a surface at the place's range (the rings skip it)
+        420: [(e - 2, 20.0)],                 # sky above, the far wall below
+        430: [(e - 2, 6.0), (e + 2, 20.0)],   # something nearer below
+        440: [],                              # no return in the column at all
+        450: [(e - 5, 20.0), (e + 5, 20.0)],  # the nearest returns 2.5 degrees away: beyond THROUGH_BINS
+        460: [(e - 1, 20.0), (e + 2, 20.0), (e + 3, 10.0)],  # the nearest on each side decide
+        470: [(e - 2, 10.1), (e - 2, 20.0), (e + 2, 20.0)],  # a bin with a surface and what lies beyond its edge
+        480: [(e - 2, 20.0), (e + 6, 10.0)],  # a gap above, then a return higher up: not sky
+        490: [(e - 2, 20.0), (e + 2, 20.0)],  # as 400, but the column beside it (491) ...
+    }
+    beside = [(491, e, 10.1)]                 # ... holds a return at the place's range at its elevation
+    pts = [_at(a, el, r) for a, rets in columns.items() for el, r in rets] + [_at(*b) for b in beside]
+    pts += [_at(300, el, 30.0) for el in range(e - 10, e + 10)]  # elsewhere: every bin has a return
+    s = scan_sight(torch.tensor(pts, dtype=torch.float32, device=device), np.zeros(3), band=False, image=True)
+    q = torch.tensor([_at(a, e, 10.0) for a in columns] + [_at(400, e, 19.8), _at(300, e + 20, 10.0)],
+                     dtype=torch.float32, device=device)
+    # 19.8 m: the wall at 20 m is not beyond it by SEEN_MARGIN; bin e + 20 of column 300: 10 bins
+    # above its last return (sky above, but nothing below within THROUGH_BINS)
+    assert observed_bits(q, [s]).tolist() == [1, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]
+    _, front = observed_bits(q, [s], occluded=True)
+    assert front.tolist() == [0] * 12  # an empty bin is never "something in front"
 
 
 def test_scan_sight_band_is_horizontal_range():
