@@ -132,35 +132,76 @@ def test_claim_waits_for_the_starting_jobs_release():
     assert not kept.claim("B") and kept.owner == "A"
 
 
-def test_job_short_of_workers_waits_for_the_pools_starting_ones():
-    """The pool's workers that do not answer a claim at once are still starting: a job short of
-    workers waits for them (up to STARTING_WAIT_S) rather than starting new ones beside them."""
+def test_claim_waits_while_the_dropped_workers_run_starts():
+    """The starting job's ``run`` may come first: it waits for the worker's warm-up, then learns
+    it has no task and releases it. A claim in that window waits for the release (it found the
+    worker "running" and was refused at once: the next job then started 4 of its 8 workers anew,
+    E6); a worker its starting job has given a task is refused at once."""
+    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
+    w.warm.join()
+    w.running, w.jobs = True, 1  # run("A") started: still in its warm-up wait
+    threading.Timer(0.3, w.release, args=("A",)).start()
+    assert w.claim("B") and w.owner == "B"
+    busy = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
+    busy.warm.join()
+    busy.running, busy.jobs = True, 1
+    busy._took_task()  # its job's stream took a task: it is that job's
+    t = time.monotonic()
+    assert not busy.claim("B") and busy.owner == "A" and time.monotonic() - t < 0.5
+    waiting = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job="A")
+    waiting.warm.join()
+    threading.Timer(0.3, waiting._took_task).start()  # a task comes while the claim waits
+    t = time.monotonic()
+    assert not waiting.claim("B") and time.monotonic() - t < 1.0
+
+
+def test_late_claims_join_the_job_instead_of_holding_its_start():
+    """The pool's workers that do not answer a claim within CLAIM_WAIT_S (still starting, or being
+    handed over) neither hold the job's start (E7: ~7 s, the ready workers idle) nor get new
+    workers started beside them (E6): the job starts with the others and takes each late one
+    as its claim answers; one granted after the job has all its workers is given back."""
     from types import SimpleNamespace
 
     from floxels_ext.lidar.dataset import ray_pool
 
     class Ref:
-        def __init__(self, at, ok):
-            self.at, self.ok = at, ok
+        def __init__(self, at, ok, name):
+            self.at, self.ok, self.name = at, ok, name
 
-    waits = []
+    waits, released, added = [], [], []
 
     def wait(refs, num_returns, timeout):  # a claim answers `at` seconds after it was sent
         waits.append(timeout)
         ready = sorted((r for r in refs if r.at <= timeout), key=lambda r: r.at)[:num_returns]
         return ready, [r for r in refs if r not in ready]
 
-    def worker(at, ok):
-        return SimpleNamespace(claim=SimpleNamespace(remote=lambda job: Ref(at, ok)),
-                               release=SimpleNamespace(remote=lambda job: None))
+    def worker(name, at, ok):
+        return SimpleNamespace(claim=SimpleNamespace(remote=lambda job: Ref(at, ok, name)),
+                               release=SimpleNamespace(remote=lambda job: released.append(name)))
 
-    handles = {"up": worker(0.01, True), "busy": worker(0.01, False), "starting": worker(5.0, True),
-               "late": worker(60.0, True)}
+    handles = {"up": worker("up", 0.01, True), "busy": worker("busy", 0.01, False),
+               "starting": worker("starting", 5.0, True), "slow": worker("slow", 60.0, True)}
     fake = SimpleNamespace(wait=wait, get=lambda r: r.ok, exceptions=SimpleNamespace(RayError=RuntimeError))
-    pool = ray_pool.Workers(fake, 0.5, 8.0, "cuda", keep_s=None, t0=0.0)
-    pool._handle = handles.get
-    got = pool._claim(list(handles), 3)
-    assert sorted(s.name for s in got) == ["starting", "up"]
-    assert waits == [ray_pool.CLAIM_WAIT_S, ray_pool.STARTING_WAIT_S]
-    waits.clear()
-    assert [s.name for s in pool._claim(["up", "busy"], 1)] == ["up"] and waits == [ray_pool.CLAIM_WAIT_S]
+    pool = ray_pool.Workers(fake, 0.5, 8.0, "cuda", keep_s=120.0, t0=0.0)
+    pool._pooled = lambda: [f"w-{pool.key}-{n}" for n in handles]
+    pool._handle = lambda nm: handles[nm.rsplit("-", 1)[1]]
+    pool._retire_idle = lambda keep: None
+    pool.add = lambda: added.append(1)
+    pool.start(4)
+    assert [s.name.rsplit("-", 1)[1] for s in pool.slots] == ["up"] and waits == [ray_pool.CLAIM_WAIT_S]
+    assert sorted(r.name for r in pool.late) == ["slow", "starting"]
+    assert len(added) == 1  # 4 wanted: 1 up, 2 coming, "busy" refused: one new worker
+    late = {r.name: r for r in pool.late}
+    assert pool.take_late(late["starting"]).name.endswith("starting") and len(pool.slots) == 2
+    pool.target = 2  # the job has all it needs now: a late one granted after it goes back
+    assert pool.take_late(late["slow"]) is None and released == ["slow"] and not pool.late
+
+
+def test_release_before_its_claim_withdraws_the_claim():
+    """A job that ends while its claim still waits in a worker's queue releases it at once; a
+    threaded actor may run that release first, and the claim must then be refused (it would hold
+    the worker for OWNER_TIMEOUT, its driver gone)."""
+    w = ray_worker.FloxelsWorker(1, "cpu", keep_s=1e9, job=None)
+    w.warm.join()
+    w.release("gone")
+    assert not w.claim("gone") and w.owner is None and w.claim("next")

@@ -25,7 +25,6 @@ __all__ = ["NAMESPACE", "Workers", "Slot", "pool_key"]
 
 NAMESPACE = "floxels"
 CLAIM_WAIT_S = 2.0  # a pooled worker answers a claim in milliseconds (one handed over: HANDOVER_S)
-STARTING_WAIT_S = 8.0  # a worker of the pool still starting answers once up: sooner than a new one would
 
 
 def _code_stamp() -> str:
@@ -76,6 +75,11 @@ class Workers:
         self.slots: list[Slot] = []
         self.made = 0
         self.retired = 0
+        self.target = 0
+        # claim ref -> (name, handle): the pool's workers of this key that did not answer within
+        # CLAIM_WAIT_S (still starting, or being handed over): the job runs without them and takes
+        # each as its claim answers (take_late), instead of holding its ready workers idle meanwhile
+        self.late: dict = {}
 
     def _options(self, name: str | None):
         from floxels_ext.lidar.dataset.ray_worker import FloxelsWorker
@@ -100,18 +104,18 @@ class Workers:
             return None
 
     def _claim(self, names: list[str], n: int) -> list[Slot]:
-        """Claims up to n of the pool's workers ``names``. Those that do not answer within
-        CLAIM_WAIT_S are still starting (a job that ended before they were up started them): when
-        the job is short of workers it waits up to STARTING_WAIT_S for as many as it lacks, since
-        a new worker would take longer to start and the waiting ones would hold the resources
-        it needs (measured: half of a 4-GPU job's workers started anew, ~6 s late)."""
+        """Claims up to n of the pool's workers ``names``; those that do not answer within
+        CLAIM_WAIT_S are still starting (a job that ended before they were up started them) or
+        being handed over by that job: they go to ``late`` and join the job when their claims
+        answer. Neither waiting for them (the 4-GPU job's start held ~7 s, E7) nor starting new
+        workers beside them (which would wait for the resources they hold: 4 of 8 workers ~7 s
+        late, E6) keeps the ready workers busy."""
         handles = {nm: h for nm in names if (h := self._handle(nm)) is not None}
         refs = {h.claim.remote(self.job): nm for nm, h in handles.items()}
         got: list[Slot] = []
         self._answers(refs, handles, got, n, len(refs), CLAIM_WAIT_S)
-        if refs and len(got) < n:
-            self._answers(refs, handles, got, n, min(len(refs), n - len(got)), STARTING_WAIT_S)
-        # a claim answered too late is given back by the worker itself (OWNER_TIMEOUT)
+        for ref, nm in refs.items():
+            self.late[ref] = (nm, handles[nm])
         return got
 
     def _answers(self, refs: dict, handles: dict, got: list, n: int, k: int, timeout: float) -> None:
@@ -130,13 +134,32 @@ class Workers:
                 handles[nm].release.remote(self.job)
 
     def start(self, n: int) -> None:
+        self.target = n
         pooled = self._pooled() if self.keep_s else []
         mine = [nm for nm in pooled if nm.startswith(f"w-{self.key}-")]
         self.slots += self._claim(mine, n)
-        if len(self.slots) < n:
-            self._retire_idle({s.name for s in self.slots})
-        while len(self.slots) < n:
+        missing = n - len(self.slots) - len(self.late)  # the late ones are coming
+        if missing > 0:
+            self._retire_idle({s.name for s in self.slots} | {nm for nm, _ in self.late.values()})
+        for _ in range(max(0, missing)):
             self.add()
+
+    def take_late(self, ref) -> Slot | None:
+        """The answer of a late claim (``late``): its worker as a slot of the job, or None when it
+        was refused, or granted once the job had all its workers (then given back)."""
+        nm, handle = self.late.pop(ref)
+        try:
+            ok = self.ray.get(ref)
+        except self.ray.exceptions.RayError:
+            return None
+        if not ok:
+            return None
+        if len(self.slots) >= self.target:
+            handle.release.remote(self.job)
+            return None
+        slot = Slot(nm, handle, True, time.time(), claimed=True)
+        self.slots.append(slot)
+        return slot
 
     def _retire_idle(self, keep: set[str]) -> None:
         """Idle pooled workers this job does not use exit (they may hold the resources it needs)."""
@@ -186,3 +209,9 @@ class Workers:
         for slot in self.slots:
             self._give_back(slot, ok)
         self.slots = []
+        for nm, handle in self.late.values():  # claims not answered during the job (a short one):
+            try:  # the worker refuses the claim if this release reaches it first (FloxelsWorker.release)
+                handle.release.remote(self.job)
+            except Exception:  # noqa: BLE001 - a dead worker needs nothing
+                pass
+        self.late = {}

@@ -236,14 +236,17 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
     since = time.time() - 1.0 if args.force or _rewrites(todo_tasks) else None
     for slot in workers.slots[len(todo_tasks):]:  # more workers than tasks
         workers.drop(slot)
+    workers.target = min(workers.target, len(todo_tasks))  # (late claims beyond it are given back)
     nodes = _alive_nodes(ray)
     warm = sum(s.claimed for s in workers.slots)
+    late = len(workers.late)
     if verbosity >= 0:
         print(f"dataset {args.input}: {n_sequences} sequences, {total} frames, {total - todo} already done, {todo} to "
               f"estimate in {len(todo_tasks)} task(s) on Ray ({len(nodes)} node(s), "
               f"{sum(r.get('GPU', 0) for r in nodes):g} GPU, {sum(r.get('CPU', 0) for r in nodes):g} CPU): "
               f"{len(workers.slots)} worker(s) of {workers.gpus:g} GPU + {workers.cpus:g} CPU"
-              + (f", {warm} of them warm from the pool" if warm else ""), file=sys.stderr, flush=True)
+              + (f", {warm} of them warm from the pool" if warm else "")
+              + (f", {late} more of the pool joining once up" if late else ""), file=sys.stderr, flush=True)
     job, spec = workers.job, {"common": common, "device": workers.device, "t0": workers.t0}
     runs: dict = {}    # run ObjectRef -> Slot
     polls: dict = {}   # poll ObjectRef -> Slot
@@ -325,13 +328,22 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
             launch(workers.add())
 
     try:
-        while runs:
-            ready, _ = ray.wait(list(runs) + list(polls), num_returns=1, timeout=2.0)
+        while runs or workers.late and len(ended) < len(todo_tasks):
+            refs = list(runs) + list(polls) + list(workers.late)
+            ready, _ = ray.wait(refs, num_returns=1, timeout=2.0)
             if ready:  # everything else ready by now as well
-                rest = [r for r in list(runs) + list(polls) if r not in ready]
+                rest = [r for r in refs if r not in ready]
                 ready += ray.wait(rest, num_returns=len(rest), timeout=0)[0] if rest else []
             for ref in ready:
-                if ref in polls:
+                if ref in workers.late:  # a pooled worker that was still starting: it joins now
+                    slot = workers.take_late(ref)
+                    if slot is not None and len(ended) < len(todo_tasks):
+                        launch(slot)
+                    elif slot is not None:
+                        workers.drop(slot)
+                    elif not runs and not workers.late and len(ended) < len(todo_tasks):
+                        launch(workers.add())  # refused, and no worker left: one of the job's own
+                elif ref in polls:
                     slot = polls.pop(ref)
                     try:
                         events, frames = ray.get(ref)
@@ -376,8 +388,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                     for r in [r for r, s in polls.items() if s is slot]:
                         del polls[r]
                     workers.drop(slot)
-            if not runs:
-                break  # all done, or no worker left: what is left is reported below
+            if not runs and not (workers.late and len(ended) < len(todo_tasks)):
+                break  # all done, or no worker left (none coming): what is left is reported below
             done = done_frames + sum(live.values())
             if done > shown:
                 bar.frames(done - shown)

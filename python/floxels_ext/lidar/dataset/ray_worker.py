@@ -32,7 +32,7 @@ __all__ = ["FloxelsWorker", "Channel", "worker_threads", "warm_up", "process_sta
 _IMPORTED = time.time()  # Ray imports this module to load the actor class (torch comes in __init__)
 
 OWNER_TIMEOUT = 60.0  # s without a poll from the job's driver: it is gone
-HANDOVER_S = 2.0  # how long a claim waits for the release of a worker whose starting job dropped it
+HANDOVER_S = 4.0  # how long a claim waits for the release of a worker whose starting job dropped it
 
 
 def worker_threads(cpus: float, gpu: bool) -> dict:
@@ -195,6 +195,8 @@ class FloxelsWorker:
         self.retiring = False
         self.retire_asked = False  # a job asked while another held it: it exits once released
         self.jobs = 0
+        self.tasked = False  # the job that started it has given it a task (it is that job's for good)
+        self.withdrawn: list[str] = []  # jobs whose release came before their claim (see release)
         self.channels: dict[str, Channel] = {}
         self.warm = threading.Thread(target=self._warm_up, name="floxels-warm-up", daemon=True)
         self.warm.start()
@@ -213,25 +215,37 @@ class FloxelsWorker:
         """Makes this worker ``job``'s, when no job holds it (and no job asked it to leave).
 
         A worker that a job started and dropped before it was up (that job had fewer tasks, or
-        ended first) gets that job's release and the next job's claim queued together behind its
-        ``__init__``; a threaded actor runs them in either order, so a claim that finds it still
-        held by the job it was started for, never run, waits ``HANDOVER_S`` for that release
-        (measured: without it, the next job skipped half its warm workers and started new ones,
-        ~6 s late, bench/RESULTS.md)."""
+        ended first) gets that job's ``run`` (answered "no task"), its release and the next job's
+        claim queued together behind its ``__init__``; a threaded actor runs them in either order,
+        and ``run`` first waits for the worker's warm-up (~0.5-1 s on a GPU). So a claim that
+        finds it held by the job it was started for, which has given it no task, waits up to
+        ``HANDOVER_S`` for that release (without it, the next job skipped such workers and started
+        new ones ~6-7 s late: A5, E6). The claiming job does not wait for the answer: it takes
+        the worker when it comes (``ray_pool.Workers.take_late``)."""
         with self.handed:
-            if (self.owner is not None and self.owner == self.started_for and self.jobs == 0 and not self.running
+            if (self.owner is not None and self.owner == self.started_for and not self.tasked
                     and not (self.retiring or self.retire_asked)):
-                self.handed.wait_for(lambda: self.owner != self.started_for or self.running, timeout=HANDOVER_S)
-            if self.owner is not None or self.retiring or self.retire_asked:
+                self.handed.wait_for(lambda: self.owner != self.started_for or self.tasked, timeout=HANDOVER_S)
+            if self.owner is not None or self.retiring or self.retire_asked or job in self.withdrawn:
                 return False
             self.owner, self.owner_seen = job, time.monotonic()
             return True
+
+    def _took_task(self) -> None:
+        """A task came: a claim waiting for this worker's hand-over gives up at once."""
+        with self.handed:
+            if not self.tasked:
+                self.tasked = True
+                self.handed.notify_all()
 
     def release(self, job: str) -> None:
         """The job is done with this worker: it waits for the next one (its GPU memory cache
         freed, its context and kernels kept)."""
         with self.lock:
             if self.owner != job:
+                # a job that gave up on a claim still queued here (it ended first): the claim,
+                # when it runs, is refused rather than holding this worker for OWNER_TIMEOUT
+                self.withdrawn = [*self.withdrawn[-15:], job]
                 return
             self.owner, self.idle_since = None, time.monotonic()
             self.channels.pop(job, None)
@@ -351,6 +365,7 @@ class FloxelsWorker:
 
         def tasks(first):
             for k, task in ch.tasks(first):
+                self._took_task()
                 stamps.setdefault("first_task", time.time())
                 task.lease = k
                 yield task
