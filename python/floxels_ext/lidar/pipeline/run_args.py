@@ -70,7 +70,7 @@ def resolve_preset(args) -> dict:
     preset's window when ``--scans`` was not given. Raises CLIError for a preset with
     another method."""
     from floxels_ext.errors import CLIError
-    from floxels_ext.estimator.config import PRESETS, FloxelsConfig
+    from floxels_ext.presets import DEFAULT_NUM_SCANS, PRESETS  # (no torch: a Ray driver never needs it)
 
     name = getattr(args, "preset", None)
     name = "paper" if name is None else name  # '' is refused like any unknown name (as the API does)
@@ -79,7 +79,7 @@ def resolve_preset(args) -> dict:
     if name != "paper" and getattr(args, "method", "floxels") != "floxels":
         raise CLIError(f"--preset {name} sets Floxels options; it does not apply to --method {args.method}")
     fields = dict(PRESETS[name])
-    window = fields.pop("num_scans", FloxelsConfig.num_scans)
+    window = fields.pop("num_scans", DEFAULT_NUM_SCANS)
     if getattr(args, "scans", None) is None:
         args.scans = window
     return fields
