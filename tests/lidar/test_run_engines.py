@@ -63,6 +63,7 @@ class _Spy:
 
     def __init__(self, monkeypatch, engine1_first: bool = False) -> None:
         self.pools: list = []
+        self.took1 = False
         init, take = engines_mod.Engines.__init__, engines_mod.Handout.take
         spy = self
 
@@ -72,10 +73,15 @@ class _Spy:
 
         def take_spy(self, engine, wait):
             if engine1_first and engine == 0:
+                # until engine 1 has taken a task (not "holds one": a test that kills it then
+                # hands its lease back before engine 0 looks, which then waited the full 120 s)
                 t = time.monotonic()
-                while not self.leases.get(1) and not self.ended and time.monotonic() - t < 120:
+                while not spy.took1 and not self.ended and time.monotonic() - t < 120:
                     time.sleep(0.05)
-            return take(self, engine, wait)
+            k = take(self, engine, wait)
+            if engine == 1 and isinstance(k, int):
+                spy.took1 = True
+            return k
 
         monkeypatch.setattr(engines_mod.Engines, "__init__", init_spy)
         monkeypatch.setattr(engines_mod.Handout, "take", take_spy)
