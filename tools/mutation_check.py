@@ -68,6 +68,7 @@ PREPROC = ["tests/ops/test_lidar_ops.py", "tests/lidar/test_ground_outliers.py",
 QUERY = ["tests/ops/test_dt_query.py", "tests/ops/test_dt_query_observed.py"]
 
 CFG = "python/floxels_ext/estimator/config.py"
+PRESETS_PY = "python/floxels_ext/presets.py"  # the preset table (no torch: the Ray driver reads it)
 REF = "python/floxels_ext/reference/estimator.py"
 SOLVER = "python/floxels_ext/ops/solver.py"
 STOP = "python/floxels_ext/estimator/early_stopping.py"
@@ -151,8 +152,8 @@ MUTATIONS = [
     ("DT cell default 0.1 -> 0.2", CFG, "dt_cell: float = 0.1 ", "dt_cell: float = 0.2 ", [PAPER]),
     ("voxel default 0.5 -> 0.4", CFG, "voxel_size: float = 0.5", "voxel_size: float = 0.4", [PAPER]),
     ("voxel default 0.5 -> 1.0", CFG, "voxel_size: float = 0.5", "voxel_size: float = 1.0", [ACCURACY]),
-    ("default window 5 -> 3 scans", CFG, "num_scans: int = 5 ", "num_scans: int = 3 ", [PAPER]),
-    ("floxels run's default window (the paper preset's) 5 -> 3", CFG, '    "paper": {},',
+    ("default window 5 -> 3 scans", PRESETS_PY, "DEFAULT_NUM_SCANS = 5 ", "DEFAULT_NUM_SCANS = 3 ", [PAPER]),
+    ("floxels run's default window (the paper preset's) 5 -> 3", PRESETS_PY, '    "paper": {},',
      '    "paper": {"num_scans": 3},', [PAPER]),
     # what the solver is told
     ("solver ignores truncation_mode='clamp'", SOLVER, '1.0 if cfg.truncation_mode == "clamp" else 0.0', "0.0",
@@ -221,16 +222,16 @@ MUTATIONS = [
      "sensors=sensors, grounds=ground, callback=deliver)", "sensors=sensors, grounds=None, callback=deliver)",
      [GROUND_RUN]),
     # the accurate preset
-    ("accurate without visibility (46)", CFG, '"range_mask": True, "visibility": True}',
+    ("accurate without visibility (46)", PRESETS_PY, '"range_mask": True, "visibility": True}',
      '"range_mask": True, "visibility": False}', [ACC]),
-    ("accurate without refine_sided (46)", CFG, '"refine_sided": True, "refine_search": True',
+    ("accurate without refine_sided (46)", PRESETS_PY, '"refine_sided": True, "refine_search": True',
      '"refine_sided": False, "refine_search": True', [ACC]),
-    ("accurate without refine_search", CFG, '"refine_search": True, "range_mask"', '"refine_search": False, "range_mask"',
+    ("accurate without refine_search", PRESETS_PY, '"refine_search": True, "range_mask"', '"refine_search": False, "range_mask"',
      [ACC]),
-    ("accurate without range_mask", CFG, '"range_mask": True, "visibility"', '"range_mask": False, "visibility"', [ACC]),
-    ("accurate refines every window plainly (refine_max_supports 0)", CFG, '"refine_max_supports": 2,',
+    ("accurate without range_mask", PRESETS_PY, '"range_mask": True, "visibility"', '"range_mask": False, "visibility"', [ACC]),
+    ("accurate refines every window plainly (refine_max_supports 0)", PRESETS_PY, '"refine_max_supports": 2,',
      '"refine_max_supports": 0,', [ACC]),
-    ("accurate windows 11 -> 9 scans", CFG, '"accurate": {"num_scans": 11,', '"accurate": {"num_scans": 9,', [ACC]),
+    ("accurate windows 11 -> 9 scans", PRESETS_PY, '"accurate": {"num_scans": 11,', '"accurate": {"num_scans": 9,', [ACC]),
     ("long windows refined without the sides' test", POST, "sided=not short,", "sided=False,", [ACC, SIDED]),
     ("refinement never searched", POST, "search=cfg.refine_search,", "search=False,", [ACC, SEARCH]),
     # refine.py
@@ -286,15 +287,15 @@ MUTATIONS = [
     ("seen through on the neighbours' farthest return (47)", SIGHT_PY,
      "near = torch.where(img >= 0, near, torch.full_like(near, -1.0))", "near = img", [SIGHT]),
     # issue 47: the accurate preset's new fields and the code they switch on
-    ("accurate regularisers by count (47)", CFG, '"reg_scale": "weights", "max_offset"', '"reg_scale": "support", "max_offset"',
+    ("accurate regularisers by count (47)", PRESETS_PY, '"reg_scale": "weights", "max_offset"', '"reg_scale": "support", "max_offset"',
      [ACC]),
-    ("accurate windows not cut at the ends (47)", CFG, '"max_offset": 5,', '"max_offset": 0,', [ACC]),
-    ("accurate without evidence_seen_mean (47)", CFG, '"evidence_seen_mean": True,', '"evidence_seen_mean": False,',
+    ("accurate windows not cut at the ends (47)", PRESETS_PY, '"max_offset": 5,', '"max_offset": 0,', [ACC]),
+    ("accurate without evidence_seen_mean (47)", PRESETS_PY, '"evidence_seen_mean": True,', '"evidence_seen_mean": False,',
      [ACC]),
-    ("accurate without evidence_keep_unseen (47)", CFG, '"evidence_keep_unseen": True,',
+    ("accurate without evidence_keep_unseen (47)", PRESETS_PY, '"evidence_keep_unseen": True,',
      '"evidence_keep_unseen": False,', [ACC]),
-    ("accurate without refine_level (47)", CFG, '"refine_level": True,', '"refine_level": False,', [ACC]),
-    ("accurate without refine_spread (47)", CFG, '"refine_spread": 1.0,', '"refine_spread": 0.0,', [ACC]),
+    ("accurate without refine_level (47)", PRESETS_PY, '"refine_level": True,', '"refine_level": False,', [ACC]),
+    ("accurate without refine_spread (47)", PRESETS_PY, '"refine_spread": 1.0,', '"refine_spread": 0.0,', [ACC]),
     ("weights scale not normalised to the paper's 4 (47)", CFG,
      "return 4.0 * sum(self.time_weight(t) for t in offsets) / ref", "return sum(self.time_weight(t) for t in offsets)",
      [LONG]),
