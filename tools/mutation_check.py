@@ -105,7 +105,8 @@ ENGINES_DEFAULT = "tests/lidar/test_run_engines.py::test_default_engines_by_devi
 MUTATIONS = [
     # ---- issues 44 / 42, sixth session: chunks anchored at their block, the engines' default ----
     ("chunks of consecutive targets, not blocks", LAYOUT,
-     "if out and (i - origin) // size == (out[-1][0] - origin) // size:", "if out and len(out[-1]) < size:",
+     "if out and block_start(i, chunk, origin) == block_start(out[-1][0], chunk, origin):",
+     "if out and len(out[-1]) < (chunk or DEFAULT_CHUNK):",
      [ANCHORS]),
     ("chunk anchored at its own first frame", LAYOUT,
      "self.anchor_from = lo if anchor_from is None else min(lo, anchor_from)", "self.anchor_from = lo",

@@ -17,14 +17,19 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["choose_cpu_threads", "apply_cpu_threads"]
+__all__ = ["usable_cores", "choose_cpu_threads", "apply_cpu_threads"]
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def choose_cpu_threads(cores: int | None = None, load: float | None = None) -> int:
     """Threads for CPU work: the cores that the load average (other runnable work) leaves
     free, rounded, at least 1."""
     if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cores = usable_cores()
     if load is None:
         try:
             load = os.getloadavg()[0]

@@ -81,10 +81,9 @@ def plan_chunks(todo: list[int], chunk: int | None, origin: int = 0) -> list[lis
     (before: ``chunk`` consecutive targets from the task's first one; a task cut at 64 frames
     or a resumed run re-centred its frames elsewhere: flow up to 2 cm off, bytes differing with
     a Ray job's timing)."""
-    size = chunk or DEFAULT_CHUNK
     out: list[list[int]] = []
     for i in todo:
-        if out and (i - origin) // size == (out[-1][0] - origin) // size:
+        if out and block_start(i, chunk, origin) == block_start(out[-1][0], chunk, origin):
             out[-1].append(i)
         else:
             out.append([i])

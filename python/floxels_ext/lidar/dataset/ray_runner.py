@@ -327,8 +327,11 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
             replacements -= 1
             launch(workers.add())
 
+    def workers_left() -> bool:  # running, or claimed from the pool and still coming while tasks remain
+        return bool(runs) or bool(workers.late) and len(ended) < len(todo_tasks)
+
     try:
-        while runs or workers.late and len(ended) < len(todo_tasks):
+        while workers_left():
             refs = list(runs) + list(polls) + list(workers.late)
             ready, _ = ray.wait(refs, num_returns=1, timeout=2.0)
             if ready:  # everything else ready by now as well
@@ -341,7 +344,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                         launch(slot)
                     elif slot is not None:
                         workers.drop(slot)
-                    elif not runs and not workers.late and len(ended) < len(todo_tasks):
+                    elif len(ended) < len(todo_tasks) and not workers_left():
                         launch(workers.add())  # refused, and no worker left: one of the job's own
                 elif ref in polls:
                     slot = polls.pop(ref)
@@ -388,7 +391,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                     for r in [r for r, s in polls.items() if s is slot]:
                         del polls[r]
                     workers.drop(slot)
-            if not runs and not (workers.late and len(ended) < len(todo_tasks)):
+            if not workers_left():
                 break  # all done, or no worker left (none coming): what is left is reported below
             done = done_frames + sum(live.values())
             if done > shown:

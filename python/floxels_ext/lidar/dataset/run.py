@@ -91,9 +91,9 @@ def default_engines(device: str, cores: int | None = None) -> int:
     if not device.startswith("cuda"):
         return 1
     if cores is None:
-        import os
+        from floxels_ext.cpu_threads import usable_cores
 
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cores = usable_cores()
     return 3 if cores >= THREE_ENGINE_CORES else 2
 
 
