@@ -17,8 +17,13 @@
 # value's rows come first, and the cold and subset rows use it).
 # MODES="long ray procs": also the control without Ray (bench_ray --modes procs: K x W plain runs).
 # PROCS_E="1 2": also procs rows of W/2 processes a GPU with --engines 2 each (bench_ray --procs-engines).
+# PRESTART=1: the cluster starts with Ray's worker prestart and module preload
+#   (floxels_ext.lidar.dataset.ray_preload.RAY_ENV, as docs/datasets-and-ray.md tells users), and
+#   the bench waits (up to 90 s) for the idle workers' imports before its rows.
+# SKIP_BUILD=1: the package is built already (a second pass in the same call). DATA=DIR: bench_ray's
+#   dataset directory (kept between passes; made if missing).
 # ROUNDS=R repeats the Ray (and procs) rows R times, interleaved; SPY=N py-spy dumps of N busy workers of each kind.
-#   OUT=... [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] [MODES="long ray"] tools/gpu_ray_bench.sh
+#   OUT=... [PRESTART=1] [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] [MODES="long ray"] tools/gpu_ray_bench.sh
 set -u
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 TORCH_CUDA_ARCH_LIST=9.0
@@ -36,11 +41,23 @@ log "ray $(python3 -c 'import ray; print(ray.__version__)' 2>&1), torch $(python
 shm=$(df -BG --output=avail /dev/shm | tail -1 | tr -dc 0-9); [ "${shm:-0}" -gt 100 ] && export TMPDIR=/dev/shm
 log "TMPDIR=${TMPDIR:-/tmp}"
 # (a)
-OUT=$W tools/gpu_run.sh build > /dev/null 2>&1; log "build: $(grep -h 'build rc\|cuda kernels' $W/summary.log | tr '\n' ' ')"
+if [ "${SKIP_BUILD:-0}" = 1 ]; then log "build skipped (SKIP_BUILD=1)"; else
+  OUT=$W tools/gpu_run.sh build > /dev/null 2>&1; log "build: $(grep -h 'build rc\|cuda kernels' $W/summary.log | tr '\n' ' ')"; fi
 # (b)
-python3 -m ray.scripts.scripts start --head --num-gpus $NG --num-cpus $NC --include-dashboard=false --disable-usage-stats \
-  > $W/ray_start.log 2>&1
-log "ray start rc=$?"
+if [ "${PRESTART:-0}" = 1 ]; then
+  env $(python3 -c 'from floxels_ext.lidar.dataset.ray_preload import RAY_ENV as e; print(" ".join(f"{k}={v}" for k, v in e.items()))') \
+    python3 -m ray.scripts.scripts start --head --num-gpus $NG --num-cpus $NC --include-dashboard=false --disable-usage-stats \
+    > $W/ray_start.log 2>&1
+  log "ray start (prestart + preload) rc=$?"
+  for i in $(seq 180); do  # the idle workers' preloads (each maps the compiled ops when done)
+    n=$(grep -l 'floxels_ext/_C' /proc/[0-9]*/maps 2>/dev/null | wc -l); [ "$n" -ge "$NC" ] && break; sleep 0.5
+  done
+  log "preloaded idle workers: $n of $NC after $((i / 2)) s"
+else
+  python3 -m ray.scripts.scripts start --head --num-gpus $NG --num-cpus $NC --include-dashboard=false --disable-usage-stats \
+    > $W/ray_start.log 2>&1
+  log "ray start rc=$?"
+fi
 # (c)
 python3 tools/host_sampler.py --out $W/hs --stop-file $W/hs/stop --interval 0.5 --spy ${SPY:-2} --spy-match "${SPY_MATCH:-FloxelsWorker|floxels_ext run}" > $W/hs.log 2>&1 &
 HS=$!
@@ -49,7 +66,7 @@ cold=${COLD:-$(echo $GPUS | awk '{print $NF}')}; coldf="--cold $cold"; [ "$cold"
 t=$(( $(left) - 45 ))
 log "bench_ray: --gpus $GPUS --workers-per-gpu ${WPG:-1} --cold $cold --subset ${SUBSET:-16} --subset-gpus 2, limit $t s"
 timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-gpu ${WPG:-1} --modes ${MODES:-long ray} \
-  --procs-engines ${PROCS_E:-1} --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
+  --procs-engines ${PROCS_E:-1} --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf ${DATA:+--data $DATA} --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
   > $OUT/bench_ray.log 2>&1
 log "bench_ray rc=$?"
 mkdir -p $W/hs; touch $W/hs/stop; wait $HS

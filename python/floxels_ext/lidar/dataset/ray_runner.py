@@ -187,7 +187,8 @@ def early_workers(args):
 def format_timeline(tl: dict) -> str:
     """A worker's start as 'name +s' steps in time order (s from the job's start; negative:
     before it, a warm worker)."""
-    names = {"requested": "requested", "process": "process", "imported": "imported", "init": "init",
+    names = {"requested": "requested", "process": "process", "imported": "imported",
+             "preloaded": "preloaded (torch, ops)", "init": "init",
              "torch": "torch + ops", "init_done": "init done", "warm_imports": "imports", "cuda_context": "CUDA context",
              "warm_done": "warm-up done", "run": "run", "pipeline": "pipeline", "first_task": "first task",
              "first_output": "first output", "last_output": "last output", "task_ended": "tasks ended",
@@ -423,6 +424,11 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
           f"{wall:.1f} s ({written / wall if wall > 0 else 0:.2f} frames/s), {total - todo} skipped (already done), "
           f"{len(failures)} failure(s)" + (f"; {len(deaths)} worker(s) lost" if deaths else "")
           + (f"; removed {left} temporary file(s) of killed workers" if left else ""), file=sys.stderr)
+    for r in results:  # every worker would use the first visible GPU: GPUs shared, others idle
+        if r.get("gpus") and (r.get("cuda_devices") or 0) > len(r["gpus"]):
+            print(f"floxels: warning: {r['name']} sees {r['cuda_devices']} GPUs though Ray gave it "
+                  f"{len(r['gpus'])}: CUDA was initialised in its process before Ray placed it (a module "
+                  "preloaded into Ray's workers must not touch CUDA)", file=sys.stderr)
     if verbosity > 0:
         for r in sorted(results, key=lambda r: r["timeline"].get("first_output", math.inf)):
             kind = "warm, from the pool" if r["claimed"] else "started for this job"

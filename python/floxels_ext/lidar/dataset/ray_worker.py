@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import queue
 import socket
+import sys
 import threading
 import time
 
@@ -89,6 +90,8 @@ def warm_up(device: str, stamps: dict) -> None:
             torch.zeros(1, device=device)
             torch.cuda.synchronize()
             stamps["cuda_context"] = time.time()
+            # more than Ray gave it: CUDA was initialised before Ray set CUDA_VISIBLE_DEVICES (the driver warns)
+            stamps["cuda_devices"] = torch.cuda.device_count()
             rng = np.random.default_rng(0)
             scans = [(rng.random((400, 3)) * [8, 8, 1] + [0.2 * i, 0, 0]).astype(np.float32) for i in range(3)]
             estimate_flow(scans, config=FloxelsConfig(max_iters=3), device=device)
@@ -176,6 +179,9 @@ class FloxelsWorker:
 
     def __init__(self, cpus: float, device: str, keep_s: float | None = None, job: str | None = None) -> None:
         self.stamps = {"process": process_start_time(), "imported": _IMPORTED, "init": time.time()}
+        preload = sys.modules.get("floxels_ext.lidar.dataset.ray_preload")  # Ray loaded it before this actor came
+        if preload is not None and hasattr(preload, "PRELOADED"):
+            self.stamps["preloaded"] = preload.PRELOADED
         import torch  # (importing floxels_ext does not import torch; the compiled ops load with it)
 
         import floxels_ext.ops  # noqa: F401
@@ -404,7 +410,8 @@ class FloxelsWorker:
         t0 = spec["t0"]
         rel = {k: round(v - t0, 3) for k, v in {**self.stamps, **stamps}.items() if isinstance(v, float)}
         out.update(written=res["written"], failed=res["failed"], stages=res["stages"], streams=res["streams"], log=log[-30:],
-                   warm=warm_jobs > 0, timeline=rel, warm_error=self.stamps.get("warm_error"))
+                   warm=warm_jobs > 0, timeline=rel, warm_error=self.stamps.get("warm_error"),
+                   cuda_devices=self.stamps.get("cuda_devices"))
         return out
 
 
