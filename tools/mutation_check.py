@@ -99,10 +99,20 @@ ANCHORS = "tests/lidar/test_chunk_anchors.py"
 RAY_HALF = "tests/lidar/test_ray.py::test_tail_halves_inside_a_chunk_same_bytes"
 DATASET_RUN = "python/floxels_ext/lidar/dataset/run.py"
 ENGINES_DEFAULT = "tests/lidar/test_run_engines.py::test_default_engines_by_device_and_cores"
+RAY_REPORT = "python/floxels_ext/lidar/dataset/ray_report.py"
+RAY_PRELOAD = "python/floxels_ext/lidar/dataset/ray_preload.py"
+PRELOAD_TEST = "tests/lidar/test_ray_preload.py"
 
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34; of those
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
+    # ---- issue 44, seventh session: workers on Ray's preloaded processes ----
+    ("preloaded process not stamped", RAY_WORKER, 'self.stamps["preloaded"] = preload.PRELOADED', "pass",
+     [PRELOAD_TEST]),
+    ("preload names another module", RAY_PRELOAD, '"RAY_preload_python_modules": __name__', '"RAY_preload_python_modules": "torch"',
+     [PRELOAD_TEST]),
+    ("a worker seeing extra GPUs not reported", RAY_REPORT, '(r.get("cuda_devices") or 0) > len(r["gpus"])', "False",
+     [PRELOAD_TEST]),
     # ---- issues 44 / 42, sixth session: chunks anchored at their block, the engines' default ----
     ("chunks of consecutive targets, not blocks", LAYOUT,
      "if out and block_start(i, chunk, origin) == block_start(out[-1][0], chunk, origin):",

@@ -33,6 +33,19 @@ def test_preload_module_names_itself_and_leaves_cuda_alone():
     assert not torch.cuda.is_initialized()
 
 
+def test_worker_seeing_more_gpus_than_ray_gave_it_is_reported(capsys):
+    from floxels_ext.lidar.dataset.ray_report import format_timeline, report_workers
+
+    base = {"name": "w", "host": "h", "pid": 1, "claimed": False, "written": 3, "gpus": ["1"],
+            "timeline": {"preloaded": -9.0, "requested": 0.1, "first_output": 1.5}}
+    report_workers([base | {"cuda_devices": 1}, base | {"gpus": [], "cuda_devices": 4}], verbosity=0)
+    assert capsys.readouterr().err == ""
+    report_workers([base | {"cuda_devices": 2}], verbosity=0)
+    err = capsys.readouterr().err
+    assert "floxels: warning: w sees 2 GPUs though Ray gave it 1" in err, err
+    assert format_timeline(base["timeline"]) == "preloaded (torch, ops) -9.00, requested +0.10, first output +1.50"
+
+
 def _preloaded_idle_workers(raylet: int) -> list[int]:
     """The raylet's idle Python workers that finished the preload (they mapped the compiled ops)."""
     done = []

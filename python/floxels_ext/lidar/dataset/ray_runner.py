@@ -29,7 +29,6 @@ worker's start timeline (``-v`` prints it).
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import sys
@@ -37,7 +36,9 @@ import time
 from collections import deque
 from pathlib import Path
 
-__all__ = ["run_on_ray", "early_workers", "connect", "task_slots", "format_timeline"]
+from floxels_ext.lidar.dataset.ray_report import report_workers, write_job_summary
+
+__all__ = ["run_on_ray", "early_workers", "connect", "task_slots"]
 
 POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (the driver's heartbeat)
 TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is halved while each half keeps this many
@@ -182,29 +183,6 @@ def early_workers(args):
         ok = True
     finally:
         workers.close(ok)
-
-
-def format_timeline(tl: dict) -> str:
-    """A worker's start as 'name +s' steps in time order (s from the job's start; negative:
-    before it, a warm worker)."""
-    names = {"requested": "requested", "process": "process", "imported": "imported",
-             "preloaded": "preloaded (torch, ops)", "init": "init",
-             "torch": "torch + ops", "init_done": "init done", "warm_imports": "imports", "cuda_context": "CUDA context",
-             "warm_done": "warm-up done", "run": "run", "pipeline": "pipeline", "first_task": "first task",
-             "first_output": "first output", "last_output": "last output", "task_ended": "tasks ended",
-             "end": "end"}
-    order = list(names)
-    steps = sorted((v, order.index(k), k) for k, v in tl.items() if k in names and isinstance(v, (int, float)))
-    return ", ".join(f"{names[k]} {v:+.2f}" for v, _, k in steps)
-
-
-def _job_summary(path: Path, info: dict) -> None:
-    try:
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(info, indent=1, default=str) + "\n")
-        os.replace(tmp, path)
-    except OSError as e:
-        print(f"floxels: warning: cannot write {path}: {e}", file=sys.stderr)
 
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int = 0) -> int:
@@ -424,18 +402,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
           f"{wall:.1f} s ({written / wall if wall > 0 else 0:.2f} frames/s), {total - todo} skipped (already done), "
           f"{len(failures)} failure(s)" + (f"; {len(deaths)} worker(s) lost" if deaths else "")
           + (f"; removed {left} temporary file(s) of killed workers" if left else ""), file=sys.stderr)
-    for r in results:  # every worker would use the first visible GPU: GPUs shared, others idle
-        if r.get("gpus") and (r.get("cuda_devices") or 0) > len(r["gpus"]):
-            print(f"floxels: warning: {r['name']} sees {r['cuda_devices']} GPUs though Ray gave it "
-                  f"{len(r['gpus'])}: CUDA was initialised in its process before Ray placed it (a module "
-                  "preloaded into Ray's workers must not touch CUDA)", file=sys.stderr)
-    if verbosity > 0:
-        for r in sorted(results, key=lambda r: r["timeline"].get("first_output", math.inf)):
-            kind = "warm, from the pool" if r["claimed"] else "started for this job"
-            print(f"  {r['name']} ({r['host']} pid {r['pid']}, {kind}; GPU {','.join(r['gpus']) or '-'}; "
-                  f"{r['written']} frames): {format_timeline(r['timeline'])}"
-                  + (f"; warm-up failed: {r['warm_error']}" if r.get("warm_error") else ""), file=sys.stderr)
-    _job_summary(Path(args.out) / "ray_job_summary.json", {
+    report_workers(results, verbosity)
+    write_job_summary(Path(args.out) / "ray_job_summary.json", {
         "input": str(args.input), "started": workers.t0, "wall_s": round(wall, 3), "frames_written": written,
         "all_tasks_ended_s": None if t_all_ended is None else round(t_all_ended - workers.t0, 3),
         "frames_per_s": round(written / wall, 3) if wall > 0 else None, "tasks": counts, "failures": len(failures),
