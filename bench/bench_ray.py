@@ -453,7 +453,7 @@ def main() -> None:
         all1 = f"{r['all_first_output_s']:.2f}" if r["all_first_output_s"] is not None else "-"
         print(f"{r['mode']:<10}{r['gpus']:>5}{r['wall_s']:>9.2f}{r['frames']:>8}{r['fps']:>10.2f}{first:>9}{all1:>8}"
               f"{after:>10}{ratio:>14}{eff:>7}{wk:>8}{diff:>13}{over:>8}{masks:>7}{steady:>10}{eff_st:>8}")
-    from floxels_ext.lidar.dataset.ray_runner import format_timeline
+    from floxels_ext.lidar.dataset.ray_report import format_timeline
 
     for r in rows:  # where each worker's start went (s from the job's start; negative: before it)
         for w in r.get("workers", []):
