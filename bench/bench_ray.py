@@ -163,7 +163,7 @@ def job_workers(out: Path) -> list[dict]:
     """Each worker's start timeline etc. from the job's ray_job_summary.json."""
     info = job_info(out)
     keep = ("name", "host", "pid", "gpus", "warm", "claimed", "written", "streams", "timeline",
-            "threads", "warm_error")
+            "threads", "warm_error", "cuda_devices")
     return [{k: w.get(k) for k in keep} for w in info.get("workers", [])]
 
 
