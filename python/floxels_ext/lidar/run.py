@@ -52,10 +52,11 @@ def add_parser(sub) -> None:
     p.add_argument("--list-methods", action="store_true", help="print the available methods and exit")
     p.add_argument("--scans", type=int, default=None,
                    help="scans per window, target in the middle (default: the preset's, paper 5, accurate 11)")
-    p.add_argument("--preset", default="paper",
-                   help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
-                        "11 scans, motion evidence judged where each scan could see, rigid refinement of moving "
-                        "clusters from their flow and their searched velocity; docs/accurate.md)")
+    p.add_argument("--preset", default=None,
+                   help="Floxels settings: accurate (default; beyond the paper: 11 scans, motion evidence judged "
+                        "where each scan could see, rigid refinement of moving clusters from their flow and their "
+                        "searched velocity; docs/accurate.md) or paper (the paper's method, a faithful "
+                        "reproduction; the API's default). Other --methods take no preset")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
                    "neighbours outside still serve as support scans")
