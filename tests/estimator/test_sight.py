@@ -242,7 +242,8 @@ def test_a_sensor_beyond_any_lidars_reach_is_not_used(scene):
     b = estimate_flow(scans, 2, cfg, sensor_origins=[None] * 5)
     assert np.array_equal(a, b)
     one = [sensors[0] + [2500.0, 0.0, 0.0]] + list(sensors[1:])  # the others keep their sights
-    c = estimate_flow(scans, 2, cfg, sensor_origins=one)
+    with pytest.warns(UserWarning, match="more than 1000 m from every point"):
+        c = estimate_flow(scans, 2, cfg, sensor_origins=one)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a sensor among its points: no warning
         d = estimate_flow(scans, 2, cfg, sensor_origins=[None] + list(sensors[1:]))
