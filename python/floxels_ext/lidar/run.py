@@ -64,9 +64,10 @@ def add_parser(sub) -> None:
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="method option (Floxels: any FloxelsConfig field, e.g. voxel_size=0.5); repeatable")
     p.add_argument("--raw-flow", action="store_true",
-                   help="Floxels: keep the paper's raw flow (default: the flow of groups of points whose motion "
-                        "the scans do not support is set to 0, FloxelsConfig evidence=zero); the motion evidence "
-                        "is written either way ('evidence', 'explained')")
+                   help="Floxels: keep the optimiser's flow of the groups of points whose motion the scans do "
+                        "not support (default: set to 0, FloxelsConfig evidence=zero; with --preset paper the "
+                        "output is then the paper's raw flow); the motion evidence is written either way "
+                        "('evidence', 'explained': dynamic & explained are the default's moving points)")
     p.add_argument("--no-ground-removal", action="store_true", help="keep ground points")
     p.add_argument("--min-range", type=_opt_float, default=3.0, help="m, drop closer points (default 3; 'none')")
     p.add_argument("--max-range", type=_opt_float, default=50.0, help="m, drop farther points (default 50; 'none')")
