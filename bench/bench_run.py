@@ -198,7 +198,9 @@ def main() -> None:
         print(f"sequence: {args.frames} frames, {args.beams} beams, {npts} raw points/frame (ground included), "
               f"built in {time.perf_counter() - t0:.1f} s", flush=True)
         options = {} if args.max_iters is None else {"max_iters": args.max_iters}
-        common = ["--device", args.device, "--scans", str(args.scans), *args.run_args.split()]
+        # the paper preset unless --run-args / a variant says otherwise (the later --preset wins):
+        # floxels run's default is accurate since issue 42, and the ceiling below is the paper's
+        common = ["--device", args.device, "--scans", str(args.scans), "--preset", "paper", *args.run_args.split()]
         if args.max_iters is not None:
             common += ["--max-iters", str(args.max_iters)]
         # warm-up: CUDA context, kernel loading, first allocations (not a user-visible cost per frame)
