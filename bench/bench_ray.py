@@ -307,7 +307,8 @@ def main() -> None:
     most = max([2, *(args.gpus or [1]), *args.cold, *args.subset_gpus]) * max(args.workers_per_gpu)
     make_kitti_dataset(warm, most, 6, 16, 360, 2, 2)
     gen_s = time.perf_counter() - t0
-    flags = ["--device", args.device, "-q", *args.run_args.split()]
+    # the paper preset unless --run-args says otherwise (floxels run's default is accurate since issue 42)
+    flags = ["--device", args.device, "-q", "--preset", "paper", *args.run_args.split()]
     if args.max_iters or not cuda:
         flags += ["--max-iters", str(args.max_iters or 30)]
     n_long = desc["distinct"] * frames

@@ -200,8 +200,11 @@ def main() -> None:
         print(f"sequence: {args.frames} frames, {args.beams} beams, {npts} raw points/frame (ground included), "
               f"built in {time.perf_counter() - t0:.1f} s", flush=True)
         options = {} if args.max_iters is None else {"max_iters": args.max_iters}
-        # --scans only when asked: a variant's --preset then brings its own window (accurate: 11), as for a user
-        common = ["--device", args.device, *(["--scans", str(args.scans)] if args.scans else []), *args.run_args.split()]
+        # --scans only when asked (each --preset then brings its own window: accurate 11, as for a user);
+        # the paper preset unless --run-args / a variant says otherwise (the later --preset wins):
+        # floxels run's default is accurate since issue 42, and the ceiling below is the paper's
+        common = ["--device", args.device, *(["--scans", str(args.scans)] if args.scans else []), "--preset", "paper",
+                  *args.run_args.split()]
         if args.max_iters is not None:
             common += ["--max-iters", str(args.max_iters)]
         # warm-up: CUDA context, kernel loading, first allocations (not a user-visible cost per frame)

@@ -248,3 +248,31 @@ def test_group_sums_equal_index_add_sorted_or_not():
     for a, b in zip((runs.score, runs.explained, runs.residual_flow, runs.residual_zero),
                     (ev.score, ev.explained, ev.residual_flow, ev.residual_zero)):
         assert torch.equal(a, b[order])
+
+
+def test_accurate_score_is_zero_before_the_zeroing():
+    # issue 42 (floxels run's default is accurate; --raw-flow is evidence="score"): the score
+    # output's flow kept only where the final verdict says explained is the zero output, the
+    # same verdict in both; before, "score" refined the unzeroed flow and left groups kept only
+    # because no scan saw them explained with their raw flow, which the zero output drops
+    from floxels_ext.estimator import estimate_sequence
+    from floxels_ext.evaluation.sim import simulate_sequence
+
+    seq = simulate_sequence("crossing", 6, 0, beams=16, azimuth_steps=360)
+    scans = [f.points[~f.ground] for f in seq.frames]  # the ground removed, as floxels run does
+    grounds = [f.points[f.ground] for f in seq.frames]
+    sensors = [f.pose[:3, 3] for f in seq.frames]
+    got = {}
+    for mode in ("zero", "score"):
+        cfg = FloxelsConfig.preset("accurate", num_scans=3, max_iters=8, evidence=mode)
+        res = got[mode] = []
+        estimate_sequence(scans, cfg, frames=[1, 2], sensor_origins=sensors, ground_points=grounds, device="cpu",
+                          callback=lambda i, r, res=res: res.append(r))
+    rejected = 0
+    for z, s in zip(got["zero"], got["score"]):
+        np.testing.assert_array_equal(z.explained, s.explained)
+        np.testing.assert_array_equal(z.evidence, s.evidence)
+        np.testing.assert_array_equal(z.flow, np.where(s.explained[:, None], s.flow, 0))
+        assert not (np.abs(z.flow).max(axis=1) > 0)[~z.explained].any()
+        rejected += int((~s.explained & (np.abs(s.flow).max(axis=1) > 0.05)).sum())
+    assert rejected > 0  # the score output keeps flow the verdict rejects

@@ -77,15 +77,20 @@ def test_paper_text_states_the_values():
         assert quote in text, quote
 
 
-def test_cli_default_window_is_five_scans():
+def test_cli_paper_window_is_five_scans():
+    # floxels run's default is the accurate preset (11 scans, issue 42); --preset paper, the
+    # faithful reproduction, and any other method keep the paper's 5 scans, as the API does
     from floxels_ext import cli
 
     from floxels_ext.lidar.pipeline.run_args import resolve_preset
 
-    args = cli.build_parser().parse_args(["run", "in", "--out", "o"])
-    assert args.preset == "paper"
-    resolve_preset(args)  # --scans left out: the preset's window (the paper's 5 scans)
-    assert args.scans == 5
+    parse = cli.build_parser().parse_args
+    args = parse(["run", "in", "--out", "o", "--preset", "paper"])
+    assert resolve_preset(args) == {} and args.scans == 5  # --scans left out: the paper's 5 scans
+    args = parse(["run", "in", "--out", "o", "--method", "nsfp"])
+    assert resolve_preset(args) == {} and args.scans == 5
+    args = parse(["run", "in", "--out", "o"])
+    assert resolve_preset(args)["range_mask"] is True and args.scans == 11
     assert window_for(10, 20, FloxelsConfig().num_scans) == (8, 13)
 
 

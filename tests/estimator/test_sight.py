@@ -225,3 +225,26 @@ def test_scan_sight_band_is_horizontal_range():
     s = scan_sight(pts, np.zeros(3), band=True, image=False)
     q = torch.tensor([[19.9, 0.0, -3.0], [0.0, 3.1, 1.5], [20.1, 0.0, 0.0], [2.9, 0.0, -1.5]])
     assert observed_bits(q, [s]).tolist() == [1, 1, 0, 0]
+
+
+def test_a_sensor_beyond_any_lidars_reach_is_not_used(scene):
+    # positions in another frame than the scans (issue 42: world-frame files far out, the world
+    # origin taken as their sensor): 2.5 km from every point the range bands cut the scene and
+    # the range images hold it in a few bins; such a sensor is dropped with one warning
+    scans, sensors, _ = scene
+    cfg = FloxelsConfig(evidence="zero", range_mask=True, visibility=True, max_iters=40)
+    far = [s + [2500.0, 0.0, 0.0] for s in sensors]
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        a = estimate_flow(scans, 2, cfg, sensor_origins=far)
+    said = [str(w.message) for w in got if "more than 1000 m from every point" in str(w.message)]
+    assert said and "range_mask and visibility" in said[0] and "--no-ego-motion" in said[0]
+    b = estimate_flow(scans, 2, cfg, sensor_origins=[None] * 5)
+    assert np.array_equal(a, b)
+    one = [sensors[0] + [2500.0, 0.0, 0.0]] + list(sensors[1:])  # the others keep their sights
+    with pytest.warns(UserWarning, match="more than 1000 m from every point"):
+        c = estimate_flow(scans, 2, cfg, sensor_origins=one)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a sensor among its points: no warning
+        d = estimate_flow(scans, 2, cfg, sensor_origins=[None] + list(sensors[1:]))
+    assert np.array_equal(c, d)

@@ -3,6 +3,7 @@ of the scan the method asks for, and dropped once behind its window, whatever th
 and the flow equals the serial path's whatever the chunks."""
 
 import numpy as np
+import pytest
 
 from floxels_ext import cli, methods
 from floxels_ext.lidar.dataset import layout
@@ -52,15 +53,20 @@ def test_frames_held_stay_bounded_over_a_long_chunk(tmp_path, monkeypatch, capsy
     assert len(held) > n and max(held) <= 4 + 2 + 3, held
 
 
-def test_run_flow_equals_estimate_sequence_on_the_reference_preprocessing(tmp_path, capsys):
+@pytest.mark.parametrize("preset", ["paper", "accurate"])
+def test_run_flow_equals_estimate_sequence_on_the_reference_preprocessing(tmp_path, capsys, preset):
     """``floxels run`` (reader threads, the CPU ops, chunked calls, writer threads) gives the flow
     of the serial path: the numpy reference's masks, the scans moved into one world frame,
     ``estimate_sequence``, the flow rotated back into each file's axes; whatever the chunks (each
-    chunk's origin is on the 10 m anchor grid, so the method's grids stay aligned)."""
+    chunk's origin is on the 10 m anchor grid, so the method's grids stay aligned). ``accurate``
+    (the run's default; the API's is paper) with what the run passes besides the scans: each
+    scan's sensor (its pose's translation) and its removed ground returns."""
     from floxels_ext import FloxelsConfig, estimate_sequence
     from floxels_ext.evaluation.sim import simulate_sequence
     from floxels_ext.lidar.dataset.layout import snap_anchor
-    from floxels_ext.lidar.preprocess import preprocess_mask_numpy, transform_points
+    from floxels_ext.lidar.preprocess import transform_points
+    from floxels_ext.lidar.preprocess.masks import preprocess_classes_numpy
+    from floxels_ext.lidar.preprocess.settings import GROUND, KEPT
 
     seq = simulate_sequence("crossing", 7, 4, beams=16, azimuth_steps=360)
     d = tmp_path / "velodyne"
@@ -71,21 +77,28 @@ def test_run_flow_equals_estimate_sequence_on_the_reference_preprocessing(tmp_pa
         raw.append(p)
         np.c_[p, np.zeros(len(p))].astype(np.float32).tofile(d / f"{i:06d}.bin")
     np.savetxt(tmp_path / "poses.txt", np.stack([f.pose[:3] for f in seq.frames]).reshape(-1, 12))
-    masks = [preprocess_mask_numpy(p) for p in raw]
+    classes = [preprocess_classes_numpy(p) for p in raw]
+    masks = [c == KEPT for c in classes]
     anchor = snap_anchor(seq.frames[0].pose[:3, 3])
     assert np.abs(anchor - seq.frames[0].pose[:3, 3]).max() > 0.1  # the test needs a real snap
-    scans = []
-    for p, m, fr in zip(raw, masks, seq.frames):
+    scans, grounds, sensors = [], [], []
+    for p, c, fr in zip(raw, classes, seq.frames):
         T = fr.pose.copy()
         T[:3, 3] -= anchor
-        scans.append(transform_points(p[m], T))
-    # floxels run's default: the motion evidence, unexplained groups zeroed (--raw-flow: "score")
-    ref = estimate_sequence(scans, FloxelsConfig(num_scans=3, max_iters=6, evidence="zero"), device="cpu")
+        scans.append(transform_points(p[c == KEPT], T))
+        grounds.append(transform_points(p[c == GROUND], T))
+        sensors.append(T[:3, 3])
+    # the motion evidence, unexplained groups zeroed (--raw-flow: "score")
+    if preset == "paper":
+        ref = estimate_sequence(scans, FloxelsConfig(num_scans=3, max_iters=6, evidence="zero"), device="cpu")
+    else:
+        ref = estimate_sequence(scans, FloxelsConfig.preset("accurate", num_scans=3, max_iters=6), device="cpu",
+                                sensor_origins=sensors, ground_points=grounds)
     for chunk in (None, "3", "2"):
         out = tmp_path / f"out{chunk}"
         args = ["run", str(d), "--out", str(out), "--poses", str(tmp_path / "poses.txt"), "--scans", "3",
                 "--max-iters", "6", "--device", "cpu", "-q"] + (["--chunk", chunk] if chunk else [])
-        assert cli.main(args) == 0, capsys.readouterr().err
+        assert cli.main(args + (["--preset", "paper"] if preset == "paper" else [])) == 0, capsys.readouterr().err
         for i, fr in enumerate(seq.frames):
             o = read_flow_output(out / f"{i:06d}.npz")
             np.testing.assert_array_equal(o["mask"], masks[i])

@@ -337,6 +337,22 @@ def test_motion_evidence_fields_switch_and_resume(seq, tmp_path, capsys):
     assert rc == 0 and "2 already done" in cap.err
 
 
+def test_default_preset_is_accurate_and_paper_outputs_say_how_to_resume(seq, tmp_path, capsys):
+    """floxels run's default is accurate (issue 42); a run resumed over outputs of the paper
+    preset (earlier versions' default) stops and says how to continue them."""
+    save_sequence(tmp_path / "sim", seq)
+    args = [tmp_path / "sim", "--out", tmp_path / "o", "--max-iters", "2", "--frames", "2:3"]
+    rc, cap = _run([*args, "--preset", "paper"], capsys)
+    assert rc == 0, cap.err
+    assert read_flow_output(tmp_path / "o" / "000002.npz")["settings"]["num_scans"] == 5
+    rc, cap = _run(args, capsys)
+    assert rc == 2 and "--preset paper continues outputs of the paper's settings" in cap.err
+    rc, cap = _run([*args, "--force"], capsys)
+    assert rc == 0, cap.err
+    d = read_flow_output(tmp_path / "o" / "000002.npz")
+    assert d["settings"]["num_scans"] == 11 and d["settings"]["options"]["visibility"] is True
+
+
 def test_preset_accurate(seq, tmp_path, capsys, fake):
     """--preset accurate: the preset's fields are the run's options, its 11-scan window unless
     --scans is given; with another method it is a user error."""

@@ -11,9 +11,9 @@ import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
 from floxels_ext.estimator.schedule import EdtStreams, upload
-from floxels_ext.estimator.sight import Sight, scan_sight
+from floxels_ext.estimator.sight import Sight, scan_sight, sensor_out_of_reach, warn_sensor_out_of_reach
 from floxels_ext.ops import distance_transform
-from floxels_ext.ops.grid import grid_from_bounds
+from floxels_ext.ops.grid import grid_from_bounds, point_bounds
 
 __all__ = ["DistanceTransform", "build_dt", "EarlyDts", "WindowCache"]
 
@@ -35,7 +35,8 @@ def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None,
     ``sensor`` (the scan's sensor position, xyz in the scans' frame) with ``cfg.range_mask`` or
     ``cfg.visibility``: its :class:`~floxels_ext.estimator.sight.Sight` comes with it, its range
     image with the scan's removed ground returns where ``ground_of()`` gives them (called only
-    then: re-centring and uploading them is work no other option needs)."""
+    then: re-centring and uploading them is work no other option needs). A sensor beyond any
+    lidar's reach of every point (``sight.sensor_out_of_reach``) is not used, with a warning."""
     if points.shape[0] == 0:
         return None
     if bounds is None:
@@ -46,6 +47,9 @@ def build_dt(points: torch.Tensor, cfg: FloxelsConfig, bounds=None, sensor=None,
         occ = F.points_to_occupancy(points, origin, cfg.dt_cell, shape)
         d = DistanceTransform(F.edt(occ, cfg.dt_cell), origin)
     if (cfg.range_mask or cfg.visibility) and sensor is not None:
+        if sensor_out_of_reach(sensor, bounds if bounds is not None else point_bounds([points])[0]):
+            warn_sensor_out_of_reach()
+            return d
         ground = ground_of() if cfg.visibility and ground_of is not None else None
         if ground is not None:
             ground = upload(ground, points.device)  # on this (the EDT's) stream

@@ -7,6 +7,8 @@ one synchronisation per round for all of them (estimator/host_reads.py)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from floxels_ext.estimator.config import FloxelsConfig
@@ -56,10 +58,14 @@ def after_optimisation_steps(cfg: FloxelsConfig, problem: SolverProblem, flow: t
     elif cfg.evidence != "off" or (refine and cfg.refine_spread > 0):
         observed = problem_observed(p)
     ev = None
+    raw = flow  # the optimiser's flow: what evidence="score" keeps where the final verdict rejects
     if cfg.evidence != "off":
         ev = problem_evidence(cfg, p, flow, observed, occluded)
-        if cfg.evidence == "zero":
-            flow = ev.apply(flow)
+        # both modes run the same steps on the zeroed flow: "score" differs from "zero" only in
+        # the rows of the groups the final verdict rejects (below), so a user filtering a
+        # --raw-flow output with `explained` gets the default output's labels (issue 42; before,
+        # "score" refined the unzeroed flow and kept hidden groups the refinement did not confirm)
+        flow = ev.apply(flow)
     # after the evidence test: the refinement must not revive a group the scans gave no
     # evidence of motion (static structure seen in a band that moves with the sensor is
     # fitted *better* by a rigid motion: simulated highway, static EPE 0.52 -> 0.99 when
@@ -70,7 +76,8 @@ def after_optimisation_steps(cfg: FloxelsConfig, problem: SolverProblem, flow: t
         flow, motions = yield from rigid_refine_steps(p.points, flow, p.labels, supports,
                                                       num_clusters=p.num_clusters, sided=not short,
                                                       search=cfg.refine_search, motions=True, level=cfg.refine_level)
-    if ev is not None and ev.hidden is not None and cfg.evidence == "zero":
+    explained = None if ev is None else ev.explained
+    if ev is not None and ev.hidden is not None:
         # a group kept only because no scan saw it (something in front of it each time) keeps its
         # flow where a rigid motion explains the scans (all of them) clearly better than zero flow
         # (a car approaching from behind, at a sequence's first frame); static structure hidden
@@ -79,10 +86,19 @@ def after_optimisation_steps(cfg: FloxelsConfig, problem: SolverProblem, flow: t
         # the target's static structure (estimator/unseen.py: a parked car in a row of them)
         keep = torch.zeros_like(ev.hidden) if motions is None else hidden_keeps(
             p.points, flow, p.labels, ev.hidden, motions.fits, supports, p.num_clusters)
-        flow = torch.where((ev.hidden & ~keep)[:, None], torch.zeros_like(flow), flow)
+        dropped = ev.hidden & ~keep
+        flow = torch.where(dropped[:, None], torch.zeros_like(flow), flow)
+        explained = explained & ~dropped
     if motions is not None and cfg.refine_spread > 0:
         flow = yield from spread_rigid_steps(p.points, flow, p.labels, supports, motions, cfg.refine_spread,
                                              observed=observed)
+    if ev is not None:
+        # the final verdict: a rejected group that took a spread motion (tested against zero flow
+        # there) is explained; every rejected row's flow is 0 here, every moving row explained
+        explained = explained | (flow != 0).any(dim=1)
+        ev = replace(ev, explained=explained)
+        if cfg.evidence == "score":
+            flow = torch.where(explained[:, None], flow, raw)
     return flow, ev
 
 

@@ -41,7 +41,8 @@ import torch
 
 from floxels_ext.ops._small import device_values
 
-__all__ = ["Sight", "scan_sight", "observed_bits", "AZ_BIN", "EL_BIN", "SEEN_MARGIN", "THROUGH_BINS"]
+__all__ = ["Sight", "scan_sight", "observed_bits", "sensor_out_of_reach", "AZ_BIN", "EL_BIN", "SEEN_MARGIN",
+           "THROUGH_BINS", "SENSOR_REACH"]
 
 AZ_BIN = math.radians(0.5)   # range image bins: coarser than a 64-beam lidar's rays, so that a
 EL_BIN = math.radians(0.5)   # bin holds a return wherever the scan has one nearby
@@ -50,6 +51,8 @@ THROUGH_BINS = 4             # elevation bins (2 degrees) searched above and bel
                              # beams next to it: a 32-beam lidar's rings ~1 degree apart, a 16-beam one's 2
 NUM_AZ = int(round(2 * math.pi / AZ_BIN))
 NUM_EL = int(round(math.pi / EL_BIN)) + 1
+SENSOR_REACH = 1000.0        # m: beyond any lidar's range; a "sensor" this far from every point of its
+                             # scan is not its sensor (a position in another frame than the scans)
 CHUNK_ELEMENTS = 1 << 23     # observed_bits: scans tested together, at most this many (scan, point) pairs
 
 
@@ -69,6 +72,30 @@ class Sight:
 
     def tensors(self) -> list[torch.Tensor]:
         return [t for t in (self.sensor, self.band, self.image, self.near, self.top) if t is not None]
+
+
+def sensor_out_of_reach(sensor, bounds) -> bool:
+    """Whether ``sensor`` (xyz) lies more than ``SENSOR_REACH`` from the box ``bounds`` ((min xyz,
+    max xyz), host numbers) of its scan's points, so from every point: no lidar saw them from
+    there. Such a sight is garbage, and silently so: seen from thousands of km every point falls
+    in one or two direction bins, and a position a few km off cuts the range band (issue 42:
+    world-frame files far out read with ``--no-ego-motion`` took the world origin as the sensor).
+    On the host, from bounds the estimator has anyway: no device synchronisation."""
+    lo, hi = bounds
+    gap = [max(a - float(s), 0.0, float(s) - b) for s, a, b in zip(sensor[:3], lo, hi)]
+    return math.fsum(g * g for g in gap) > SENSOR_REACH ** 2
+
+
+def warn_sensor_out_of_reach() -> None:
+    """The warning that a scan's sensor position is not used (one text: said once per run)."""
+    from floxels_ext.estimator.user_warnings import warn_user
+
+    warn_user(f"a scan's sensor position lies more than {SENSOR_REACH:.0f} m from every point of the scan, "
+              f"beyond any lidar's range, so it is not where the scan was taken from (a position in "
+              f"another frame than the points? floxels run takes each file frame's origin with "
+              f"--no-ego-motion: world-frame files need their poses); range_mask and visibility (on in "
+              f"the 'accurate' preset) skip such scans, which count everywhere in the evidence test, as "
+              f"without sensor positions")
 
 
 def _bins(rel: torch.Tensor, horiz: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -52,10 +52,11 @@ def add_parser(sub) -> None:
     p.add_argument("--list-methods", action="store_true", help="print the available methods and exit")
     p.add_argument("--scans", type=int, default=None,
                    help="scans per window, target in the middle (default: the preset's, paper 5, accurate 11)")
-    p.add_argument("--preset", default="paper",
-                   help="Floxels settings: paper (default, the paper's method) or accurate (beyond the paper: "
-                        "11 scans, motion evidence judged where each scan could see, rigid refinement of moving "
-                        "clusters from their flow and their searched velocity; docs/accurate.md)")
+    p.add_argument("--preset", default=None,
+                   help="Floxels settings: accurate (default; beyond the paper: 11 scans, motion evidence judged "
+                        "where each scan could see, rigid refinement of moving clusters from their flow and their "
+                        "searched velocity; docs/accurate.md) or paper (the paper's method, a faithful "
+                        "reproduction; the API's default). Other --methods take no preset")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--frames", metavar="A:B", help="only these frames (Python slice over the sorted frames); "
                    "neighbours outside still serve as support scans")
@@ -63,9 +64,10 @@ def add_parser(sub) -> None:
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="method option (Floxels: any FloxelsConfig field, e.g. voxel_size=0.5); repeatable")
     p.add_argument("--raw-flow", action="store_true",
-                   help="Floxels: keep the paper's raw flow (default: the flow of groups of points whose motion "
-                        "the scans do not support is set to 0, FloxelsConfig evidence=zero); the motion evidence "
-                        "is written either way ('evidence', 'explained')")
+                   help="Floxels: keep the optimiser's flow of the groups of points whose motion the scans do "
+                        "not support (default: set to 0, FloxelsConfig evidence=zero; with --preset paper the "
+                        "output is then the paper's raw flow); the motion evidence is written either way "
+                        "('evidence', 'explained': dynamic & explained are the default's moving points)")
     p.add_argument("--no-ground-removal", action="store_true", help="keep ground points")
     p.add_argument("--min-range", type=_opt_float, default=3.0, help="m, drop closer points (default 3; 'none')")
     p.add_argument("--max-range", type=_opt_float, default=50.0, help="m, drop farther points (default 50; 'none')")

@@ -41,10 +41,12 @@ Output: OUT_DIR/<frame name>.npz per frame (np.savez; --compress: zip-compressed
                              unclustered point its 0.5 m flow-grid cell) explains the support
                              scans better than zero flow; NaN on points not optimised
   explained   (N,)  bool     the group's flow passes the evidence test (gain > max(margin,
-                             ratio * zero-flow residual), FloxelsConfig.evidence_margin/_ratio);
+                             ratio * zero-flow residual), FloxelsConfig.evidence_margin/_ratio;
+                             accurate: the final verdict, after the refinement confirmed or
+                             dropped the groups no scan saw and gave rigid motions to others);
                              by default (evidence=zero) unexplained groups get zero flow and
-                             are not 'dynamic'; --raw-flow keeps the paper's flow (then filter
-                             with dynamic & explained)
+                             are not 'dynamic'; --raw-flow keeps their optimiser flow (then
+                             dynamic & explained are the default's moving points)
   pose        (4,4) float64  the frame's coordinates -> the sequence's world frame
   ego_motion  (4,4) float64  the frame's coordinates -> the next frame's (when the next pose
                              is known, the last selected frame included)

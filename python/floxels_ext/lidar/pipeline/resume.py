@@ -182,7 +182,7 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
             changed.append((i, why))
     if clash is not None:
         raise CLIError(f"{clash[0]} was written with other settings ({'; '.join(clash[1])}); "
-                       f"use --force to recompute, or another --out")
+                       f"use --force to recompute, or another --out{_paper_hint(clash[0], settings)}")
     if report is not None:
         def names(frames):
             return ", ".join(out_path[i].name for i in frames[:3]) + (" ..." if len(frames) > 3 else "")
@@ -199,3 +199,17 @@ def check_resume(out_path: dict, selected: list[int], settings: dict, force: boo
                    f"of their inputs ({names(legacy)}): kept as done; a change of their scans, poses or times "
                    f"since then is not detected (--force recomputes them)")
     return sorted(todo)
+
+
+def _paper_hint(path, settings: dict) -> str:
+    """A hint for outputs of the paper preset resumed with the accurate one: ``floxels run``'s
+    default before issue 42 made accurate its default."""
+    from floxels_ext.lidar.io.outputs import read_resume_record
+
+    rec = read_resume_record(path)
+    old = ((rec or {}).get("settings") or {}).get("options") or {}
+    new = settings.get("options") or {}
+    if settings.get("method") == "floxels" and new.get("rigid_refine") and not old.get("rigid_refine"):
+        return (" (floxels run's default preset is accurate; --preset paper continues outputs of the paper's "
+                "settings, the default of earlier versions)")
+    return ""

@@ -67,13 +67,16 @@ def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
 
 def resolve_preset(args) -> dict:
     """``--preset``'s Floxels fields (besides the window) and ``args.scans`` set to the
-    preset's window when ``--scans`` was not given. Raises CLIError for a preset with
+    preset's window when ``--scans`` was not given; no ``--preset``: ``accurate`` for Floxels
+    (the API keeps ``paper``), nothing for other methods. Raises CLIError for a preset with
     another method."""
     from floxels_ext.errors import CLIError
     from floxels_ext.presets import DEFAULT_NUM_SCANS, PRESETS  # (no torch: a Ray driver never needs it)
 
     name = getattr(args, "preset", None)
-    name = "paper" if name is None else name  # '' is refused like any unknown name (as the API does)
+    if name is None:  # floxels run's default: accurate for Floxels (issue 42); other methods take none
+        name = "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"
+    # '' is refused like any unknown name (as the API does)
     if name not in PRESETS:
         raise CLIError(f"unknown --preset {name!r}; choose from {', '.join(PRESETS)}")
     if name != "paper" and getattr(args, "method", "floxels") != "floxels":
