@@ -18,6 +18,7 @@ Every change to the estimator or the pipeline lands with this table (bench/RESUL
 from __future__ import annotations
 
 import argparse
+import shlex
 import json
 import os
 import shutil
@@ -101,8 +102,8 @@ def run(args) -> int:
                 return 1
     results: dict[str, dict[str, list]] = {n: {"speed": [], "run": []} for n in names}
     benches = {"speed": ["bench/bench_speed.py", "--device", args.device, "--no-reference", "--no-cpu",
-                         *args.speed_args.split()],
-               "run": ["bench/bench_run.py", "--device", args.device, *args.run_args.split()]}
+                         *shlex.split(args.speed_args)],
+               "run": ["bench/bench_run.py", "--device", args.device, *shlex.split(args.run_args)]}
     for rnd in range(args.rounds):
         for bench in args.benches:
             for name in names:
