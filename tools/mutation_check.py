@@ -102,10 +102,22 @@ ENGINES_DEFAULT = "tests/lidar/test_run_engines.py::test_default_engines_by_devi
 RAY_REPORT = "python/floxels_ext/lidar/dataset/ray_report.py"
 RAY_PRELOAD = "python/floxels_ext/lidar/dataset/ray_preload.py"
 PRELOAD_TEST = "tests/lidar/test_ray_preload.py"
+RUN_ARGS = "python/floxels_ext/lidar/pipeline/run_args.py"
+DEFAULT_PRESET = "tests/lidar/test_run_cli.py::test_default_preset_is_accurate_and_paper_outputs_say_how_to_resume"
+SCORE_ZERO = "tests/estimator/test_evidence.py::test_accurate_score_is_zero_before_the_zeroing"
+FAR_SENSOR = "tests/estimator/test_sight.py::test_a_sensor_beyond_any_lidars_reach_is_not_used"
 
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34; of those
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
+    # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
+    ("floxels run's default preset paper", RUN_ARGS,
+     'name = "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"', 'name = "paper"',
+     [DEFAULT_PRESET]),
+    ("a sensor out of every lidar's reach used", SIGHT_PY, "return math.fsum(g * g for g in gap) > SENSOR_REACH ** 2",
+     "return False", [FAR_SENSOR]),
+    ("score's explained keeps the hidden groups the zeroing drops", POST, "explained = explained & ~dropped", "pass",
+     [SCORE_ZERO, "tests/lidar/test_run_cli.py::test_motion_evidence_fields_switch_and_resume"]),
     # ---- issue 44, seventh session: workers on Ray's preloaded processes ----
     ("preloaded process not stamped", RAY_WORKER, 'self.stamps["preloaded"] = preload.PRELOADED', "pass",
      [PRELOAD_TEST]),

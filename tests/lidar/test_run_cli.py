@@ -328,6 +328,8 @@ def test_motion_evidence_fields_switch_and_resume(seq, tmp_path, capsys):
         # default: the raw flow where explained, 0 elsewhere; dynamic follows the written flow
         np.testing.assert_array_equal(z["flow"], np.where(r["explained"][:, None], r["flow"], 0))
         assert not (z["dynamic"] & ~z["explained"]).any()
+        # explained is the final verdict: a group whose flow the evidence zeroed is not explained
+        assert (np.abs(z["flow"][z["explained"]]).sum(axis=1) > 0).all()
     # resume with the other setting: stopped (an output of other settings), --force recomputes
     rc, cap = _run([*args, "--out", out, "--raw-flow"], capsys)
     assert rc == 2 and "evidence" in cap.err
