@@ -19,11 +19,10 @@ import time
 
 import torch  # noqa: F401 - the point of this module
 
-import floxels_ext.lidar.dataset.ray_worker  # noqa: F401 - the actor class Ray loads
-import floxels_ext.lidar.dataset.worker  # noqa: F401 - the pipeline the warm-up imports
-import floxels_ext.lidar.pipeline.run_args  # noqa: F401
-import floxels_ext.methods  # noqa: F401
 import floxels_ext.ops  # noqa: F401 - the compiled ops
+from floxels_ext.lidar.dataset.ray_worker import import_pipeline  # the actor class Ray loads
+
+import_pipeline()  # what the worker's warm-up would import
 
 PRELOADED = time.time()  # when the imports ended (the worker's timeline shows it as "preloaded")
 

@@ -28,7 +28,8 @@ import sys
 import threading
 import time
 
-__all__ = ["FloxelsWorker", "Channel", "worker_threads", "warm_up", "process_start_time", "task_args", "OWNER_TIMEOUT"]
+__all__ = ["FloxelsWorker", "Channel", "worker_threads", "warm_up", "import_pipeline", "PIPELINE_MODULES",
+           "process_start_time", "task_args", "OWNER_TIMEOUT"]
 
 _IMPORTED = time.time()  # Ray imports this module to load the actor class (torch comes in __init__)
 
@@ -70,16 +71,25 @@ def process_start_time() -> float | None:
         return None
 
 
+# the modules a worker's pipeline runs on: imported by its warm-up, or before it by Ray (ray_preload)
+PIPELINE_MODULES = ("floxels_ext.lidar.dataset.worker", "floxels_ext.lidar.pipeline.run_args", "floxels_ext.methods")
+
+
+def import_pipeline() -> None:
+    """Imports :data:`PIPELINE_MODULES`."""
+    import importlib
+
+    for name in PIPELINE_MODULES:
+        importlib.import_module(name)
+
+
 def warm_up(device: str, stamps: dict) -> None:
     """The pipeline's imports, the CUDA context and one tiny estimate (the kernels' lazy
     loading, the allocator's first blocks), each step stamped in ``stamps`` (``time.time()``);
     a failure is stamped as ``warm_error`` (it only costs the first task its start). Ray
     workers and the local engine processes (``engine_process``) start with it."""
     try:
-        import floxels_ext.lidar.dataset.worker  # noqa: F401
-        import floxels_ext.lidar.pipeline.run_args  # noqa: F401
-        import floxels_ext.methods  # noqa: F401
-
+        import_pipeline()
         stamps["warm_imports"] = time.time()
         if device.startswith("cuda"):
             import numpy as np
