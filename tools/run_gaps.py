@@ -49,6 +49,7 @@ def main() -> None:
     ap.add_argument("--run-args", default="--preset accurate --scans 11")
     ap.add_argument("--min-gap-us", type=float, default=50.0)
     ap.add_argument("--top", type=int, default=20)
+    ap.add_argument("--top-kernels", type=int, default=10, help="largest kernels printed (by GPU time)")
     ap.add_argument("--trace", help="keep the Chrome trace here (default: deleted)")
     args = ap.parse_args()
     import torch
@@ -82,12 +83,14 @@ def main() -> None:
     for key, v in idle.most_common(args.top):
         print(f"  {v / 1e3:7.1f} ms  {key}")
     work: collections.Counter = collections.Counter()
-    for e in events:
-        if e.get("cat") == "kernel":
-            work[e["name"][:80]] += e["dur"]
-    print("largest GPU work:")
-    for name, d in work.most_common(10):
-        print(f"  {d / 1e3:7.1f} ms  {name}")
+    count: collections.Counter = collections.Counter()
+    for e in gpu:
+        work[e["name"][:80]] += e["dur"]
+        count[e["name"][:80]] += 1
+    print(f"largest GPU work ({sum(count.values()) / args.frames:.0f} kernels and copies a frame, "
+          f"{sum(work.values()) / 1e3 / args.frames:.2f} ms of their time a frame):")
+    for name, d in work.most_common(args.top_kernels):
+        print(f"  {d / 1e3:7.1f} ms  {count[name] / args.frames:6.1f}/frame  {name}")
     if not args.trace:
         os.remove(trace)
 
