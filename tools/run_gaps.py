@@ -31,14 +31,24 @@ def attribute(events: list, gaps: list, min_gap: float, depth: int = 3) -> colle
     launches = collections.Counter(e["tid"] for e in events if e.get("cat") == "cuda_runtime")
     main = launches.most_common(1)[0][0]
     frames = sorted((e for e in events if e.get("cat") == "python_function" and e["tid"] == main),
-                    key=lambda e: e["ts"])
+                    key=lambda e: (e["ts"], -e["dur"]))
     out: collections.Counter = collections.Counter()
-    for start, length in gaps:
-        if length < min_gap:
-            continue
-        mid = start + length / 2
-        stack = [e["name"] for e in frames if e["ts"] <= mid <= e["ts"] + e["dur"]]
-        out[" < ".join(s.split("(")[0].split("/")[-1][:60] for s in stack[:-depth - 1:-1])] += length
+    # one sweep: the thread's Python frames nest, so the frames open at a time form a stack
+    # (a scan of every frame for every gap took minutes on `accurate`'s traces)
+    wanted = sorted((start + length / 2, length) for start, length in gaps if length >= min_gap)
+    stack: list = []
+    i = 0
+    for mid, length in wanted:
+        while i < len(frames) and frames[i]["ts"] <= mid:
+            e = frames[i]
+            while stack and stack[-1]["ts"] + stack[-1]["dur"] < e["ts"]:
+                stack.pop()
+            stack.append(e)
+            i += 1
+        while stack and stack[-1]["ts"] + stack[-1]["dur"] < mid:
+            stack.pop()
+        names = [e["name"] for e in stack if e["ts"] + e["dur"] >= mid]
+        out[" < ".join(s.split("(")[0].split("/")[-1][:60] for s in names[:-depth - 1:-1])] += length
     return out
 
 
@@ -77,11 +87,6 @@ def main() -> None:
         sys.exit("run_gaps.py: the trace has no GPU events")
     t0, t1, busy, gaps = busy_and_gaps(gpu)
     print(f"{args.frames} frames ({args.run_args}): GPU span {(t1 - t0) / 1e3:.1f} ms, busy {busy / 1e3:.1f} ms")
-    idle = attribute(events, gaps, args.min_gap_us)
-    print(f"idle gaps >= {args.min_gap_us:g} us: {sum(idle.values()) / 1e3:.1f} ms, by the optimiser thread's "
-          "innermost Python frames:")
-    for key, v in idle.most_common(args.top):
-        print(f"  {v / 1e3:7.1f} ms  {key}")
     work: collections.Counter = collections.Counter()
     count: collections.Counter = collections.Counter()
     for e in gpu:
@@ -91,6 +96,11 @@ def main() -> None:
           f"{sum(work.values()) / 1e3 / args.frames:.2f} ms of their time a frame):")
     for name, d in work.most_common(args.top_kernels):
         print(f"  {d / 1e3:7.1f} ms  {count[name] / args.frames:6.1f}/frame  {name}")
+    idle = attribute(events, gaps, args.min_gap_us)
+    print(f"idle gaps >= {args.min_gap_us:g} us: {sum(idle.values()) / 1e3:.1f} ms, by the optimiser thread's "
+          "innermost Python frames:")
+    for key, v in idle.most_common(args.top):
+        print(f"  {v / 1e3:7.1f} ms  {key}")
     if not args.trace:
         os.remove(trace)
 
