@@ -30,6 +30,7 @@ the rest is a few tensor ops and ``floxels::dt_residual`` look-ups, on the CPU a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -68,6 +69,7 @@ REFINE_ITERS = 10
 # so that sums of up to 2^27 points cannot overflow int64 (_cluster_means).
 FIXED_POINT = float(2 ** 24)
 MAX_FIXED_FLOW = 4096.0
+MAX_FIXED_SUM = float(2 ** 18)  # _segment_sum's largest term: 2 ** 42 as an integer
 SPARE_ROWS = 1024
 
 
@@ -133,11 +135,22 @@ def _subsample_mask(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> 
 
 
 def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """(rows, ...) sums of ``values`` (m, ...) by ``index`` (m,). ``index_put_`` with
-    accumulate sorts the keys stably and adds each row's terms in order, so the sums are the
-    same bits on every CUDA run (``index_add_`` adds with float atomics: issue 31)."""
-    out = torch.zeros((rows,) + tuple(values.shape[1:]), dtype=values.dtype, device=values.device)
-    return out.index_put_((index,), values, accumulate=True)
+    """(rows, ...) sums of ``values`` (m, ...) by ``index`` (m,), in ``values``' dtype: each term
+    rounded to a multiple of 1 / FIXED_POINT (6e-8) and summed as integers, so exact and the same
+    bits in any order, on any device (``index_add_`` on floats adds with atomics in any order:
+    issue 31). A row with a non-finite term is NaN. Why not ``index_put_`` with accumulate (the
+    fixed order it sorts into): its CUDA kernel counts each row's terms one by one, ~0.8 ms a
+    frame of the accurate preset on an H200 (a large cluster's row; tools/run_gaps.py). Terms
+    are clamped to +-MAX_FIXED_SUM (sums of residuals, counts and recentred coordinates stay
+    far below it); a row may hold 2 ** 21 terms of that size before its integer overflows."""
+    flat = values.reshape(values.shape[0], math.prod(values.shape[1:])).to(torch.float64)
+    cols = flat.shape[1]
+    bad = ~torch.isfinite(flat)
+    fixed = torch.round(flat.nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_SUM, MAX_FIXED_SUM) * FIXED_POINT)
+    acc = torch.zeros(rows, 2 * cols, dtype=torch.int64, device=values.device).index_add_(
+        0, index.to(torch.int64), torch.cat([fixed.to(torch.int64), bad.to(torch.int64)], 1))
+    out = torch.where(acc[:, cols:] > 0, float("nan"), acc[:, :cols].to(torch.float64) / FIXED_POINT)
+    return out.to(values.dtype).reshape((rows,) + tuple(values.shape[1:]))
 
 
 def _cluster_means(flow: torch.Tensor, lab: torch.Tensor, C: int) -> tuple[torch.Tensor, torch.Tensor]:
