@@ -125,7 +125,8 @@ def _subsample(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> torch
 def _subsample_mask(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(``order``, ``keep``): :func:`_subsample`'s rows are ``order[keep]`` (no synchronisation)."""
     key = torch.where(lab >= 0, lab, torch.full_like(lab, C))  # points of no cluster sort last
-    order = torch.argsort(key, stable=True)
+    # int32 keys (C < 2 ** 31): a CUDA radix sort makes half the passes of int64's, same order
+    order = torch.argsort(key.to(torch.int32), stable=True)
     ks = key[order]
     counts = torch.cat([counts, counts.new_zeros(1)])
     start = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])

@@ -264,7 +264,7 @@ def _segments(corner_idx: torch.Tensor, labels: torch.Tensor | None, point_range
     first = torch.nonzero(new).reshape(-1)
     seg_ptr = torch.cat([first, first.new_full((1,), N)]).to(torch.int32).contiguous()
     flat = corner_idx[first].reshape(-1).to(torch.int64)  # (8S) vertex of each (segment, corner)
-    order = torch.argsort(flat, stable=True)
+    order = torch.argsort(flat.to(torch.int32), stable=True)  # (int32: half the radix passes, same order)
     # entries per vertex (index_add_: bincount would synchronise with the host)
     counts = torch.zeros(num_vertices, dtype=torch.int64, device=dev).index_add_(0, flat, torch.ones_like(flat))
     vtx_ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32).contiguous()
