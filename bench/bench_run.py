@@ -80,6 +80,29 @@ def build(root: Path, frames: int, beams: int, azimuth: int, seed: int) -> tuple
     return kitti, av2, int(np.mean(npts))
 
 
+NAN = float("nan")
+
+
+def built(args, tmp: Path) -> tuple[Path, Path, int, str]:
+    """(kitti, av2, raw points a frame, how): the simulated files, built in ``tmp`` or, with
+    ``--data``, reused from there when its ``meta.json`` names the same sequence."""
+    meta = {"frames": args.frames, "beams": args.beams, "azimuth": args.azimuth, "seed": args.seed}
+    root = args.data or tmp
+    mfile = root / "meta.json"
+    if args.data is not None and mfile.is_file():
+        old = json.loads(mfile.read_text())
+        if {k: old.get(k) for k in meta} == meta:
+            return root / "kitti", root / "av2", old["points"], f"reused from {root}"
+        sys.exit(f"bench_run.py: --data {root} holds another sequence ({old}); give an empty folder")
+    if args.data is not None and root.exists() and any(root.iterdir()):
+        sys.exit(f"bench_run.py: --data {root} is not empty and has no meta.json")
+    root.mkdir(parents=True, exist_ok=True)
+    kitti, av2, npts = build(root, args.frames, args.beams, args.azimuth, args.seed)
+    if args.data is not None:
+        mfile.write_text(json.dumps(dict(meta, points=npts)) + "\n")
+    return kitti, av2, npts, "built"
+
+
 def run_cli(args_list: list[str]) -> tuple[float, dict]:
     t0 = time.perf_counter()
     rc = cli.main(args_list)
@@ -184,6 +207,10 @@ def main() -> None:
                     help="floxels_ext.lidar.dataset.stream.GIL_SWITCH_INTERVAL for the runs "
                          "(0 = Python's default, "
                          "to compare with the pipeline's setting)")
+    ap.add_argument("--data", type=Path, help="keep the simulated files in this folder and reuse them when it "
+                    "holds the same --frames/--beams/--azimuth/--seed (tools/ab_bench.py: one build of ~1 min, not one "
+                    "a bench run)")
+    ap.add_argument("--no-ceiling", action="store_true", help="leave out the in-memory ceiling (paper preset)")
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
     ap.add_argument("--windows", type=Path, help="also write each timed run's [t0, t1] (time.time()) as a JSON "
                     "list of {name, t0, t1}: tools/host_sampler.py --windows summarises the GPU's busy share per run")
@@ -196,9 +223,9 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_run_"))
     try:
         t0 = time.perf_counter()
-        kitti, av2, npts = build(tmp, args.frames, args.beams, args.azimuth, args.seed)
+        kitti, av2, npts, how = built(args, tmp)
         print(f"sequence: {args.frames} frames, {args.beams} beams, {npts} raw points/frame (ground included), "
-              f"built in {time.perf_counter() - t0:.1f} s", flush=True)
+              f"{how} in {time.perf_counter() - t0:.1f} s", flush=True)
         options = {} if args.max_iters is None else {"max_iters": args.max_iters}
         # --scans only when asked (each --preset then brings its own window: accurate 11, as for a user);
         # the paper preset unless --run-args / a variant says otherwise (the later --preset wins):
@@ -214,7 +241,8 @@ def main() -> None:
         variants = [("", [])] + [(v.partition("=")[0], v.partition("=")[2].split()) for v in args.variant]
         reps: dict[str, list] = {}
         windows: list[dict] = []
-        ceil_runs = Ceiling(kitti, args.scans or 5, args.device, options)  # the paper preset's ceiling
+        # the paper preset's ceiling
+        ceil_runs = None if args.no_ceiling else Ceiling(kitti, args.scans or 5, args.device, options)
         for rep in range(args.repeat):  # interleaved: a host's drift touches every variant alike
             for label, extra in variants:
                 for name, argv in (("kitti", [str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt")]),
@@ -241,6 +269,8 @@ def main() -> None:
                          "run_args": " ".join(common[2:] + extra)}
                     reps.setdefault(key, []).append(r)
                     print(f"  {key} (run {rep + 1}): {r['frames_per_s']:.1f} frames/s", flush=True)
+            if ceil_runs is None:
+                continue
             # the ceiling in the same repetition: each run's ratio to it is taken at the same time
             c = args.frames / ceil_runs.time()
             for runs in reps.values():
@@ -250,10 +280,10 @@ def main() -> None:
         for key, runs in reps.items():  # the median run (an odd count: a real run)
             order = sorted(runs, key=lambda r: r["frames_per_s"])
             rows[key] = dict(order[(len(order) - 1) // 2], repeats_frames_per_s=[r["frames_per_s"] for r in runs],
-                             repeats_ratio_to_ceiling=[r["ratio_to_ceiling"] for r in runs],
+                             repeats_ratio_to_ceiling=[r.get("ratio_to_ceiling", NAN) for r in runs],
                              # each run against the ceiling timed in its own repetition: the median
-                             ratio_to_ceiling=statistics.median(r["ratio_to_ceiling"] for r in runs))
-        ceil = ceil_runs.summary()
+                             ratio_to_ceiling=statistics.median(r.get("ratio_to_ceiling", NAN) for r in runs))
+        ceil = ceil_runs.summary() if ceil_runs is not None else None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -281,7 +311,7 @@ def main() -> None:
     if args.repeat > 1:
         for name, r in rows.items():
             print(f"{name}: frames/s of the {args.repeat} runs: " + ", ".join(f"{v:.1f}" for v in r["repeats_frames_per_s"])
-                  + " (ceiling: " + ", ".join(f"{v:.1f}" for v in ceil["repeats_frames_per_s"]) + "; ratios: "
+                  + " (ceiling: " + ", ".join(f"{v:.1f}" for v in (ceil or {}).get("repeats_frames_per_s", [])) + "; ratios: "
                   + ", ".join(f"{v:.2f}x" for v in r["repeats_ratio_to_ceiling"]) + ")")
     for name, r in rows.items():
         base = rows[name.split("+")[0]]
@@ -292,9 +322,10 @@ def main() -> None:
           "time outside the pipeline (arguments, finding frames and poses, summary); 'idle dev' = wall - compute: "
           "time the method was not computing; 'vs ceiling': the median over repetitions of the ceiling timed in "
           "that repetition / the run's frames/s)")
-    print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "
-          f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
-          f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (the CPU op, one thread)")
+    if ceil is not None:
+        print(f"ceiling: estimate_sequence on the {n} prepared scans in memory: {ceil['frames_per_s']:.1f} frames/s "
+              f"({1e3 * ceil['estimate_s'] / n:.1f} ms/frame); serial host work it excludes: read "
+              f"{ceil['serial_read_ms']:.1f} + preprocess {ceil['serial_preprocess_ms']:.1f} ms/frame (the CPU op, one thread)")
     res = {"device": args.device, "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
            "frames": n, "beams": args.beams, "repeat": args.repeat, "gil_switch_interval": args.gil_switch_interval, "raw_points": npts, "scans": args.scans, "max_iters": args.max_iters,
            "runs": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()}, "ceiling": ceil}

@@ -11,7 +11,15 @@ Run ``prepare`` here (it needs git), then ``run`` in one device call:
 round and source by source (A, B, A, B, ...: a host's drift touches both alike), runs that
 source's own ``bench/bench_speed.py --no-reference --no-cpu`` and ``bench/bench_run.py`` against
 its own build, and prints one table: each figure's median over the rounds per source and its
-ratio to the first source (for times, > 1 means slower; for rates, < 1). Writes ab_bench.json.
+ratio to the first source (for times, > 1 means slower; for rates, < 1), after every round (a
+call that runs out of time keeps the rounds it finished). Writes ab_bench.json. With
+``--benches-from-last`` every build is timed by the last source's bench scripts, so that
+bench_run's ``--data DIR`` (the simulated files built once, reused by every run: ~1 min a bench
+run otherwise) can be given for older commits too:
+
+    python3 tools/ab_bench.py run --rounds 3 --benches run --benches-from-last \
+        --run-args "--frames 768 --data /tmp/ab_data --no-ceiling --run-args '--preset accurate'"
+
 Every change to the estimator or the pipeline lands with this table (bench/RESULTS.md).
 """
 
@@ -107,7 +115,9 @@ def run(args) -> int:
     for rnd in range(args.rounds):
         for bench in args.benches:
             for name in names:
-                src = AB / name
+                # --benches-from-last: every build timed by the newest source's bench scripts (options
+                # an older source's scripts lack, e.g. bench_run's --data); the build is still its own
+                src = AB / (names[-1] if args.benches_from_last else name)
                 js = out / f"{bench}_{name}_{rnd}.json"
                 env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
                 t0 = time.perf_counter()
@@ -117,9 +127,16 @@ def run(args) -> int:
                 if rc == 0 and js.exists():
                     results[name][bench].append(json.loads(js.read_text()))
                 print(f"round {rnd + 1} {bench} {name}: rc {rc} in {time.perf_counter() - t0:.0f} s", flush=True)
+        # the table after every round: a call that runs out of time keeps the rounds it finished
+        _table(names, results, out, final=rnd == args.rounds - 1)
+    return 0
+
+
+def _table(names: list[str], results: dict, out: Path, final: bool) -> None:
     table = []
     base = names[0]
-    print(f"\n{'figure':<44}" + "".join(f"{n:>16}" for n in names) + "".join(f"{n + '/' + base:>22}" for n in names[1:]))
+    print(f"\n{'figure' if final else 'figure (rounds so far)':<44}" + "".join(f"{n:>16}" for n in names)
+          + "".join(f"{n + '/' + base:>22}" for n in names[1:]))
     for label, bench, path, lower, scale in FIGURES:
         meds = {}
         for n in names:
@@ -131,9 +148,8 @@ def run(args) -> int:
         table.append(dict(figure=label, lower_is_better=lower, medians=meds, ratios=ratios,
                           rounds={n: [_get(r, path) for r in results[n][bench]] for n in names}))
         print(f"{label:<44}" + "".join(f"{(meds[n] or float('nan')):>16.2f}" for n in names)
-              + "".join(f"{(ratios[n] or float('nan')):>22.3f}" for n in names[1:]))
+              + "".join(f"{(ratios[n] or float('nan')):>22.3f}" for n in names[1:]), flush=True)
     (out / "ab_bench.json").write_text(json.dumps(dict(order=names, table=table), indent=1) + "\n")
-    return 0
 
 
 def main() -> None:
@@ -151,6 +167,8 @@ def main() -> None:
     r.add_argument("--speed-args", default="--repeats 7 --seq-repeats 2")
     r.add_argument("--run-args", default="--repeat 1")
     r.add_argument("--timeout", type=int, default=200, help="seconds per bench run")
+    r.add_argument("--benches-from-last", action="store_true",
+                   help="time every build with the last source's bench scripts (their newer options)")
     args = ap.parse_args()
     if args.cmd == "prepare":
         prepare(args.revs)
