@@ -110,6 +110,16 @@ FAR_SENSOR = "tests/estimator/test_sight.py::test_a_sensor_beyond_any_lidars_rea
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34; of those
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
+    # ---- issue 42, eighth session: accurate's GPU time (group sums, run bounds), its engines ----
+    ("group sums keep a non-finite term's row finite", REFINE_PY,
+     'out = torch.where(acc[:, cols:] > 0, float("nan")', 'out = torch.where(acc[:, cols:] < 0, float("nan")',
+     [E + "test_segment_sums.py"]),
+    ("group sums clamp every term to 1", REFINE_PY, "MAX_FIXED_SUM = float(2 ** 18)", "MAX_FIXED_SUM = 1.0",
+     [E + "test_segment_sums.py"]),
+    ("seen evidence's runs end where they start", EVIDENCE, "table[1].scatter_(0, torch.where(ends, run, spare), idx)",
+     "table[1].scatter_(0, torch.where(starts, run, spare), idx)", [E + "test_seen_evidence.py"]),
+    ("accurate keeps three engines", DATASET_RUN, 'return ACCURATE_ENGINES if preset == "accurate" else 3', "return 3",
+     [ENGINES_DEFAULT, "tests/lidar/test_run_engines.py::test_engine_count_follows_the_preset_in_effect"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
     ("floxels run's default preset paper", RUN_ARGS,
      'name = "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"', 'name = "paper"',

@@ -237,6 +237,25 @@ def test_default_engines_by_device_and_cores():
     assert default_engines("cpu", 64) == 1
     assert default_engines("cuda", 8) == 2 and default_engines("cuda:1", 15) == 2
     assert default_engines("cuda", 16) == 3 and default_engines("cuda", 64) == 3
+    # accurate (floxels run's default preset) keeps a fourth engine busy on a host of 16+ cores
+    assert default_engines("cuda", 16, "accurate") == 4 and default_engines("cuda", 64, "accurate") == 4
+    assert default_engines("cuda", 15, "accurate") == 2 and default_engines("cpu", 64, "accurate") == 1
+
+
+def test_engine_count_follows_the_preset_in_effect(monkeypatch):
+    import types
+
+    import floxels_ext.cpu_threads as cpu_threads
+    from floxels_ext.lidar.dataset.run import engine_count
+
+    monkeypatch.setattr(cpu_threads, "usable_cores", lambda: 16)
+    args = lambda **kw: types.SimpleNamespace(**{"engines": None, "ray": None, "worker_kind": "thread",
+                                                  "device": "cuda", "method": "floxels", "preset": None, **kw})
+    assert engine_count(args()) == 4                       # no --preset: accurate
+    assert engine_count(args(preset="accurate")) == 4
+    assert engine_count(args(preset="paper")) == 3
+    assert engine_count(args(method="nsfp")) == 3          # other methods take no preset
+    assert engine_count(args(preset="paper", engines=2)) == 2
 
 
 def test_engine_threads_share_the_host():

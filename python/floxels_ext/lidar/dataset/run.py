@@ -32,6 +32,11 @@ MAX_ENGINES = 8  # engines on one device: more contexts than this only queue beh
 # (one H100, 16 cores, 768 frames: three engines faster in 8 of 8 runs, `paper` 1.02-1.58x,
 # `accurate` 1.08-1.38x; bench/RESULTS.md, C5)
 THREE_ENGINE_CORES = 16
+# `accurate`'s host steps a frame (the refinement, the sights, the evidence: ~1,100 launches and
+# ~5 host reads a frame against `paper`'s ~300 and 2) keep three engines waiting on the host: a
+# fourth gave 98.8-105.5 frames/s against three's 72.8-102.9 (one H200, 16 cores, 768 frames,
+# two runs each; `paper` with four: 230-279 against 246-281, so it keeps three; bench/RESULTS.md)
+ACCURATE_ENGINES = 4
 RAY_TASK_FRAMES = 192
 
 
@@ -79,28 +84,32 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                         "once, N-1 processes start beside it and take tasks (--task-frames) from one queue when "
                         "ready. Two keep a GPU busy through each other's host steps (1.41x the frames/s of one, "
                         "measured; three on a host of 16+ cores, 1.02-1.58x two); the outputs are the same bytes "
-                        "whatever N. Default on CUDA: 3 with 16+ cores, else 2; 1 on the CPU (whose cores one engine "
+                        "whatever N. Default on CUDA: 3 with 16+ cores (4 with --preset accurate, the default), else 2; 1 on the CPU (whose cores one engine "
                         f"already uses); 1: one engine in this process; at most {MAX_ENGINES}")
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
 
 
-def default_engines(device: str, cores: int | None = None) -> int:
-    """``--engines``' default on ``device`` for a host of ``cores`` cores (None: this one's)."""
+def default_engines(device: str, cores: int | None = None, preset: str = "paper") -> int:
+    """``--engines``' default on ``device`` for a host of ``cores`` cores (None: this one's),
+    running ``preset`` (the Floxels preset in effect; ``paper`` for other methods)."""
     if not device.startswith("cuda"):
         return 1
     if cores is None:
         from floxels_ext.cpu_threads import usable_cores
 
         cores = usable_cores()
-    return 3 if cores >= THREE_ENGINE_CORES else 2
+    if cores < THREE_ENGINE_CORES:
+        return 2
+    return ACCURATE_ENGINES if preset == "accurate" else 3
 
 
 def engine_count(args) -> int:
-    """``--engines``, checked (CLIError), or its default: on CUDA 3 with at least
-    THREE_ENGINE_CORES cores, else 2; 1 on the CPU (also with --ray, whose workers are the
-    engines, and with --worker-kind process)."""
+    """``--engines``, checked (CLIError), or its default: on CUDA with at least
+    THREE_ENGINE_CORES cores 3 (4 with the ``accurate`` preset, floxels run's default), else 2;
+    1 on the CPU (also with --ray, whose workers are the engines, and with --worker-kind
+    process)."""
     from floxels_ext.errors import CLIError
 
     n = args.engines
@@ -110,7 +119,7 @@ def engine_count(args) -> int:
         import torch
 
         device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-        return default_engines(device)
+        return default_engines(device, preset=_preset_in_effect(args))
     if args.ray is not None:
         raise CLIError("--engines runs engines on this machine; it contradicts --ray, whose workers are the engines "
                        "(--gpus-per-task 0.5: two a GPU)")
@@ -120,6 +129,14 @@ def engine_count(args) -> int:
         raise CLIError(f"--engines {n} runs its engines as processes, with reader and writer threads; it "
                        f"contradicts --worker-kind process")
     return n
+
+
+def _preset_in_effect(args) -> str:
+    """The Floxels preset a run uses (``resolve_preset``'s rule: ``accurate`` unless named; other
+    methods: ``paper``, i.e. none)."""
+    if getattr(args, "method", "floxels") != "floxels":
+        return "paper"
+    return getattr(args, "preset", None) or "accurate"
 
 
 def _check_options(args, dataset: bool, engines: int = 1) -> None:
