@@ -139,6 +139,24 @@ def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size:
                           f"intensity (x y z-only rows read as {cols} columns?); {hint}")
 
 
+def _read_float32(path, size: int) -> np.ndarray:
+    """The file's ``size`` bytes (a multiple of 4) as little-endian float32, read without the
+    GIL: ``np.fromfile`` holds it through the read (~0.24 ms a 3.4 MB frame on the 2-core
+    CPU, bench/RESULTS.md, reader section), ``readinto`` gives it up around the system call."""
+    flat = np.empty(size // 4, "<f4")
+    buf = flat.view(np.uint8)
+    got = 0
+    with open(path, "rb", buffering=0) as f:
+        while got < size:
+            n = f.readinto(buf[got:])
+            if not n:
+                break
+            got += n
+    if got != size:
+        raise _fail(path, f"{size} bytes listed but only {got} could be read: the file shrank while being read")
+    return flat
+
+
 def read_bin(path, bin_columns: int | None = None) -> LidarScan:
     """KITTI (x, y, z, intensity) or nuScenes (x, y, z, intensity, ring) float32 ``.bin``.
 
@@ -159,13 +177,13 @@ def read_bin(path, bin_columns: int | None = None) -> LidarScan:
         if not fits:
             raise _fail(path, f"size {size} bytes is not a whole number of float32 rows of 4 (KITTI) or "
                               f"5 (nuScenes) columns; truncated? (use --bin-columns to set the column count)")
-        flat = np.fromfile(path, dtype="<f4")
+        flat = _read_float32(path, size)
         cols = fits[0] if len(fits) == 1 else (5 if _bin_plausibly_5_columns(flat) else 4)
     else:
         if size % (4 * bin_columns):
             raise _fail(path, f"size {size} bytes is not a whole number of rows of {bin_columns} float32 columns "
                               f"(--bin-columns {bin_columns}); truncated, or a different column count?")
-        flat = np.fromfile(path, dtype="<f4")
+        flat = _read_float32(path, size)
         cols = int(bin_columns)
     a = flat.reshape(-1, cols)
     _check_bin_plausible(path, a, cols, flat, size, explicit=bin_columns is not None)
@@ -242,16 +260,30 @@ def read_feather(path) -> LidarScan:
     missing = [c for c in "xyz" if c not in cols]
     if missing:
         raise _fail(path, f"no column(s) {missing} (columns: {cols})")
-    # straight into float32 rows (AV2 stores float16: exact; float64 rounds once, as before)
+    # straight into float32 rows (AV2 stores float16: exact; float64 rounds once, as before),
+    # chunk by chunk (a file holds record batches of 64k rows): ChunkedArray.to_numpy first
+    # concatenates through pandas' converter, ~4x the time of the copies (bench/RESULTS.md, AV2 reader)
     xyz = np.empty((table.num_rows, 3), np.float32)
     for k, c in enumerate("xyz"):
         col = table.column(c)
         if not (pa_types.is_floating(col.type) or pa_types.is_integer(col.type)):
             raise _fail(path, f"column {c!r} holds {col.type}, not numbers")
-        xyz[:, k] = col.to_numpy(zero_copy_only=False)
-    extra = {c: table.column(c).to_numpy(zero_copy_only=False) for c in cols if c not in _XYZ}
+        row = 0
+        for chunk in col.chunks:
+            xyz[row:row + len(chunk), k] = chunk.to_numpy(zero_copy_only=False)
+            row += len(chunk)
+    extra = {c: _column_values(table.column(c), pa_types) for c in cols if c not in _XYZ}
     stem = Path(path).stem
     return _finish(path, xyz, extra, timestamp_ns=int(stem) if stem.isdigit() else None)
+
+
+def _column_values(col, pa_types) -> np.ndarray:
+    """``col.to_numpy(zero_copy_only=False)``'s array (same dtype and values, nulls included)
+    of a numeric or boolean column through one Array: ~10x faster than the ChunkedArray's
+    conversion (0.03 against 0.3 ms a 216k-row column); other types keep the ChunkedArray's."""
+    if pa_types.is_floating(col.type) or pa_types.is_integer(col.type) or pa_types.is_boolean(col.type):
+        return col.combine_chunks().to_numpy(zero_copy_only=False)
+    return col.to_numpy(zero_copy_only=False)
 
 
 READERS = {".bin": read_bin, ".npy": read_npy, ".npz": read_npz, ".pcd": read_pcd, ".ply": read_ply,
