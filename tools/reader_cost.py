@@ -19,6 +19,13 @@ Two passes a repetition, the layouts interleaved (kitti, av2, kitti, av2, ...):
   then includes its waits for the GIL back, as beside the optimiser's thread in a run.
 
 Nested parts are indented under the part that calls them (their time is in their parent's).
+
+``--cold N``: also the first sequence of a fresh engine process, N times a layout: a new
+interpreter that imports what the fork server preloads for its engines
+(``pipeline/worker_processes._PRELOAD``), then times opening the sequence (``discover_input``:
+files, poses) and reading its first frame (``load_frame``), and says which of pyarrow and pandas
+that imported.
+
 Measurement only: nothing here ships.
 """
 
@@ -41,6 +48,7 @@ _PARTS = [
     ("floxels_ext.lidar.pipeline.frame_loader", "load_frame", "load_frame (all of it)"),
     ("floxels_ext.lidar.io.sources", "read_points", "  read_points"),
     ("floxels_ext.lidar.io.readers", "read_bin", "    read_bin"),
+    ("floxels_ext.lidar.io.readers", "_read_float32", "      file read"),
     ("floxels_ext.lidar.io.readers", "_check_bin_plausible", "      .bin checks"),
     ("floxels_ext.lidar.io.readers", "_ordered_columns", "        scan-order test"),
     ("floxels_ext.lidar.io.readers", "read_feather", "    read_feather"),
@@ -125,6 +133,53 @@ def read_all(seq, frames: int, settings, keep_ground: bool) -> None:
             sys.exit(f"frame {i}: {res.get('error')}")
 
 
+_COLD = """
+import sys, time
+from pathlib import Path
+from floxels_ext.lidar.pipeline.worker_processes import _PRELOAD
+for m in _PRELOAD:
+    __import__(m)
+from floxels_ext.lidar.io.sources import discover_input
+from floxels_ext.lidar.pipeline.frame_loader import load_frame
+from floxels_ext.lidar.preprocess import Preprocess
+seq, lay = Path(sys.argv[1]), sys.argv[2]
+before = {m for m in ("pyarrow", "pandas") if m in sys.modules}
+t0 = time.perf_counter()
+s = (discover_input(seq / "kitti" / "velodyne", poses_file=seq / "kitti" / "poses.txt") if lay == "kitti"
+     else discover_input(seq / "av2"))
+t1 = time.perf_counter()
+res = load_frame(0, s, Preprocess(), "table", s.poses, False)
+t2 = time.perf_counter()
+assert "frame" in res, res
+new = sorted(m for m in ("pyarrow", "pandas") if m in sys.modules and m not in before)
+print(1e3 * (t1 - t0), 1e3 * (t2 - t1), ",".join(new) or "-")
+"""
+
+
+def cold(repo: Path, seq: Path, layouts, times: int) -> dict:
+    """ms to open the sequence and read its first frame in a fresh engine-like process."""
+    import os
+    import subprocess
+
+    py = str(repo / "python" if (repo / "python").is_dir() else repo)
+    env = dict(os.environ, PYTHONPATH=py)
+    out: dict = {k: [] for k in layouts}
+    for _ in range(times):
+        for k in layouts:
+            r = subprocess.run([sys.executable, "-c", _COLD, str(seq), k], capture_output=True, text=True, env=env)
+            if r.returncode:
+                sys.exit(r.stderr)
+            a, b, mods = r.stdout.split()
+            out[k].append((float(a), float(b), mods))
+    print(f"\nfirst sequence of a fresh engine process ({times} processes a layout; ms)")
+    for k in layouts:
+        rows = out[k]
+        print(f"  {k}: open {statistics.median(r[0] for r in rows):7.1f}, first frame "
+              f"{statistics.median(r[1] for r in rows):7.1f}, imported: {rows[0][2]} (runs: "
+              + ", ".join(f"{r[0]:.0f}+{r[1]:.0f}" for r in rows) + ")")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repo", default=str(Path(__file__).resolve().parents[1]),
@@ -135,6 +190,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--layout", nargs="+", default=["kitti", "av2"], choices=["kitti", "av2"])
     ap.add_argument("--keep-ground", action="store_true", help="as for a method that reads the ground")
+    ap.add_argument("--cold", type=int, default=0, metavar="N",
+                    help="also time a fresh engine process's first sequence, N processes a layout")
     ap.add_argument("--json", type=Path, help="also write the medians here")
     args = ap.parse_args()
     repo = Path(args.repo).resolve()
@@ -185,6 +242,8 @@ def main() -> None:
             w, c, g = med[name]
             if w > 0:
                 print(f"  {name:<40} {w:7.2f} {c:7.2f} {g:7.2f}")
+    if args.cold:
+        out["cold"] = cold(repo, args.seq, args.layout, args.cold)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 
