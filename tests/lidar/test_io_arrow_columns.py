@@ -69,3 +69,39 @@ def test_av2_log_read_without_pandas(tmp_path):
                          env={"PYTHONPATH": python_dir, "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64, np.int32, np.uint8, np.int64])
+def test_feather_rows_of_one_type_as_assigned(tmp_path, dtype):
+    """x, y, z of one type without nulls (AV2: float16) come as rows from Arrow's tensor
+    conversion: the bytes of numpy's assignment of each column into float32 rows, several
+    record batches included; with nulls they come chunk by chunk, the same way."""
+    feather = pytest.importorskip("pyarrow.feather")
+    from floxels_ext.lidar.io import read_points
+    from floxels_ext.lidar.io._arrow import xyz_rows
+
+    g = np.random.default_rng(7)
+    n = 50
+    scale = 1e3 if dtype == np.float16 else 3e4  # (float16 tops out at 65504)
+    vals = (g.normal(0, scale, (n, 3)) if np.issubdtype(dtype, np.floating) else g.integers(0, 200, (n, 3)))
+    vals = vals.astype(dtype)
+    for name, nulls in (("plain", False), ("nulls", True)):
+        cols = {c: pa.array(vals[:, k], mask=(np.arange(n) == 9) if nulls and c == "y" else None)
+                for k, c in enumerate("xyz")}
+        path = tmp_path / f"{name}.feather"
+        feather.write_feather(pa.table({**cols, "intensity": np.arange(n, dtype=np.uint8)}), str(path),
+                              chunksize=16, compression="uncompressed")
+        table = feather.read_table(str(path))
+        assert (xyz_rows(table) is None) == nulls
+        ref = np.empty((n, 3), np.float32)
+        for k, c in enumerate("xyz"):
+            ref[:, k] = table.column(c).to_numpy(zero_copy_only=False)
+        got = read_points(path).points
+        assert got.dtype == np.float32 and got.flags.writeable and got.tobytes() == ref.tobytes()
+
+
+def test_feather_rows_of_mixed_types_come_chunk_by_chunk():
+    from floxels_ext.lidar.io._arrow import xyz_rows
+
+    t = pa.table({"x": np.zeros(3, np.float16), "y": np.zeros(3, np.float32), "z": np.zeros(3, np.float32)})
+    assert xyz_rows(t) is None

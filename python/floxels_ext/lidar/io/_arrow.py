@@ -16,7 +16,7 @@ import functools
 
 import numpy as np
 
-__all__ = ["column_values", "chunk_values"]
+__all__ = ["column_values", "chunk_values", "xyz_rows"]
 
 
 def _plain(arr) -> np.dtype | None:
@@ -48,6 +48,28 @@ def column_values(col) -> np.ndarray:
     if chunks and all(_plain(c) is not None for c in chunks):
         return chunk_values(chunks[0]) if len(chunks) == 1 else np.concatenate([chunk_values(c) for c in chunks])
     return col.to_numpy(zero_copy_only=False)
+
+
+def xyz_rows(table) -> np.ndarray | None:
+    """Columns x, y, z of ``table`` as (N, 3) float32 rows, in two Arrow calls that run without
+    the GIL (the chunks combined, then ``RecordBatch.to_tensor``, row-major; then numpy's cast,
+    if any), where the three share one integer or floating type without nulls; None otherwise
+    (or with a pyarrow without ``to_tensor``): the caller fills the rows chunk by chunk. The
+    same values as numpy's assignment of each column into float32 rows (one cast per value)."""
+    cols = [table.column(c) for c in "xyz"]
+    t = cols[0].type
+    if table.num_rows == 0 or t.id not in _plain_ids() or any(c.type != t or c.null_count for c in cols):
+        return None
+    batches = table.select(["x", "y", "z"]).combine_chunks().to_batches()
+    if len(batches) != 1 or not hasattr(batches[0], "to_tensor"):
+        return None
+    try:
+        rows = batches[0].to_tensor(row_major=True).to_numpy()
+    except (TypeError, NotImplementedError, ValueError):  # (pyarrow's errors derive from these)
+        return None
+    if rows.dtype != np.float32:
+        return rows.astype(np.float32)
+    return rows if rows.flags.writeable and rows.flags.c_contiguous else np.array(rows, np.float32)
 
 
 @functools.cache

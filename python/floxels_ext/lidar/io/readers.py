@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from floxels_ext.lidar.io._arrow import chunk_values, column_values
+from floxels_ext.lidar.io._arrow import chunk_values, column_values, xyz_rows
 from floxels_ext.lidar.io._optional import MissingDependencyError, require
 from floxels_ext.lidar.io.pcd_ply import lzf_decompress, read_pcd, read_ply  # noqa: F401  (lzf_decompress: re-exported)
 from floxels_ext.lidar.io.scan import LidarFormatError, LidarScan, _fail, _finish, natural_key
@@ -261,18 +261,20 @@ def read_feather(path) -> LidarScan:
     missing = [c for c in "xyz" if c not in cols]
     if missing:
         raise _fail(path, f"no column(s) {missing} (columns: {cols})")
-    # straight into float32 rows (AV2 stores float16: exact; float64 rounds once, as before),
-    # chunk by chunk (a file holds record batches of 64k rows), each from its Arrow buffer
-    # (``_arrow``: no pandas import, no concatenation on the way)
-    xyz = np.empty((table.num_rows, 3), np.float32)
-    for k, c in enumerate("xyz"):
-        col = table.column(c)
-        if not (pa_types.is_floating(col.type) or pa_types.is_integer(col.type)):
-            raise _fail(path, f"column {c!r} holds {col.type}, not numbers")
-        row = 0
-        for chunk in col.chunks:
-            xyz[row:row + len(chunk), k] = chunk_values(chunk)
-            row += len(chunk)
+    for c in "xyz":
+        if not (pa_types.is_floating(table.column(c).type) or pa_types.is_integer(table.column(c).type)):
+            raise _fail(path, f"column {c!r} holds {table.column(c).type}, not numbers")
+    # float32 rows (AV2 stores float16: exact; float64 rounds once, as before) without pyarrow's
+    # pandas converter (``_arrow``): in Arrow's calls without the GIL where the columns allow,
+    # else chunk by chunk (a file holds record batches of 64k rows) from their buffers
+    xyz = xyz_rows(table)
+    if xyz is None:
+        xyz = np.empty((table.num_rows, 3), np.float32)
+        for k, c in enumerate("xyz"):
+            row = 0
+            for chunk in table.column(c).chunks:
+                xyz[row:row + len(chunk), k] = chunk_values(chunk)
+                row += len(chunk)
     extra = {c: column_values(table.column(c)) for c in cols if c not in _XYZ}
     stem = Path(path).stem
     return _finish(path, xyz, extra, timestamp_ns=int(stem) if stem.isdigit() else None)
