@@ -16,7 +16,7 @@ import functools
 
 import numpy as np
 
-__all__ = ["column_values", "chunk_values", "xyz_rows"]
+__all__ = ["column_values", "chunk_values", "one_chunk", "xyz_rows"]
 
 
 def _plain(arr) -> np.dtype | None:
@@ -48,6 +48,16 @@ def column_values(col) -> np.ndarray:
     if chunks and all(_plain(c) is not None for c in chunks):
         return chunk_values(chunks[0]) if len(chunks) == 1 else np.concatenate([chunk_values(c) for c in chunks])
     return col.to_numpy(zero_copy_only=False)
+
+
+def one_chunk(table):
+    """``table`` with each column in one chunk (``Table.combine_chunks``: one Arrow call without
+    the GIL, instead of a concatenation per column from Python) where every column is a plain
+    number type; else ``table`` as it is (the columns are then converted one by one)."""
+    ids = _plain_ids()
+    if all(c.num_chunks <= 1 for c in table.columns) or not all(f.type.id in ids for f in table.schema):
+        return table
+    return table.combine_chunks()
 
 
 def xyz_rows(table) -> np.ndarray | None:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from floxels_ext.lidar.io._arrow import chunk_values, column_values, xyz_rows
+from floxels_ext.lidar.io._arrow import chunk_values, column_values, one_chunk, xyz_rows
 from floxels_ext.lidar.io._optional import MissingDependencyError, require
 from floxels_ext.lidar.io.pcd_ply import lzf_decompress, read_pcd, read_ply  # noqa: F401  (lzf_decompress: re-exported)
 from floxels_ext.lidar.io.scan import LidarFormatError, LidarScan, _fail, _finish, natural_key
@@ -267,6 +267,7 @@ def read_feather(path) -> LidarScan:
     # float32 rows (AV2 stores float16: exact; float64 rounds once, as before) without pyarrow's
     # pandas converter (``_arrow``): in Arrow's calls without the GIL where the columns allow,
     # else chunk by chunk (a file holds record batches of 64k rows) from their buffers
+    table = one_chunk(table)
     xyz = xyz_rows(table)
     if xyz is None:
         xyz = np.empty((table.num_rows, 3), np.float32)
