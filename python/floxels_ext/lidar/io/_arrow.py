@@ -2,12 +2,15 @@
 pandas converter where the values are plain numbers.
 
 ``Array.to_numpy`` / ``ChunkedArray.to_numpy`` go through pyarrow's pandas converter, which
-imports pandas on its first use: ~0.2-0.35 s with the GIL held, in the first AV2 sequence of
-every ``floxels run`` engine process (the fork server that starts them has no pandas), and a
+imports pandas on its first use: ~0.2 s with the GIL held, in the first AV2 sequence of every
+``floxels run`` engine process (the fork server that starts them has no pandas), and a
 ChunkedArray's conversion concatenates its chunks on the way (~0.3 ms a 216k-row column against
 0.03 ms here). Integer and floating columns without nulls are read from their data buffer
 (``np.frombuffer``): the same dtype and values as ``to_numpy(zero_copy_only=False)``. Anything
-else (nulls, booleans, strings, timestamps...) still goes through ``to_numpy``.
+else (nulls, booleans, strings, timestamps...) still goes through ``to_numpy``. A sweep's x, y, z
+come as float32 rows from Arrow's own calls (:func:`one_chunk`, :func:`xyz_rows`): few
+calls, each without the GIL (bench/RESULTS.md, "reader path" section: copying chunk by chunk
+from Python cost less CPU but gave the GIL up and took it back twice as often).
 """
 
 from __future__ import annotations
