@@ -233,6 +233,37 @@ def test_feather_column_types_read_exactly(tmp_path):
     np.testing.assert_array_equal(read_points(tmp_path / "i.feather").points, np.c_[ints, ints, ints])
 
 
+def test_feather_chunks_read_as_the_whole_columns(tmp_path):
+    """Files of several record batches (AV2's, bench_run's: 64k rows each), nulls in some of
+    them, read chunk by chunk: the same bytes as the ChunkedArray conversions of before."""
+    pa = pytest.importorskip("pyarrow")
+    feather = pytest.importorskip("pyarrow.feather")
+    g = np.random.default_rng(5)
+    n = 70
+    cols = {"x": pa.array(g.normal(0, 30, n).astype(np.float16)),
+            "y": pa.array(g.normal(0, 30, n)),
+            "z": pa.array([None if i % 17 == 3 else int(i) - 20 for i in range(n)], pa.int32()),
+            "intensity": pa.array(g.integers(0, 255, n).astype(np.uint8)),
+            "offset_ns": pa.array([None if i == 40 else i * 1000 for i in range(n)], pa.int64()),
+            "flag": pa.array([i % 3 == 0 for i in range(n)]),
+            "tag": pa.array([f"t{i}" for i in range(n)])}
+    table = pa.table(cols)
+    path = tmp_path / "1.feather"
+    feather.write_feather(table, str(path), chunksize=16, compression="uncompressed")
+    table = feather.read_table(str(path))
+    assert table.column("x").num_chunks == 5
+    s = read_points(path)
+    xyz = np.empty((n, 3), np.float32)
+    for k, c in enumerate("xyz"):
+        xyz[:, k] = table.column(c).to_numpy(zero_copy_only=False)
+    assert s.points.tobytes() == xyz.tobytes() and np.isnan(s.points[3, 2])
+    assert list(s.fields) == ["intensity", "offset_ns", "flag", "tag"]
+    for c, v in s.fields.items():
+        ref = table.column(c).to_numpy(zero_copy_only=False)
+        assert v.dtype == ref.dtype and v.shape == ref.shape
+        assert v.tobytes() == ref.tobytes() if ref.dtype != object else list(v) == list(ref)
+
+
 def test_feather_without_pyarrow_says_how_to_install(tmp_path, monkeypatch):
     import builtins
 

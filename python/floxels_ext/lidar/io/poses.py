@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from floxels_ext.lidar.io._arrow import column_values
 from floxels_ext.lidar.io._optional import require
 from floxels_ext.numpy_files import load_npy, open_npz
 
@@ -157,7 +158,7 @@ def read_av2_poses(path) -> tuple[np.ndarray, np.ndarray]:
     missing = [c for c in need if c not in t.column_names]
     if missing:
         raise PoseFormatError(f"{path}: missing column(s) {missing} (columns: {t.column_names})")
-    col = {c: t.column(c).to_numpy(zero_copy_only=False) for c in need}
+    col = {c: column_values(t.column(c)) for c in need}  # (_arrow: no pandas import in an engine's first AV2 log)
     T = np.tile(np.eye(4), (len(col["qw"]), 1, 1))
     T[:, :3, :3] = quat_to_matrix(np.stack([col[c] for c in ("qw", "qx", "qy", "qz")], -1))
     T[:, :3, 3] = np.stack([col[c] for c in ("tx_m", "ty_m", "tz_m")], -1)

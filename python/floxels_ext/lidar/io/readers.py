@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from floxels_ext.lidar.io._arrow import chunk_values, column_values, one_chunk, xyz_rows
 from floxels_ext.lidar.io._optional import MissingDependencyError, require
 from floxels_ext.lidar.io.pcd_ply import lzf_decompress, read_pcd, read_ply  # noqa: F401  (lzf_decompress: re-exported)
 from floxels_ext.lidar.io.scan import LidarFormatError, LidarScan, _fail, _finish, natural_key
@@ -139,6 +140,24 @@ def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size:
                           f"intensity (x y z-only rows read as {cols} columns?); {hint}")
 
 
+def _read_float32(path, size: int) -> np.ndarray:
+    """The file's ``size`` bytes (a multiple of 4) as little-endian float32, read without the
+    GIL: ``np.fromfile`` holds it through the read (~0.24 ms a 3.4 MB frame on the 2-core
+    CPU, bench/RESULTS.md, reader section), ``readinto`` gives it up around the system call."""
+    flat = np.empty(size // 4, "<f4")
+    buf = flat.view(np.uint8)
+    got = 0
+    with open(path, "rb", buffering=0) as f:
+        while got < size:
+            n = f.readinto(buf[got:])
+            if not n:
+                break
+            got += n
+    if got != size:
+        raise _fail(path, f"{size} bytes listed but only {got} could be read: the file shrank while being read")
+    return flat
+
+
 def read_bin(path, bin_columns: int | None = None) -> LidarScan:
     """KITTI (x, y, z, intensity) or nuScenes (x, y, z, intensity, ring) float32 ``.bin``.
 
@@ -159,13 +178,13 @@ def read_bin(path, bin_columns: int | None = None) -> LidarScan:
         if not fits:
             raise _fail(path, f"size {size} bytes is not a whole number of float32 rows of 4 (KITTI) or "
                               f"5 (nuScenes) columns; truncated? (use --bin-columns to set the column count)")
-        flat = np.fromfile(path, dtype="<f4")
+        flat = _read_float32(path, size)
         cols = fits[0] if len(fits) == 1 else (5 if _bin_plausibly_5_columns(flat) else 4)
     else:
         if size % (4 * bin_columns):
             raise _fail(path, f"size {size} bytes is not a whole number of rows of {bin_columns} float32 columns "
                               f"(--bin-columns {bin_columns}); truncated, or a different column count?")
-        flat = np.fromfile(path, dtype="<f4")
+        flat = _read_float32(path, size)
         cols = int(bin_columns)
     a = flat.reshape(-1, cols)
     _check_bin_plausible(path, a, cols, flat, size, explicit=bin_columns is not None)
@@ -242,14 +261,22 @@ def read_feather(path) -> LidarScan:
     missing = [c for c in "xyz" if c not in cols]
     if missing:
         raise _fail(path, f"no column(s) {missing} (columns: {cols})")
-    # straight into float32 rows (AV2 stores float16: exact; float64 rounds once, as before)
-    xyz = np.empty((table.num_rows, 3), np.float32)
-    for k, c in enumerate("xyz"):
-        col = table.column(c)
-        if not (pa_types.is_floating(col.type) or pa_types.is_integer(col.type)):
-            raise _fail(path, f"column {c!r} holds {col.type}, not numbers")
-        xyz[:, k] = col.to_numpy(zero_copy_only=False)
-    extra = {c: table.column(c).to_numpy(zero_copy_only=False) for c in cols if c not in _XYZ}
+    for c in "xyz":
+        if not (pa_types.is_floating(table.column(c).type) or pa_types.is_integer(table.column(c).type)):
+            raise _fail(path, f"column {c!r} holds {table.column(c).type}, not numbers")
+    # float32 rows (AV2 stores float16: exact; float64 rounds once, as before) without pyarrow's
+    # pandas converter (``_arrow``): in Arrow's calls without the GIL where the columns allow,
+    # else chunk by chunk (a file holds record batches of 64k rows) from their buffers
+    table = one_chunk(table)
+    xyz = xyz_rows(table)
+    if xyz is None:
+        xyz = np.empty((table.num_rows, 3), np.float32)
+        for k, c in enumerate("xyz"):
+            row = 0
+            for chunk in table.column(c).chunks:
+                xyz[row:row + len(chunk), k] = chunk_values(chunk)
+                row += len(chunk)
+    extra = {c: column_values(table.column(c)) for c in cols if c not in _XYZ}
     stem = Path(path).stem
     return _finish(path, xyz, extra, timestamp_ns=int(stem) if stem.isdigit() else None)
 
