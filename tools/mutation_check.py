@@ -82,6 +82,7 @@ POST = "python/floxels_ext/estimator/post.py"
 EVIDENCE = "python/floxels_ext/estimator/evidence.py"
 SIGHT_PY = "python/floxels_ext/estimator/sight.py"
 REFINE_PY = "python/floxels_ext/estimator/refine.py"
+GROUP_SUMS = "python/floxels_ext/estimator/group_sums.py"
 HOST_READS = "python/floxels_ext/estimator/host_reads.py"
 LAYOUT = "python/floxels_ext/lidar/dataset/layout.py"
 EVAL_CLI = "python/floxels_ext/evaluation/eval_cli.py"
@@ -111,10 +112,10 @@ FAR_SENSOR = "tests/estimator/test_sight.py::test_a_sensor_beyond_any_lidars_rea
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
     # ---- issue 42, eighth session: accurate's GPU time (group sums, run bounds), its engines ----
-    ("group sums keep a non-finite term's row finite", REFINE_PY,
+    ("group sums keep a non-finite term's row finite", GROUP_SUMS,
      'out = torch.where(acc[:, cols:] > 0, float("nan")', 'out = torch.where(acc[:, cols:] < 0, float("nan")',
      [E + "test_segment_sums.py"]),
-    ("group sums clamp every term to 1", REFINE_PY, "MAX_FIXED_SUM = float(2 ** 18)", "MAX_FIXED_SUM = 1.0",
+    ("group sums clamp every term to 1", GROUP_SUMS, "MAX_FIXED_SUM = float(2 ** 18)", "MAX_FIXED_SUM = 1.0",
      [E + "test_segment_sums.py"]),
     ("seen evidence's runs end where they start", EVIDENCE, "table[1].scatter_(0, torch.where(ends, run, spare), idx)",
      "table[1].scatter_(0, torch.where(starts, run, spare), idx)", [E + "test_seen_evidence.py"]),
@@ -282,12 +283,12 @@ MUTATIONS = [
      "lower = sel & (cur_s > cur)", [SEARCH, REFINE]),
     ("static clusters refined (speed floor 0)", REFINE_PY, "REFINE_MIN_SPEED = 0.1", "REFINE_MIN_SPEED = 0.0",
      [REFINE, SEARCH]),
-    ("cluster means' fixed point at 2^-10 m/frame", REFINE_PY, "FIXED_POINT = float(2 ** 24)",
+    ("cluster means' fixed point at 2^-10 m/frame", GROUP_SUMS, "FIXED_POINT = float(2 ** 24)",
      "FIXED_POINT = float(2 ** 10)", [REFINE]),
-    ("cluster means' fixed point not clamped", REFINE_PY,
+    ("cluster means' fixed point not clamped", GROUP_SUMS,
      "f = f.nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_FLOW, MAX_FIXED_FLOW)", "f = f.nan_to_num(0.0, 0.0, 0.0)",
      [REFINE]),
-    ("cluster with a non-finite flow refined", REFINE_PY, "bad = ~torch.isfinite(f).all(dim=1)",
+    ("cluster with a non-finite flow refined", GROUP_SUMS, "bad = ~torch.isfinite(f).all(dim=1)",
      "bad = torch.zeros_like(f[:, 0], dtype=torch.bool)", [REFINE]),
     # the evidence test
     ("evidence_ratio default 0.05 -> 0.25 (46)", CFG, "evidence_ratio: float = 0.05", "evidence_ratio: float = 0.25",

@@ -68,7 +68,7 @@ PARTS = [
     ("sensor_velocity", "post", post, "sensor_velocity"),
     ("rigid_refine", "post", post, "rigid_refine_steps"),
     ("rigid_refine", "post", post, "rigid_refine"),
-    ("cluster_means", "rigid_refine", refine, "_cluster_means"),
+    ("cluster_means", "rigid_refine", refine, "cluster_means"),
     ("subsample", "rigid_refine", refine, "_subsample"),
     ("rigid_lm", "rigid_refine", refine._LevenbergMarquardt, "solve"),
     ("search", "rigid_refine", refine, "_search"),

@@ -259,25 +259,25 @@ def test_cluster_means_are_exact_in_any_order(device):
     # the refinement's cluster means (fixed-point integer sums): the same bits whatever the row
     # order and device; unclustered rows count nowhere; a non-finite flow makes its cluster's
     # mean NaN (never refined); absurd flows are clamped, not overflowed
-    from floxels_ext.estimator.refine import MAX_FIXED_FLOW, _cluster_means
+    from floxels_ext.estimator.group_sums import MAX_FIXED_FLOW, cluster_means
 
     g = torch.Generator().manual_seed(3)
     n, C = 20000, 7
     flow = (torch.rand(n, 3, generator=g) * 4 - 2).to(device)
     lab = torch.randint(-1, C, (n,), generator=g).to(device)
-    mean, size = _cluster_means(flow, lab, C)
+    mean, size = cluster_means(flow, lab, C)
     perm = torch.randperm(n, generator=g).to(device)
-    mean_p, size_p = _cluster_means(flow[perm], lab[perm], C)
+    mean_p, size_p = cluster_means(flow[perm], lab[perm], C)
     assert torch.equal(mean, mean_p) and torch.equal(size, size_p)
     ref = torch.stack([flow[lab == c].double().mean(0) for c in range(C)]).float()
     torch.testing.assert_close(mean, ref, atol=1e-6, rtol=0)
     assert size.tolist() == [float((lab == c).sum()) for c in range(C)]
     if device == "cuda":
-        cpu = _cluster_means(flow.cpu(), lab.cpu(), C)
+        cpu = cluster_means(flow.cpu(), lab.cpu(), C)
         assert torch.equal(mean.cpu(), cpu[0]) and torch.equal(size.cpu(), cpu[1])
     bad = flow.clone()
     bad[lab == 2] = bad[lab == 2].clone().index_fill_(0, torch.tensor([0], device=device), float("nan"))
     bad[lab == 4] = 1e12
-    m, _ = _cluster_means(bad, lab, C)
+    m, _ = cluster_means(bad, lab, C)
     assert torch.isnan(m[2]).all() and torch.isfinite(m[[0, 1, 3, 5, 6]]).all()
     assert m[4].tolist() == [MAX_FIXED_FLOW] * 3

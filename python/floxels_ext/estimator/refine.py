@@ -30,11 +30,11 @@ the rest is a few tensor ops and ``floxels::dt_residual`` look-ups, on the CPU a
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
+from floxels_ext.estimator.group_sums import cluster_means, segment_sum
 from floxels_ext.estimator.host_reads import Steps, rows_where, run_one
 
 __all__ = ["Support", "supports_of", "robust_residual", "cluster_velocity_search", "vertex_init", "rigid_refine",
@@ -64,13 +64,6 @@ MIN_CLUSTER_POINTS = 10
 REFINE_MIN_SPEED = 0.1
 REFINE_POINTS = 256
 REFINE_ITERS = 10
-# The clusters' mean flow (the refinement's selection and start) is summed in fixed point:
-# steps of 2^-24 m/frame (a float32's resolution at 1 m/frame), flows clamped to +-4096 m/frame,
-# so that sums of up to 2^27 points cannot overflow int64 (_cluster_means).
-FIXED_POINT = float(2 ** 24)
-MAX_FIXED_FLOW = 4096.0
-MAX_FIXED_SUM = float(2 ** 18)  # _segment_sum's largest term: 2 ** 42 as an integer
-SPARE_ROWS = 1024
 
 
 @dataclass
@@ -135,47 +128,6 @@ def _subsample_mask(lab: torch.Tensor, C: int, counts: torch.Tensor, k: int) -> 
     return order, (ks < C) & (rank % stride == 0)
 
 
-def _segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """(rows, ...) sums of ``values`` (m, ...) by ``index`` (m,), in ``values``' dtype: each term
-    rounded to a multiple of 1 / FIXED_POINT (6e-8) and summed as integers, so exact and the same
-    bits in any order, on any device (``index_add_`` on floats adds with atomics in any order:
-    issue 31). A row with a non-finite term is NaN. Why not ``index_put_`` with accumulate (the
-    fixed order it sorts into): its CUDA kernel counts each row's terms one by one, ~0.8 ms a
-    frame of the accurate preset on an H200 (a large cluster's row; tools/run_gaps.py). Terms
-    are clamped to +-MAX_FIXED_SUM (sums of residuals, counts and recentred coordinates stay
-    far below it); a row may hold 2 ** 21 terms of that size before its integer overflows."""
-    flat = values.reshape(values.shape[0], math.prod(values.shape[1:])).to(torch.float64)
-    cols = flat.shape[1]
-    bad = ~torch.isfinite(flat)
-    fixed = torch.round(flat.nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_SUM, MAX_FIXED_SUM) * FIXED_POINT)
-    acc = torch.zeros(rows, 2 * cols, dtype=torch.int64, device=values.device).index_add_(
-        0, index.to(torch.int64), torch.cat([fixed.to(torch.int64), bad.to(torch.int64)], 1))
-    out = torch.where(acc[:, cols:] > 0, float("nan"), acc[:, :cols].to(torch.float64) / FIXED_POINT)
-    return out.to(values.dtype).reshape((rows,) + tuple(values.shape[1:]))
-
-
-def _cluster_means(flow: torch.Tensor, lab: torch.Tensor, C: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(mean flow (C, 3) in the flow's dtype, points (C,) in the flow's dtype) of the clusters
-    ``lab`` (n,) in [-1, C) of every point. The sums are of the flow in fixed point (FIXED_POINT
-    steps), as integers: exact, so the same bits in any order and on any device. Why not
-    :func:`_segment_sum`: its fixed order adds each cluster's rows one after another, and over
-    every point of a frame (large static clusters, the unclustered points) that took 1.4-2.7 ms
-    a frame on an H100, the largest part of the accurate preset's refinement after the search."""
-    n = lab.shape[0]
-    # points of no cluster: spread over spare rows C.., so that no row takes them all
-    key = torch.where(lab >= 0, lab, C + (torch.arange(n, device=lab.device) & (SPARE_ROWS - 1)))
-    f = flow.to(torch.float64)
-    bad = ~torch.isfinite(f).all(dim=1)  # a cluster with a non-finite flow gets a NaN mean (not refined)
-    f = f.nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_FLOW, MAX_FIXED_FLOW)
-    rows = torch.cat([torch.round(f * FIXED_POINT).to(torch.int64), torch.ones_like(key)[:, None],
-                      bad.to(torch.int64)[:, None]], 1)
-    sums = torch.zeros(C + SPARE_ROWS, 5, dtype=torch.int64, device=lab.device).index_add_(0, key, rows)[:C]
-    size = sums[:, 3].to(torch.float64)
-    mean = sums[:, :3].to(torch.float64) / FIXED_POINT / size.clamp_min(1)[:, None]
-    mean = torch.where(sums[:, 4:] > 0, torch.full_like(mean, float("nan")), mean)
-    return mean.to(flow.dtype), size.to(flow.dtype)
-
-
 def _segments(cid: torch.Tensor, C: int) -> torch.Tensor:
     """(C + 1,) row offsets of the clusters of sample rows grouped by cluster (``cid``
     non-decreasing): cluster c owns rows ``[offsets[c], offsets[c + 1])``, the ``segments`` of
@@ -226,8 +178,8 @@ def vertex_init(point_vel: torch.Tensor, corner_idx: torch.Tensor, corner_w: tor
     idx = corner_idx.reshape(-1).to(torch.int64)
     w = corner_w.reshape(-1, 1).to(point_vel.dtype)
     v = point_vel.repeat_interleave(8, 0)
-    num = _segment_sum(num_vertices, idx, w * v)
-    den = _segment_sum(num_vertices, idx, w)
+    num = segment_sum(num_vertices, idx, w * v)
+    den = segment_sum(num_vertices, idx, w)
     return num / den.clamp_min(1e-12)
 
 
@@ -283,7 +235,7 @@ def _worse_on_a_side(sides, q: torch.Tensor, cid: torch.Tensor, C: int, u: torch
     for side in sides:
         if side:
             d = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, ref, tau, True)
-            worse |= ~(_segment_sum(C, cid, d) <= 0)  # (a NaN sum counts as worse)
+            worse |= ~(segment_sum(C, cid, d) <= 0)  # (a NaN sum counts as worse)
     return worse
 
 
@@ -408,7 +360,7 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     if C <= 0:
         return none
     dev, dt = points.device, points.dtype
-    mean_flow, size = _cluster_means(flow, lab, C)
+    mean_flow, size = cluster_means(flow, lab, C)
     sel = (mean_flow[:, :2].norm(dim=1) >= min_speed) & (size >= MIN_CLUSTER_POINTS)
     lab = torch.where((lab >= 0) & sel[lab.clamp_min(0)], lab, torch.full_like(lab, -1))
     order, keep = _subsample_mask(lab, C, torch.where(sel, size, torch.zeros_like(size)).to(torch.int64),
@@ -420,7 +372,7 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     q, cid = points[rows], lab[rows]
     segments = _segments(cid, C)
     n = segments.diff().clamp_min(1).to(dt)  # sample points per cluster
-    cen = _segment_sum(C, cid, q) / n[:, None]  # (C, 3)
+    cen = segment_sum(C, cid, q) / n[:, None]  # (C, 3)
     rel = q - cen[cid]
     # planar rigid motion (vx, vy, yaw rate); the vertical velocity stays the flow's mean (the
     # scans of vertical faces hardly constrain it, and road users move on the road)
@@ -447,7 +399,7 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
         vz = torch.where(lower, vz_s, vz)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
-    zero_cost = _segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
+    zero_cost = segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     fits = accept.clone()
     if sided:

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import torch
 
+from floxels_ext.estimator.group_sums import segment_sum
 from floxels_ext.estimator.host_reads import Steps, rows_where, run_one
-from floxels_ext.estimator.refine import SEARCH_GAIN, TAU, RigidMotions, Support, _segment_sum, _weighted_residual
+from floxels_ext.estimator.refine import SEARCH_GAIN, TAU, RigidMotions, Support, _weighted_residual
 
 __all__ = ["spread_rigid", "spread_rigid_steps", "BOX_CHUNK"]
 
@@ -86,7 +87,7 @@ def spread_rigid_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     li = lab[idx]
     key = torch.where(li >= 0, li, C + torch.arange(idx.shape[0], device=points.device))
     rows = C + idx.shape[0]
-    s_u, s_f, s_0 = (_segment_sum(rows, key, r) for r in (r_u, r_f, r_0))
+    s_u, s_f, s_0 = (segment_sum(rows, key, r) for r in (r_u, r_f, r_0))
     better = (s_u < s_f) & (s_u < (1 - SEARCH_GAIN) * s_0)
     take = better[key] & ((li >= 0) | close)
     out = flow.clone()
