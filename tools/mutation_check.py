@@ -83,6 +83,9 @@ EVIDENCE = "python/floxels_ext/estimator/evidence.py"
 SIGHT_PY = "python/floxels_ext/estimator/sight.py"
 REFINE_PY = "python/floxels_ext/estimator/refine.py"
 GROUP_SUMS = "python/floxels_ext/estimator/group_sums.py"
+ARROW = "python/floxels_ext/lidar/io/_arrow.py"
+READERS = "python/floxels_ext/lidar/io/readers.py"
+ARROW_TESTS = "tests/lidar/test_io_arrow_columns.py"
 HOST_READS = "python/floxels_ext/estimator/host_reads.py"
 LAYOUT = "python/floxels_ext/lidar/dataset/layout.py"
 EVAL_CLI = "python/floxels_ext/evaluation/eval_cli.py"
@@ -119,6 +122,15 @@ MUTATIONS = [
      [E + "test_segment_sums.py"]),
     ("seen evidence's runs end where they start", EVIDENCE, "table[1].scatter_(0, torch.where(ends, run, spare), idx)",
      "table[1].scatter_(0, torch.where(starts, run, spare), idx)", [E + "test_seen_evidence.py"]),
+    # ---- issue 42, eighth session (av2read): AV2 columns from Arrow buffers, .bin without the GIL ----
+    ("an Arrow slice read from its buffer's start", ARROW, "offset=chunk.offset * dt.itemsize", "offset=0",
+     [ARROW_TESTS]),
+    ("a column with nulls read from its buffer", ARROW, "if arr.null_count or t.id not in _plain_ids():",
+     "if t.id not in _plain_ids():", [ARROW_TESTS]),
+    ("AV2 rows of mixed column types through to_tensor", ARROW, "any(c.type != t or c.null_count for c in cols)",
+     "any(c.null_count for c in cols)", [ARROW_TESTS]),
+    ("a .bin that shrank while read passes", READERS, "if got != size:", "if False:",
+     [ARROW_TESTS, "tests/lidar/test_io_readers.py"]),
     ("accurate keeps three engines", DATASET_RUN, 'return ACCURATE_ENGINES if preset == "accurate" else 3', "return 3",
      [ENGINES_DEFAULT, "tests/lidar/test_run_engines.py::test_engine_count_follows_the_preset_in_effect"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----

@@ -105,3 +105,20 @@ def test_feather_rows_of_mixed_types_come_chunk_by_chunk():
 
     t = pa.table({"x": np.zeros(3, np.float16), "y": np.zeros(3, np.float32), "z": np.zeros(3, np.float32)})
     assert xyz_rows(t) is None
+
+
+def test_feather_rows_of_mixed_types_round_once(tmp_path):
+    """x int64 beside float32 y, z: each value cast once to float32, as numpy's assignment does.
+    (Arrow's tensor of mixed columns is float64: 2^60 + 2^36 + 1 through float64 lands on a
+    float32 tie and rounds to even, one float32 step away.)"""
+    from pyarrow import feather
+
+    from floxels_ext.lidar.io import read_points
+
+    x = np.array([2 ** 60 + 2 ** 36 + 1, 5, -7], np.int64)
+    y, z = np.array([1.5, 2.5, 3.5], np.float32), np.array([0.25, 1.0, -2.0], np.float32)
+    path = tmp_path / "315966265659927216.feather"
+    feather.write_feather(pa.table({"x": x, "y": y, "z": z}), str(path), compression="uncompressed")
+    ref = np.empty((3, 3), np.float32)
+    ref[:, 0], ref[:, 1], ref[:, 2] = x, y, z
+    assert read_points(path).points.tobytes() == ref.tobytes()

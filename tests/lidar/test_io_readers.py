@@ -51,6 +51,20 @@ def test_bin_errors(tmp_path):
         read_points(tmp_path / "e.bin")
 
 
+def test_bin_that_shrinks_while_read_names_the_file(tmp_path, monkeypatch):
+    """The size is listed before the read (it picks the column count); a file cut shorter in
+    between (a copy still being written, a sync) is an error naming it, not a frame of
+    uninitialised rows."""
+    import floxels_ext.lidar.io.readers as readers
+
+    path = tmp_path / "000001.bin"
+    np.c_[_pts(8), np.zeros(8, np.float32)].astype(np.float32).tofile(path)
+    real = readers.os.path.getsize
+    monkeypatch.setattr(readers.os.path, "getsize", lambda p: real(p) + 16 * 8 if str(p) == str(path) else real(p))
+    with pytest.raises(LidarFormatError, match=r"000001\.bin.*shrank"):
+        read_points(path)
+
+
 def test_nan_rows_are_kept_in_order(tmp_path):
     p = _pts(8)
     p[3] = np.nan
