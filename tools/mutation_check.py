@@ -131,6 +131,8 @@ MUTATIONS = [
      "any(c.null_count for c in cols)", [ARROW_TESTS]),
     ("a .bin that shrank while read passes", READERS, "if got != size:", "if False:",
      [ARROW_TESTS, "tests/lidar/test_io_readers.py"]),
+    ("bench_run --data rebuilt every run", "bench/bench_run.py", "if {k: old.get(k) for k in meta} == meta:",
+     "if False:", ["tests/test_bench_run_data.py"]),
     ("accurate keeps three engines", DATASET_RUN, 'return ACCURATE_ENGINES if preset == "accurate" else 3', "return 3",
      [ENGINES_DEFAULT, "tests/lidar/test_run_engines.py::test_engine_count_follows_the_preset_in_effect"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
