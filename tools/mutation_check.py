@@ -137,7 +137,7 @@ MUTATIONS = [
      [ENGINES_DEFAULT, "tests/lidar/test_run_engines.py::test_engine_count_follows_the_preset_in_effect"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
     ("floxels run's default preset paper", RUN_ARGS,
-     'name = "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"', 'name = "paper"',
+     'return "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"', 'return "paper"',
      [DEFAULT_PRESET]),
     ("a sensor out of every lidar's reach used", SIGHT_PY, "return math.fsum(g * g for g in gap) > SENSOR_REACH ** 2",
      "return False", [FAR_SENSOR]),

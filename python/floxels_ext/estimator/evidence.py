@@ -240,7 +240,8 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
     # contended). torch.cummax / cummin with their indices took ~0.24 ms each a frame on an
     # H200 (tools/run_gaps.py), and a scatter_reduce of minima ~0.13 ms (its int64 atomics all
     # on a large run's one slot).
-    starts, ends = torch.cat([one, ~same]), torch.cat([~same, one])
+    cut = ~same
+    starts, ends = torch.cat([one, cut]), torch.cat([cut, one])
     run = torch.cumsum(starts, 0) - 1
     spare = n + (idx & (_RUN_SPARE - 1))
     table = torch.empty(2, n + _RUN_SPARE, dtype=idx.dtype, device=idx.device)

@@ -118,8 +118,10 @@ def engine_count(args) -> int:
             return 1
         import torch
 
+        from floxels_ext.lidar.pipeline.run_args import preset_name
+
         device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-        return default_engines(device, preset=_preset_in_effect(args))
+        return default_engines(device, preset=preset_name(args))
     if args.ray is not None:
         raise CLIError("--engines runs engines on this machine; it contradicts --ray, whose workers are the engines "
                        "(--gpus-per-task 0.5: two a GPU)")
@@ -129,14 +131,6 @@ def engine_count(args) -> int:
         raise CLIError(f"--engines {n} runs its engines as processes, with reader and writer threads; it "
                        f"contradicts --worker-kind process")
     return n
-
-
-def _preset_in_effect(args) -> str:
-    """The Floxels preset a run uses (``resolve_preset``'s rule: ``accurate`` unless named; other
-    methods: ``paper``, i.e. none)."""
-    if getattr(args, "method", "floxels") != "floxels":
-        return "paper"
-    return getattr(args, "preset", None) or "accurate"
 
 
 def _check_options(args, dataset: bool, engines: int = 1) -> None:

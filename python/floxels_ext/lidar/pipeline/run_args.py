@@ -65,6 +65,15 @@ def parse_frame_range(text: str | None, n: int) -> tuple[int, int]:
     return start, stop
 
 
+def preset_name(args) -> str:
+    """The preset a run uses, as named (unchecked): ``--preset``, or floxels run's default,
+    ``accurate`` for Floxels (issue 42), ``paper`` (none) for other methods."""
+    name = getattr(args, "preset", None)
+    if name is None:
+        return "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"
+    return name
+
+
 def resolve_preset(args) -> dict:
     """``--preset``'s Floxels fields (besides the window) and ``args.scans`` set to the
     preset's window when ``--scans`` was not given; no ``--preset``: ``accurate`` for Floxels
@@ -73,9 +82,7 @@ def resolve_preset(args) -> dict:
     from floxels_ext.errors import CLIError
     from floxels_ext.presets import DEFAULT_NUM_SCANS, PRESETS  # (no torch: a Ray driver never needs it)
 
-    name = getattr(args, "preset", None)
-    if name is None:  # floxels run's default: accurate for Floxels (issue 42); other methods take none
-        name = "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"
+    name = preset_name(args)
     # '' is refused like any unknown name (as the API does)
     if name not in PRESETS:
         raise CLIError(f"unknown --preset {name!r}; choose from {', '.join(PRESETS)}")
