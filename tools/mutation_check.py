@@ -114,6 +114,14 @@ FAR_SENSOR = "tests/estimator/test_sight.py::test_a_sensor_beyond_any_lidars_rea
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34; of those
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
+    # ---- issue 44, ninth session: Ray's workers a GPU follow the local engines ----
+    ("Ray's default share from the most cores a GPU", RAY_RUNNER,
+     'w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)',
+     'w = default_engines("cuda", int(max(per_gpu)) if per_gpu else 0, preset)', [RAY_UNIT]),
+    ("Ray's default share ignores the preset", RAY_RUNNER, "gpus = gpu_share(nodes, preset_name(args))",
+     'gpus = gpu_share(nodes, "paper")', [RAY_UNIT]),
+    ("Ray's default share not rounded to Ray's precision", RAY_RUNNER, "return math.floor(1e4 / w) / 1e4",
+     "return 1 / w", [RAY_UNIT]),
     # ---- issue 42, eighth session: accurate's GPU time (group sums, run bounds), its engines ----
     ("group sums keep a non-finite term's row finite", GROUP_SUMS,
      'out = torch.where(acc[:, cols:] > 0, float("nan")', 'out = torch.where(acc[:, cols:] < 0, float("nan")',

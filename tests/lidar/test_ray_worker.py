@@ -97,24 +97,35 @@ def test_retire_while_held_exits_on_release(monkeypatch):
     assert len(exits) == 1 and not idle.retiring and idle.claim("C")
 
 
-def test_default_two_workers_a_gpu():
-    """On a GPU cluster a worker asks for half a GPU by default (two share each GPU: one leaves
-    its GPU idle during its host steps) and the node's CPUs are split between them."""
+def test_default_workers_a_gpu_follow_the_local_engines():
+    """On a GPU cluster a worker asks for 1/W of a GPU by default, W the local run's engines on a
+    host of the GPU nodes' cores per GPU (3, 4 with `accurate`, on 16+ cores a GPU; else 2), and
+    the node's CPUs are split between the workers it holds."""
     from types import SimpleNamespace
 
-    from floxels_ext.lidar.dataset.ray_runner import GPU_SHARE, _resources, task_slots
+    from floxels_ext.lidar.dataset import run
+    from floxels_ext.lidar.dataset.ray_runner import _resources, gpu_share, task_slots
 
     nodes = [{"Alive": True, "Resources": {"CPU": 64.0, "GPU": 4.0}}]
     ray = SimpleNamespace(nodes=lambda: nodes)
 
     def args(**kw):
-        return SimpleNamespace(**{"gpus_per_task": None, "cpus_per_task": None, "device": None, **kw})
+        return SimpleNamespace(**{"gpus_per_task": None, "cpus_per_task": None, "device": None, "preset": "paper",
+                                  **kw})
 
-    assert GPU_SHARE == 0.5
-    assert _resources(ray, args()) == (0.5, 8.0, "cuda")
-    assert task_slots([nodes[0]["Resources"]], 0.5, 8.0) == 8
+    assert _resources(ray, args()) == (0.3333, 5.0, "cuda")
+    assert task_slots([nodes[0]["Resources"]], 0.3333, 5.0) == 12
+    assert _resources(ray, args(preset=None)) == (0.25, 4.0, "cuda")  # floxels run's default: accurate
+    assert task_slots([nodes[0]["Resources"]], 0.25, 4.0) == 16
+    assert _resources(ray, args(preset="accurate", method="floxels")) == (0.25, 4.0, "cuda")
     assert _resources(ray, args(gpus_per_task=1.0)) == (1.0, 16.0, "cuda")
     assert _resources(ray, args(device="cpu")) == (0.0, 1.0, "cpu")
+    # the fewest cores a GPU decides (a worker fits any GPU node), below 16 two a GPU
+    small = {"CPU": 16.0, "GPU": 2.0}
+    assert gpu_share([nodes[0]["Resources"], small], "accurate") == 0.5
+    assert gpu_share([{"CPU": 16.0, "GPU": 1.0}], "paper") == 0.3333
+    assert gpu_share([{"CPU": 16.0, "GPU": 1.0}], "accurate") == 1 / run.ACCURATE_ENGINES
+    assert run.default_engines("cuda", run.THREE_ENGINE_CORES - 1, "accurate") == 2
 
 
 def test_claim_waits_for_the_starting_jobs_release():

@@ -1,7 +1,7 @@
 """The engine of ``floxels run``: every run, one sequence or a dataset, here or on Ray, is tasks
 through one pipeline. ``run`` sends INPUT to ``local`` (one sequence, or a dataset with one
 progress bar; with ``--engines N``, on N engines sharing this machine's device: ``engines``,
-``engine_process``) or ``ray_runner`` (long-lived workers, two per GPU); ``tasks`` finds a
+``engine_process``) or ``ray_runner`` (long-lived workers, several per GPU); ``tasks`` finds a
 dataset's sequences and cuts them into tasks; ``summary`` writes a sequence's summary, merged
 over the tasks that ran it; ``worker`` runs tasks through the engine in a process;
 ``sequence`` opens a task (checks, resume, reader) and writes its summary; ``stream`` runs

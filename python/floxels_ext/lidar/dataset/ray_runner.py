@@ -1,4 +1,4 @@
-"""The Ray driver of ``floxels run DATASET --ray``: long-lived workers, two per GPU by default (one per
+"""The Ray driver of ``floxels run DATASET --ray``: long-lived workers, several per GPU by default (one per
 ``--gpus-per-task`` share, or per ``--cpus-per-task`` CPUs on a CPU cluster).
 
 Each worker is a Ray actor (``ray_worker.FloxelsWorker``) that keeps its process, its CUDA
@@ -44,11 +44,20 @@ POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (t
 TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is halved while each half keeps this many
 
 
-# Default GPUs a worker asks for on a GPU cluster: two workers share each GPU. One worker leaves
-# its GPU idle while its host steps run (reading, set-up, results: ~40-60 % busy); a second one's
-# kernels fill those gaps (time-sliced contexts). Measured (bench/RESULTS.md, "Two workers a GPU"):
-# 2 x H200, 80 x 150 frames: 1.41x the frames/s of one worker on one GPU, 1.42x on two.
-GPU_SHARE = 0.5
+# Default GPUs a worker asks for on a GPU cluster: 1/W, W workers sharing each GPU, W the local
+# run's engines on a host of the GPU nodes' cores per GPU (``run.default_engines``: 2, or on 16+
+# cores a GPU 3, 4 with `accurate`). One worker leaves its GPU idle while its host steps run
+# (reading, set-up, results); the others' kernels fill those gaps (time-sliced contexts).
+# Measured (bench/RESULTS.md): two a GPU 1.41x one (2 x H200); three a GPU against two with
+# `paper` on 4 x H100, 64 cores, 96 x 150 frames: 1.08x on 1 GPU, 1.06x on 2, 1.16x on 4 ("Ray on
+# four H100s", ninth session). Rounded down to Ray's 4 decimals (3 x 0.3333 fit a GPU).
+def gpu_share(nodes: list[dict], preset: str) -> float:
+    """GPUs a worker asks for by default on a cluster of ``nodes`` (resource dicts) running ``preset``."""
+    from floxels_ext.lidar.dataset.run import default_engines
+
+    per_gpu = [r.get("CPU", 0.0) / r["GPU"] for r in nodes if r.get("GPU", 0.0) >= 1]
+    w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)
+    return math.floor(1e4 / w) / 1e4
 
 
 def _ray():
@@ -94,7 +103,9 @@ def _resources(ray, args) -> tuple[float, float, str]:
     has_gpu = any(r.get("GPU", 0) > 0 for r in nodes)
     gpus = args.gpus_per_task
     if gpus is None:
-        gpus = GPU_SHARE if has_gpu and args.device != "cpu" else 0.0
+        from floxels_ext.lidar.pipeline.run_args import preset_name
+
+        gpus = gpu_share(nodes, preset_name(args)) if has_gpu and args.device != "cpu" else 0.0
     if gpus == 0 and args.device is not None and args.device.startswith("cuda"):
         raise CLIError("--device cuda on Ray needs GPUs: the cluster has none" if not has_gpu
                        else "--device cuda contradicts --gpus-per-task 0")

@@ -1,4 +1,4 @@
-"""The Ray actor of ``floxels run DATASET --ray`` (:class:`FloxelsWorker`, one per GPU) and its
+"""The Ray actor of ``floxels run DATASET --ray`` (:class:`FloxelsWorker`, several per GPU by default) and its
 side of the driver's task hand-out (:class:`Channel`).
 
 A worker keeps its process, CUDA context, loaded extension and pinned buffers across tasks and,

@@ -54,14 +54,16 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
         "current one is estimated); with --ray, two workers per GPU do the same with the sequences it "
         "takes from the driver.", 92))
     g.add_argument("--ray", nargs="?", const="auto", metavar="auto|ADDRESS",
-                   help="run on a Ray cluster, long-lived workers, two per GPU (pip install 'floxels_ext[ray]'): "
+                   help="run on a Ray cluster, long-lived workers, several per GPU (pip install 'floxels_ext[ray]'): "
                         "'auto' (the default "
                         "when the flag is bare) joins the cluster this machine belongs to or starts a local "
                         "one; ADDRESS is a head node (host:6379 or ray://host:10001)")
     g.add_argument("--gpus-per-task", type=finite_float, metavar="G",
-                   help="GPUs a worker asks Ray for; fractions pack several workers on a GPU (default: 0.5, two "
-                        "workers a GPU, when the cluster has GPUs and --device is not cpu, else 0 = CPU workers; "
-                        "1: one worker a GPU, for GPUs too small for two)")
+                   help="GPUs a worker asks Ray for; fractions pack several workers on a GPU (default when the "
+                        "cluster has GPUs and --device is not cpu: as many workers a GPU as --engines' default "
+                        "on a host of the GPU nodes' cores per GPU: 1/3, 1/4 with the accurate preset, with 16+ "
+                        "cores a GPU, else 0.5; no GPUs: 0 = CPU workers; 1: one worker a GPU, for GPUs too small "
+                        "for several)")
     g.add_argument("--cpus-per-task", type=finite_float, default=None, metavar="C",
                    help="CPUs a worker asks Ray for (its reader threads and torch threads; default: a GPU "
                         "node's CPUs shared by its GPU workers, 1 for CPU workers)")
@@ -124,7 +126,7 @@ def engine_count(args) -> int:
         return default_engines(device, preset=preset_name(args))
     if args.ray is not None:
         raise CLIError("--engines runs engines on this machine; it contradicts --ray, whose workers are the engines "
-                       "(--gpus-per-task 0.5: two a GPU)")
+                       "(--gpus-per-task 0.25: four a GPU)")
     if not 1 <= n <= MAX_ENGINES:
         raise CLIError(f"--engines must be in [1, {MAX_ENGINES}] (engines sharing this machine's one device), got {n}")
     if n > 1 and args.worker_kind == "process":
