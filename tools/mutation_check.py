@@ -101,7 +101,7 @@ RAY_TAIL = "tests/lidar/test_ray.py::test_tail_tasks_halved_same_outputs"
 HALVE = "tests/lidar/test_tasks_halve.py"
 ANCHORS = "tests/lidar/test_chunk_anchors.py"
 RAY_HALF = "tests/lidar/test_ray.py::test_tail_halves_inside_a_chunk_same_bytes"
-DATASET_RUN = "python/floxels_ext/lidar/dataset/run.py"
+ENGINE_COUNTS = "python/floxels_ext/lidar/dataset/engine_counts.py"
 ENGINES_DEFAULT = "tests/lidar/test_run_engines.py::test_default_engines_by_device_and_cores"
 RAY_REPORT = "python/floxels_ext/lidar/dataset/ray_report.py"
 RAY_PRELOAD = "python/floxels_ext/lidar/dataset/ray_preload.py"
@@ -141,7 +141,7 @@ MUTATIONS = [
      [ARROW_TESTS, "tests/lidar/test_io_readers.py"]),
     ("bench_run --data rebuilt every run", "bench/bench_run.py", "if {k: old.get(k) for k in meta} == meta:",
      "if False:", ["tests/test_bench_run_data.py"]),
-    ("accurate keeps three engines", DATASET_RUN, 'return ACCURATE_ENGINES if preset == "accurate" else 3', "return 3",
+    ("accurate keeps three engines", ENGINE_COUNTS, 'return ACCURATE_ENGINES if preset == "accurate" else 3', "return 3",
      [ENGINES_DEFAULT, "tests/lidar/test_run_engines.py::test_engine_count_follows_the_preset_in_effect"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
     ("floxels run's default preset paper", RUN_ARGS,
@@ -166,7 +166,7 @@ MUTATIONS = [
     ("chunk anchored at its own first frame", LAYOUT,
      "self.anchor_from = lo if anchor_from is None else min(lo, anchor_from)", "self.anchor_from = lo",
      [ANCHORS, RAY_HALF]),
-    ("three engines on any CUDA host", DATASET_RUN, "return 3 if cores >= THREE_ENGINE_CORES else 2", "return 3",
+    ("three engines on any CUDA host", ENGINE_COUNTS, "if cores < THREE_ENGINE_CORES:\n        return 2", "if False:\n        return 2",
      [ENGINES_DEFAULT]),
     # ---- issue 44, fifth session: the warm pool's hand-over, one summary a sequence, the tail ----
     ("claim does not wait for a dropped worker's release", RAY_WORKER,

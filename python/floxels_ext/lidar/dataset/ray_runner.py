@@ -36,6 +36,7 @@ import time
 from collections import deque
 from pathlib import Path
 
+from floxels_ext.lidar.dataset.engine_counts import default_engines
 from floxels_ext.lidar.dataset.ray_report import report_workers, write_job_summary
 
 __all__ = ["run_on_ray", "early_workers", "connect", "task_slots"]
@@ -45,7 +46,7 @@ TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is halved while e
 
 
 # Default GPUs a worker asks for on a GPU cluster: 1/W, W workers sharing each GPU, W the local
-# run's engines on a host of the GPU nodes' cores per GPU (``run.default_engines``: 2, or on 16+
+# run's engines on a host of the GPU nodes' cores per GPU (``engine_counts.default_engines``: 2, or on 16+
 # cores a GPU 3, 4 with `accurate`). One worker leaves its GPU idle while its host steps run
 # (reading, set-up, results); the others' kernels fill those gaps (time-sliced contexts).
 # Measured (bench/RESULTS.md): two a GPU 1.41x one (2 x H200); three a GPU against two with
@@ -53,8 +54,6 @@ TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is halved while e
 # four H100s", ninth session). Rounded down to Ray's 4 decimals (3 x 0.3333 fit a GPU).
 def gpu_share(nodes: list[dict], preset: str) -> float:
     """GPUs a worker asks for by default on a cluster of ``nodes`` (resource dicts) running ``preset``."""
-    from floxels_ext.lidar.dataset.run import default_engines
-
     per_gpu = [r.get("CPU", 0.0) / r["GPU"] for r in nodes if r.get("GPU", 0.0) >= 1]
     w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)
     return math.floor(1e4 / w) / 1e4

@@ -22,21 +22,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_dataset_arguments", "run_input"]
+from floxels_ext.lidar.dataset.engine_counts import ACCURATE_ENGINES, THREE_ENGINE_CORES, default_engines
 
-
+__all__ = ["add_dataset_arguments", "run_input", "default_engines", "ACCURATE_ENGINES", "THREE_ENGINE_CORES"]
 
 MAX_ENGINES = 8  # engines on one device: more contexts than this only queue behind each other
-# Default engines on a GPU: each one's readers, writers and optimiser thread keep ~4 cores busy;
-# on a host of at least THREE_ENGINE_CORES cores a third engine filled the GPU's remaining gaps
-# (one H100, 16 cores, 768 frames: three engines faster in 8 of 8 runs, `paper` 1.02-1.58x,
-# `accurate` 1.08-1.38x; bench/RESULTS.md, C5)
-THREE_ENGINE_CORES = 16
-# `accurate`'s host steps a frame (the refinement, the sights, the evidence: ~1,100 launches and
-# ~5 host reads a frame against `paper`'s ~300 and 2) keep three engines waiting on the host: a
-# fourth gave 98.8-105.5 frames/s against three's 72.8-102.9 (one H200, 16 cores, 768 frames,
-# two runs each; `paper` with four: 230-279 against 246-281, so it keeps three; bench/RESULTS.md)
-ACCURATE_ENGINES = 4
 RAY_TASK_FRAMES = 192
 
 
@@ -91,20 +81,6 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
-
-
-def default_engines(device: str, cores: int | None = None, preset: str = "paper") -> int:
-    """``--engines``' default on ``device`` for a host of ``cores`` cores (None: this one's),
-    running ``preset`` (the Floxels preset in effect; ``paper`` for other methods)."""
-    if not device.startswith("cuda"):
-        return 1
-    if cores is None:
-        from floxels_ext.cpu_threads import usable_cores
-
-        cores = usable_cores()
-    if cores < THREE_ENGINE_CORES:
-        return 2
-    return ACCURATE_ENGINES if preset == "accurate" else 3
 
 
 def engine_count(args) -> int:
