@@ -102,6 +102,9 @@ HALVE = "tests/lidar/test_tasks_halve.py"
 ANCHORS = "tests/lidar/test_chunk_anchors.py"
 RAY_HALF = "tests/lidar/test_ray.py::test_tail_halves_inside_a_chunk_same_bytes"
 ENGINE_COUNTS = "python/floxels_ext/lidar/dataset/engine_counts.py"
+RAY_TAIL_PY = "python/floxels_ext/lidar/dataset/ray_tail.py"
+TAIL_UNIT = "tests/lidar/test_ray_tail.py"
+TAIL_E2E = "tests/lidar/test_ray.py::test_tail_cut_where_the_share_says_same_outputs"
 ENGINES_DEFAULT = "tests/lidar/test_run_engines.py::test_default_engines_by_device_and_cores"
 RAY_REPORT = "python/floxels_ext/lidar/dataset/ray_report.py"
 RAY_PRELOAD = "python/floxels_ext/lidar/dataset/ray_preload.py"
@@ -114,13 +117,30 @@ FAR_SENSOR = "tests/estimator/test_sight.py::test_a_sensor_beyond_any_lidars_rea
 # (name, file, old, new, tests). The first four passed the whole suite before issue 34; of those
 # after "issue 46", the eleven marked (46) passed the whole suite before that issue.
 MUTATIONS = [
+    # ---- issue 44, ninth session: the tail cut to each worker's share of the work left ----
+    ("tail share ignores what the worker holds", RAY_TAIL_PY,
+     "return left / sum(rates.values()) * rates[worker] - held[worker]", "return left / sum(rates.values()) * rates[worker]",
+     [TAIL_UNIT]),
+    ("tail shares worked out from the job's start", RAY_TAIL_PY, "if len(queued) < SHARE_QUEUE * max(1, len(held)):",
+     "if True:", [TAIL_UNIT]),
+    ("tail cut ignores the share", RAY_TAIL_PY,
+     "first = max(0.0, share) if share is not None and frames > share + CUT_MARGIN else None", "first = None", [TAIL_UNIT]),
+    ("tail rate counts the first report's frames", RAY_TAIL_PY, "self.since[worker], self.frames[worker] = now, 0",
+     "self.since[worker], self.frames[worker] = now, n", [TAIL_UNIT]),
+    ("the driver halves where the share says cut", RAY_RUNNER,
+     "(h := halve_task(todo_tasks[k], align, TAIL_SPLIT_FRAMES, first))", "(h := halve_task(todo_tasks[k], align, TAIL_SPLIT_FRAMES))",
+     [TAIL_E2E]),
+    ("the driver's rates never told of frames", RAY_RUNNER, "tail.written(slot.name, sum(frames.values()), time.time())",
+     "pass", [TAIL_E2E]),
+    ("tasks_run not recorded", RAY_RUNNER,
+     'ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome})', "pass", [TAIL_E2E]),
     # ---- issue 44, ninth session: Ray's workers a GPU follow the local engines ----
-    ("Ray's default share from the most cores a GPU", RAY_RUNNER,
+    ("Ray's default share from the most cores a GPU", ENGINE_COUNTS,
      'w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)',
      'w = default_engines("cuda", int(max(per_gpu)) if per_gpu else 0, preset)', [RAY_UNIT]),
     ("Ray's default share ignores the preset", RAY_RUNNER, "gpus = gpu_share(nodes, preset_name(args))",
      'gpus = gpu_share(nodes, "paper")', [RAY_UNIT]),
-    ("Ray's default share not rounded to Ray's precision", RAY_RUNNER, "return math.floor(1e4 / w) / 1e4",
+    ("Ray's default share not rounded to Ray's precision", ENGINE_COUNTS, "return math.floor(1e4 / w) / 1e4",
      "return 1 / w", [RAY_UNIT]),
     # ---- issue 42, eighth session: accurate's GPU time (group sums, run bounds), its engines ----
     ("group sums keep a non-finite term's row finite", GROUP_SUMS,
@@ -181,7 +201,10 @@ MUTATIONS = [
      [RAY_UNIT]),
     ("Ray summary parts dropped", RAY_RUNNER, "task_ended(k, outcome, part)", "task_ended(k, outcome, None)",
      [RAY_SAME]),
-    ("tail never halved", RAY_RUNNER, "if align and len(queue) < len(runs) and", "if False and", [RAY_TAIL]),
+    ("tail never halved", RAY_RUNNER, "first = cut_at(slot, k)", "first = None", [RAY_TAIL, TAIL_E2E]),
+    ("the last tasks not halved", RAY_TAIL_PY, "    if queued_tasks < workers:\n        first = frames / 2",
+     "    if False:\n        first = frames / 2", [TAIL_UNIT, RAY_TAIL]),
+    ("the last tasks halved past the share", RAY_TAIL_PY, "else min(first, frames / 2)", "else frames / 2", [TAIL_UNIT]),
     ("tail cut at any frame", TASKS, "if (c - a0) % max(1, align) == 0]", "]", [HALVE]),
     ("tail cut leaves an empty half", TASKS, "return None if not (parts[0].todo and parts[1].todo) else",
      "return None if False else", [HALVE]),

@@ -265,6 +265,37 @@ def test_tail_tasks_halved_same_outputs(cluster, dataset, tmp_path, monkeypatch,
     _assert_summaries(out, local)
 
 
+def test_tail_cut_where_the_share_says_same_outputs(cluster, dataset, tmp_path, monkeypatch):
+    """The driver cuts a task it hands out where ``ray_tail.first_part`` says (here: after its
+    first frame, once), queues the rest, and the job's outputs and summaries are the local
+    run's; ``tasks_run`` in the job summary names each task's frames and worker."""
+    from floxels_ext.lidar.dataset import ray_runner
+
+    lst, local = dataset
+    calls = []
+
+    def first_part(tail, worker, frames, queued, held, now):
+        calls.append((worker, frames, len(queued), dict(held), tail))
+        return 1.0 if len(calls) == 1 else None
+
+    monkeypatch.setattr(ray_runner, "TAIL_SPLIT_FRAMES", 1)
+    monkeypatch.setattr(ray_runner, "first_part", first_part)
+    out = tmp_path / "ray"
+    assert cli.main(["run", str(lst), "--out", str(out), "--ray", "--max-tasks", "2", "--keep-workers", "0",
+                     *FLAGS, "-q"]) == 0
+    job = json.loads((out / "ray_job_summary.json").read_text())
+    assert job["tasks"]["done"] == 4 and job["frames_written"] == 12
+    frames = sorted(r["task"].rsplit(" frames ", 1)[1] for r in job["tasks_run"])
+    assert frames == ["0:1", "0:4", "0:4", "1:4"], frames
+    assert {r["outcome"] for r in job["tasks_run"]} == {"done"}
+    assert {r["worker"] for r in job["tasks_run"]} <= {w["name"] for w in job["workers"]}
+    assert calls[0][1] == 4 and calls[0][2] == 2  # the first hand-out: 4 frames, 2 tasks queued behind it
+    tail = calls[0][4]  # the driver's rates: every worker that wrote frames reported them
+    assert set(tail.since) == {r["worker"] for r in job["tasks_run"]}
+    _assert_same(out, local)
+    _assert_summaries(out, local)
+
+
 def test_tail_halves_inside_a_chunk_same_bytes(cluster, tmp_path, monkeypatch, capsys):
     """A tail half that starts inside a chunk (here every cut: one chunk of 8 frames) keeps the
     chunk's anchor, so a Ray job's bytes do not depend on where its timing cut the tasks: the

@@ -104,7 +104,8 @@ def test_default_workers_a_gpu_follow_the_local_engines():
     from types import SimpleNamespace
 
     from floxels_ext.lidar.dataset import run
-    from floxels_ext.lidar.dataset.ray_runner import _resources, gpu_share, task_slots
+    from floxels_ext.lidar.dataset.engine_counts import gpu_share
+    from floxels_ext.lidar.dataset.ray_runner import _resources, task_slots
 
     nodes = [{"Alive": True, "Resources": {"CPU": 64.0, "GPU": 4.0}}]
     ray = SimpleNamespace(nodes=lambda: nodes)

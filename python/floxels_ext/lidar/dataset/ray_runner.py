@@ -36,27 +36,16 @@ import time
 from collections import deque
 from pathlib import Path
 
-from floxels_ext.lidar.dataset.engine_counts import default_engines
+from floxels_ext.lidar.dataset.engine_counts import gpu_share
 from floxels_ext.lidar.dataset.ray_report import report_workers, write_job_summary
+from floxels_ext.lidar.dataset.ray_tail import SHARE_QUEUE, TailShare, first_part
 
 __all__ = ["run_on_ray", "early_workers", "connect", "task_slots"]
 
 POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (the driver's heartbeat)
-TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is halved while each half keeps this many
+TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is cut while each part keeps this many
 
 
-# Default GPUs a worker asks for on a GPU cluster: 1/W, W workers sharing each GPU, W the local
-# run's engines on a host of the GPU nodes' cores per GPU (``engine_counts.default_engines``: 2, or on 16+
-# cores a GPU 3, 4 with `accurate`). One worker leaves its GPU idle while its host steps run
-# (reading, set-up, results); the others' kernels fill those gaps (time-sliced contexts).
-# Measured (bench/RESULTS.md): two a GPU 1.41x one (2 x H200); three a GPU against two with
-# `paper` on 4 x H100, 64 cores, 96 x 150 frames: 1.08x on 1 GPU, 1.06x on 2, 1.16x on 4 ("Ray on
-# four H100s", ninth session). Rounded down to Ray's 4 decimals (3 x 0.3333 fit a GPU).
-def gpu_share(nodes: list[dict], preset: str) -> float:
-    """GPUs a worker asks for by default on a cluster of ``nodes`` (resource dicts) running ``preset``."""
-    per_gpu = [r.get("CPU", 0.0) / r["GPU"] for r in nodes if r.get("GPU", 0.0) >= 1]
-    w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)
-    return math.floor(1e4 / w) / 1e4
 
 
 def _ray():
@@ -196,10 +185,11 @@ def early_workers(args):
 
 
 def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int = 0) -> int:
-    """``align`` > 0: tasks handed out while the queue holds fewer than the workers are halved
-    at a multiple of ``align`` (``tasks.halve_task``; 1: anywhere, the outputs do not depend on
-    the cut), the second half queued first, so that the workers end together; 0: tasks are
-    never cut (whole sequences asked for, KISS-ICP)."""
+    """``align`` > 0: a task handed out near the job's end is cut at a multiple of ``align``
+    (``tasks.halve_task``; 1: anywhere, the outputs do not depend on the cut) to the worker's
+    share of the work left (``ray_tail``; halved while the queue is shorter than the workers
+    before any rate is known), the rest queued first, so that the workers end together; 0:
+    tasks are never cut (whole sequences asked for, KISS-ICP)."""
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
     from floxels_ext.lidar.dataset.summary import SequenceParts, write_summary
@@ -252,7 +242,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
     ended: dict[int, tuple[str, list]] = {}
     live: dict[int, int] = {}   # frames the workers reported for tasks not ended yet
     replacements = args.retries
-    skipped_tasks = len(tasks) - len(todo_tasks)  # nothing to do; the others: todo_tasks (it grows where tasks are halved)
+    skipped_tasks = len(tasks) - len(todo_tasks)  # nothing to do; the others: todo_tasks (it grows where tasks are cut)
     bar = DatasetProgress(todo, n_sequences, verbosity=verbosity)  # sequences counted once all their tasks ended
     for _ in {SequenceParts.key(t) for t in tasks} - {SequenceParts.key(t) for t in todo_tasks}:
         bar.sequence("skipped")
@@ -270,12 +260,14 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
         if done[1] is not None and done[0] != "skipped":
             write_summary(done[1], lambda msg: bar.message(msg) if verbosity >= 0 else None)
     results: list[dict] = []
+    ran: list[dict] = []  # each task that ended: its frames, its worker (the job summary's "tasks_run")
     done_frames = shown = 0
     t_all_ended = None  # when the driver learnt that every task had ended
 
     def on_poll(slot, events, frames) -> bool:
         nonlocal done_frames
         slot.alive = True
+        tail.written(slot.name, sum(frames.values()), time.time())
         for k, n in frames.items():
             if k not in ended:
                 live[k] = live.get(k, 0) + n
@@ -287,6 +279,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                 task_ended(k, outcome, part)
                 slot.leases.discard(k)
                 ended[k] = (outcome, lines)
+                ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome})
                 live.pop(k, None)
                 failures.extend(lines)
                 done_frames += _count_written(todo_tasks[k], since)
@@ -315,6 +308,17 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
         if replacements > 0 and len(ended) < len(todo_tasks):
             replacements -= 1
             launch(workers.add())
+
+    tail = TailShare()  # the workers' rates: each one's share of the work left (ray_tail)
+
+    def cut_at(slot, k: int) -> float | None:
+        """Where task ``k``, handed to ``slot`` now, is cut (ray_tail.first_part; None: whole)."""
+        if not align:
+            return None
+        near = len(queue) < SHARE_QUEUE * max(1, len(runs))  # else no share is worked out: skip the sums
+        held = {s.name: sum(max(0, len(todo_tasks[j].todo) - live.get(j, 0)) for j in s.leases) for s in runs.values()}
+        queued = [len(todo_tasks[j].todo) for j in queue] if near else [0] * len(queue)
+        return first_part(tail, slot.name, len(todo_tasks[k].todo), queued, held, time.time())
 
     def workers_left() -> bool:  # running, or claimed from the pool and still coming while tasks remain
         return bool(runs) or bool(workers.late) and len(ended) < len(todo_tasks)
@@ -362,7 +366,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                 slot, what = w
                 if queue:
                     k = queue.popleft()
-                    if align and len(queue) < len(runs) and (h := halve_task(todo_tasks[k], align, TAIL_SPLIT_FRAMES)):
+                    first = cut_at(slot, k)
+                    if first is not None and (h := halve_task(todo_tasks[k], align, TAIL_SPLIT_FRAMES, first)):
                         todo_tasks[k] = h[0]
                         todo_tasks.append(h[1])
                         parts.add_task(h[1])
@@ -416,7 +421,7 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
     write_job_summary(Path(args.out) / "ray_job_summary.json", {
         "input": str(args.input), "started": workers.t0, "wall_s": round(wall, 3), "frames_written": written,
         "all_tasks_ended_s": None if t_all_ended is None else round(t_all_ended - workers.t0, 3),
-        "frames_per_s": round(written / wall, 3) if wall > 0 else None, "tasks": counts, "failures": len(failures),
+        "frames_per_s": round(written / wall, 3) if wall > 0 else None, "tasks": counts, "tasks_run": ran, "failures": len(failures),
         "lost_workers": deaths, "pool": {"keep_s": workers.keep_s, "key": workers.key, "retired": workers.retired},
         "resources": {"gpus": workers.gpus, "cpus": workers.cpus, "device": workers.device},
         "workers": [{k: v for k, v in r.items() if k != "log"} for r in results]})

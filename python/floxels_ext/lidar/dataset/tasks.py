@@ -346,18 +346,21 @@ def _part(task: Task, a: int, b: int, **changes) -> Task:
                    frame_paths=task.frame_paths[a - k0:b - k0], **changes)
 
 
-def halve_task(task: Task, align: int, min_frames: int) -> tuple[Task, Task] | None:
-    """``task`` cut in two at the cut nearest its middle that is a multiple of ``align`` from
-    the selection's first frame (1: any frame; every window and chunk anchor stays the run's
-    wherever the cut, ``layout.plan_chunks``), each part at least ``min_frames`` frames with
-    some left to do; None where no such cut exists. The Ray driver halves the tasks it hands out last, so that the workers end
-    together (a job's tail: whole 150-frame sequences ended up to ~1.3 s apart on 4 GPUs)."""
+def halve_task(task: Task, align: int, min_frames: int, first: float | None = None) -> tuple[Task, Task] | None:
+    """``task`` cut in two at the cut nearest its middle (``first``: nearest ``first`` frames
+    from its start) that is a multiple of ``align`` from the selection's first frame (1: any
+    frame; every window and chunk anchor stays the run's wherever the cut,
+    ``layout.plan_chunks``), each part at least ``min_frames`` frames with some left to do; None
+    where no such cut exists. The Ray driver cuts the tasks it hands out last, so that the
+    workers end together (a job's tail: whole 150-frame sequences ended up to ~1.3 s apart on 4
+    GPUs; ``ray_tail``)."""
     a0 = (task.selection or (task.start, task.stop))[0]
     m = max(1, min_frames)
     cuts = [c for c in range(task.start + m, task.stop - m + 1) if (c - a0) % max(1, align) == 0]
     if not cuts:
         return None
-    cut = min(cuts, key=lambda c: (abs(2 * c - task.start - task.stop), c))
+    target = task.start + task.stop if first is None else 2 * task.start + 2 * first  # (twice the cut)
+    cut = min(cuts, key=lambda c: (abs(2 * c - target), c))
     todo = set(task.todo)
     parts = [_part(task, a, b) for a, b in ((task.start, cut), (cut, task.stop))]
     for p in parts:
