@@ -23,6 +23,7 @@
 # SKIP_BUILD=1: the package is built already (a second pass in the same call). DATA=DIR: bench_ray's
 #   dataset directory (kept between passes; made if missing).
 # ROUNDS=R repeats the Ray (and procs) rows R times, interleaved; SPY=N py-spy dumps of N busy workers of each kind.
+# RUN_ARGS="--preset accurate": floxels run options for every row (bench_ray --run-args; its default preset is paper).
 #   OUT=... [PRESTART=1] [LIMIT=540] [SEQS=80] [SUBSET=16] [GPUS="1 2 4"] [WPG="1"] [COLD=K] [MODES="long ray"] tools/gpu_ray_bench.sh
 set -u
 cd "$(dirname "$0")/.."
@@ -66,7 +67,8 @@ cold=${COLD:-$(echo $GPUS | awk '{print $NF}')}; coldf="--cold $cold"; [ "$cold"
 t=$(( $(left) - 45 ))
 log "bench_ray: --gpus $GPUS --workers-per-gpu ${WPG:-1} --cold $cold --subset ${SUBSET:-16} --subset-gpus 2, limit $t s"
 timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-gpu ${WPG:-1} --modes ${MODES:-long ray} \
-  --procs-engines ${PROCS_E:-1} --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf ${DATA:+--data $DATA} --subset ${SUBSET:-16} --subset-gpus 2 --json $OUT/bench_ray.json \
+  --procs-engines ${PROCS_E:-1} --sequences ${SEQS:-80} --rounds ${ROUNDS:-1} --ray-address auto $coldf ${DATA:+--data $DATA} --subset ${SUBSET:-16} --subset-gpus 2 \
+  ${RUN_ARGS:+"--run-args=$RUN_ARGS"} --json $OUT/bench_ray.json \
   > $OUT/bench_ray.log 2>&1
 log "bench_ray rc=$?"
 mkdir -p $W/hs; touch $W/hs/stop; wait $HS
