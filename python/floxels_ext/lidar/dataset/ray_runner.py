@@ -46,8 +46,6 @@ POLL_S = 1.0  # a worker's long poll returns at once on news, else after this (t
 TAIL_SPLIT_FRAMES = 16  # a task handed out near the job's end is cut while each part keeps this many
 
 
-
-
 def _ray():
     from floxels_ext.lidar.io._optional import require
 
@@ -187,9 +185,8 @@ def early_workers(args):
 def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int = 0) -> int:
     """``align`` > 0: a task handed out near the job's end is cut at a multiple of ``align``
     (``tasks.halve_task``; 1: anywhere, the outputs do not depend on the cut) to the worker's
-    share of the work left (``ray_tail``; halved while the queue is shorter than the workers
-    before any rate is known), the rest queued first, so that the workers end together; 0:
-    tasks are never cut (whole sequences asked for, KISS-ICP)."""
+    share of the work left, the last tasks also halved (``ray_tail``), the rest queued first, so
+    that the workers end together; 0: tasks are never cut (whole sequences asked for, KISS-ICP)."""
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.outputs import remove_temps
     from floxels_ext.lidar.dataset.summary import SequenceParts, write_summary
@@ -313,11 +310,10 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
 
     def cut_at(slot, k: int) -> float | None:
         """Where task ``k``, handed to ``slot`` now, is cut (ray_tail.first_part; None: whole)."""
-        if not align:
-            return None
-        near = len(queue) < SHARE_QUEUE * max(1, len(runs))  # else no share is worked out: skip the sums
+        if not align or len(queue) >= SHARE_QUEUE * max(1, len(runs)):
+            return None  # far from the end every worker gets several more tasks: whole (as first_part says)
         held = {s.name: sum(max(0, len(todo_tasks[j].todo) - live.get(j, 0)) for j in s.leases) for s in runs.values()}
-        queued = [len(todo_tasks[j].todo) for j in queue] if near else [0] * len(queue)
+        queued = [len(todo_tasks[j].todo) for j in queue]
         return first_part(tail, slot.name, len(todo_tasks[k].todo), queued, held, time.time())
 
     def workers_left() -> bool:  # running, or claimed from the pool and still coming while tasks remain
