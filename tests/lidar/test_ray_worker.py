@@ -103,8 +103,7 @@ def test_default_workers_a_gpu_follow_the_local_engines():
     the node's CPUs are split between the workers it holds."""
     from types import SimpleNamespace
 
-    from floxels_ext.lidar.dataset import run
-    from floxels_ext.lidar.dataset.engine_counts import gpu_share
+    from floxels_ext.lidar.dataset import engine_counts
     from floxels_ext.lidar.dataset.ray_runner import _resources, task_slots
 
     nodes = [{"Alive": True, "Resources": {"CPU": 64.0, "GPU": 4.0}}]
@@ -123,10 +122,10 @@ def test_default_workers_a_gpu_follow_the_local_engines():
     assert _resources(ray, args(device="cpu")) == (0.0, 1.0, "cpu")
     # the fewest cores a GPU decides (a worker fits any GPU node), below 16 two a GPU
     small = {"CPU": 16.0, "GPU": 2.0}
-    assert gpu_share([nodes[0]["Resources"], small], "accurate") == 0.5
-    assert gpu_share([{"CPU": 16.0, "GPU": 1.0}], "paper") == 0.3333
-    assert gpu_share([{"CPU": 16.0, "GPU": 1.0}], "accurate") == 1 / run.ACCURATE_ENGINES
-    assert run.default_engines("cuda", run.THREE_ENGINE_CORES - 1, "accurate") == 2
+    assert engine_counts.gpu_share([nodes[0]["Resources"], small], "accurate") == 0.5
+    assert engine_counts.gpu_share([{"CPU": 16.0, "GPU": 1.0}], "paper") == 0.3333
+    assert engine_counts.gpu_share([{"CPU": 16.0, "GPU": 1.0}], "accurate") == 1 / engine_counts.ACCURATE_ENGINES
+    assert engine_counts.default_engines("cuda", engine_counts.THREE_ENGINE_CORES - 1, "accurate") == 2
 
 
 def test_claim_waits_for_the_starting_jobs_release():

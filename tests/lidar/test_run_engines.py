@@ -232,7 +232,7 @@ def test_engine_option_mistakes_exit_2(seq, tmp_path, capsys):
 
 
 def test_default_engines_by_device_and_cores():
-    from floxels_ext.lidar.dataset.run import default_engines
+    from floxels_ext.lidar.dataset.engine_counts import default_engines
 
     assert default_engines("cpu", 64) == 1
     assert default_engines("cuda", 8) == 2 and default_engines("cuda:1", 15) == 2
@@ -282,7 +282,7 @@ def test_two_engines_on_one_gpu_give_one_engine_s_bytes(tmp_path, monkeypatch, c
     """On the GPU (the default there is 2 engines, 3 on a host of 16+ cores): the engines take
     tasks (engine 1 the first), and every output equals the one engine's byte for byte."""
     from floxels_ext.evaluation.sim import simulate_sequence
-    from floxels_ext.lidar.dataset.run import default_engines
+    from floxels_ext.lidar.dataset.engine_counts import default_engines
 
     save_sequence(tmp_path / "seq", simulate_sequence("urban", 24, 5, beams=32, azimuth_steps=720))
     base = ["run", str(tmp_path / "seq"), "--device", "cuda", "--chunk", "8", "-q"]

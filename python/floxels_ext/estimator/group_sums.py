@@ -42,10 +42,12 @@ def segment_sum(rows: int, index: torch.Tensor, values: torch.Tensor) -> torch.T
 def cluster_means(flow: torch.Tensor, lab: torch.Tensor, C: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(mean flow (C, 3) in the flow's dtype, points (C,) in the flow's dtype) of the clusters
     ``lab`` (n,) in [-1, C) of every point. The sums are of the flow in fixed point (FIXED_POINT
-    steps), as integers: exact, so the same bits in any order and on any device. Why not
-    :func:`segment_sum`: its fixed order adds each cluster's rows one after another, and over
-    every point of a frame (large static clusters, the unclustered points) that took 1.4-2.7 ms
-    a frame on an H100, the largest part of the accurate preset's refinement after the search."""
+    steps), as integers: exact, so the same bits in any order and on any device, as
+    :func:`segment_sum`'s. It differs from that in what it sums over every point of a frame: a
+    point with any non-finite component voids its cluster's whole mean (not the one component),
+    flows are clamped to +-MAX_FIXED_FLOW, the unclustered points are spread over spare rows (no
+    row's atomics take them all), and one pass sums 5 int64 columns (segment_sum would take 8:
+    the flow, a count and a non-finite flag a column)."""
     n = lab.shape[0]
     # points of no cluster: spread over spare rows C.., so that no row takes them all
     key = torch.where(lab >= 0, lab, C + (torch.arange(n, device=lab.device) & (SPARE_ROWS - 1)))

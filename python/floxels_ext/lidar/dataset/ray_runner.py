@@ -38,7 +38,7 @@ from pathlib import Path
 
 from floxels_ext.lidar.dataset.engine_counts import gpu_share
 from floxels_ext.lidar.dataset.ray_report import report_workers, write_job_summary
-from floxels_ext.lidar.dataset.ray_tail import SHARE_QUEUE, TailShare, first_part
+from floxels_ext.lidar.dataset.ray_tail import TailShare, first_part, near_end
 
 __all__ = ["run_on_ray", "early_workers", "connect", "task_slots"]
 
@@ -310,8 +310,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
 
     def cut_at(slot, k: int) -> float | None:
         """Where task ``k``, handed to ``slot`` now, is cut (ray_tail.first_part; None: whole)."""
-        if not align or len(queue) >= SHARE_QUEUE * max(1, len(runs)):
-            return None  # far from the end every worker gets several more tasks: whole (as first_part says)
+        if not align or not near_end(len(queue), len(runs)):
+            return None  # whole, as first_part would say (without a list of the whole queue each time)
         held = {s.name: sum(max(0, len(todo_tasks[j].todo) - live.get(j, 0)) for j in s.leases) for s in runs.values()}
         queued = [len(todo_tasks[j].todo) for j in queue]
         return first_part(tail, slot.name, len(todo_tasks[k].todo), queued, held, time.time())

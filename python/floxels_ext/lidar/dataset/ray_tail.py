@@ -28,10 +28,10 @@ In the 4 x H100 rows (J1, bench/RESULTS.md "Ray on four H100s") the workers' las
 
 from __future__ import annotations
 
-__all__ = ["TailShare", "cut_here", "first_part"]
+__all__ = ["TailShare", "cut_here", "first_part", "near_end"]
 
 RATE_FRAMES = 16   # a worker's own rate once it has written this many frames after its first report
-SHARE_QUEUE = 4    # shares are worked out once the queue holds at most this many tasks a worker
+SHARE_QUEUE = 4    # shares are worked out once fewer than this many tasks a worker are queued (near_end)
 CUT_MARGIN = 4     # frames a task may exceed a worker's share by and still go whole
 
 
@@ -87,13 +87,17 @@ def cut_here(frames: int, share: float | None, queued_tasks: int, workers: int) 
     return first
 
 
+def near_end(queued_tasks: int, workers: int) -> bool:
+    """Whether a job with ``queued_tasks`` queued and ``workers`` running is near enough its end
+    for shares: fewer than SHARE_QUEUE tasks a worker (before that every worker gets several more
+    tasks, and a task goes whole)."""
+    return queued_tasks < SHARE_QUEUE * max(1, workers)
+
+
 def first_part(tail: TailShare, worker: str, frames: int, queued: list[int], held: dict[str, int],
                now: float) -> float | None:
     """Frames of the first part of a task of ``frames`` frames handed to ``worker`` now (None: it
     goes whole), given the frames of each task still ``queued`` and those each running worker
-    ``held`` (``worker`` among them). Shares are worked out once the queue holds fewer than
-    SHARE_QUEUE tasks a worker (before that every worker gets several more tasks)."""
-    share = None
-    if len(queued) < SHARE_QUEUE * max(1, len(held)):
-        share = tail.share(worker, held, frames + sum(queued), now)
+    ``held`` (``worker`` among them). Shares are worked out only when :func:`near_end`."""
+    share = tail.share(worker, held, frames + sum(queued), now) if near_end(len(queued), len(held)) else None
     return cut_here(frames, share, len(queued), len(held))

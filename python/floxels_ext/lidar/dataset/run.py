@@ -22,9 +22,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from floxels_ext.lidar.dataset.engine_counts import ACCURATE_ENGINES, THREE_ENGINE_CORES, default_engines
+from floxels_ext.lidar.dataset.engine_counts import default_engines
 
-__all__ = ["add_dataset_arguments", "run_input", "default_engines", "ACCURATE_ENGINES", "THREE_ENGINE_CORES"]
+__all__ = ["add_dataset_arguments", "run_input"]
 
 MAX_ENGINES = 8  # engines on one device: more contexts than this only queue behind each other
 RAY_TASK_FRAMES = 192
@@ -41,7 +41,7 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
         "'floxels simulate' sequences; frame files beside sequences are refused) or a text file listing sequence directories (one a line, "
         "optionally 'PATH --poses FILE --calib FILE'). OUT then mirrors the input tree. Without --ray "
         "the sequences run here, one after another through one pipeline (the next one read while the "
-        "current one is estimated); with --ray, two workers per GPU do the same with the sequences it "
+        "current one is estimated); with --ray, several workers per GPU do the same with the sequences it "
         "takes from the driver.", 92))
     g.add_argument("--ray", nargs="?", const="auto", metavar="auto|ADDRESS",
                    help="run on a Ray cluster, long-lived workers, several per GPU (pip install 'floxels_ext[ray]'): "
@@ -84,10 +84,9 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def engine_count(args) -> int:
-    """``--engines``, checked (CLIError), or its default: on CUDA with at least
-    THREE_ENGINE_CORES cores 3 (4 with the ``accurate`` preset, floxels run's default), else 2;
-    1 on the CPU (also with --ray, whose workers are the engines, and with --worker-kind
-    process)."""
+    """``--engines``, checked (CLIError), or its default (``engine_counts.default_engines``: on
+    CUDA with 16+ cores 3, 4 with the ``accurate`` preset, floxels run's default, else 2; 1 on
+    the CPU, also with --ray, whose workers are the engines, and with --worker-kind process)."""
     from floxels_ext.errors import CLIError
 
     n = args.engines
