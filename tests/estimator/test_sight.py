@@ -248,3 +248,49 @@ def test_a_sensor_beyond_any_lidars_reach_is_not_used(scene):
         warnings.simplefilter("error")  # a sensor among its points: no warning
         d = estimate_flow(scans, 2, cfg, sensor_origins=[None] + list(sensors[1:]))
     assert np.array_equal(c, d)
+
+
+def _through_oracle(flat, tops, idx, ret, far):
+    """The seen-through rule of estimator/sight.py element by element, as its docstring reads."""
+    from floxels_ext.estimator.sight import NUM_AZ, NUM_EL
+    out = []
+    for i, r, f in zip(idx.tolist(), ret.tolist(), far.tolist()):
+        ie, col = i % NUM_EL, i - i % NUM_EL  # the bin's elevation, its column's first bin
+        ok = r < 0
+        for sign in (1, -1):  # the nearest return above / below within THROUGH_BINS
+            side = next((flat[col + ie + sign * d] for d in range(1, THROUGH_BINS + 1)
+                         if 0 <= ie + sign * d < NUM_EL and flat[col + ie + sign * d] >= 0), -1.0)
+            up_empty = sign > 0 and side < 0 and ie > tops[(i // NUM_EL)]
+            ok &= side >= f or up_empty
+        local = i % (NUM_AZ * NUM_EL)
+        ia = local // NUM_EL
+        for step in (-1, 1):
+            v = flat[i - local + ((ia + step) % NUM_AZ) * NUM_EL + ie]
+            ok &= v < 0 or v >= f
+        out.append(bool(ok))
+    return out
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_seen_through_matches_the_rule_bin_by_bin(device):
+    """The seen-through test (its look-ups in one gather, the nearest return on each side by an
+    argmax: issue 42's fewer launches) against the rule evaluated bin by bin, on two random
+    sparse images (columns at the image's elevation ends and its azimuth wrap included)."""
+    from floxels_ext.estimator.sight import NUM_AZ, NUM_EL, _through
+    g = np.random.default_rng(3)
+    flat = np.full(2 * NUM_AZ * NUM_EL, -1.0, dtype=np.float32)
+    hit = g.random(flat.shape) < 0.3
+    flat[hit] = g.uniform(1.0, 30.0, hit.sum()).astype(np.float32)
+    cols = flat.reshape(2 * NUM_AZ, NUM_EL)
+    top = np.array([np.flatnonzero(c >= 0).max() if (c >= 0).any() else -1 for c in cols])
+    n = 4000
+    az = np.concatenate([g.integers(0, NUM_AZ, n - 8), [0, 0, NUM_AZ - 1, NUM_AZ - 1, 5, 5, 9, 9]])
+    el = np.concatenate([g.integers(0, NUM_EL, n - 8), [0, NUM_EL - 1, 0, NUM_EL - 1, 1, NUM_EL - 2, 2, 3]])
+    idx = (az * NUM_EL + el).reshape(2, -1) + np.arange(2)[:, None] * NUM_AZ * NUM_EL
+    ret = flat[idx]
+    far = g.uniform(1.0, 30.0, idx.shape).astype(np.float32)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
+    got = _through(t(flat), t(top.reshape(2, NUM_AZ)), t(idx), t(ret), t(far))
+    want = _through_oracle(flat, top, idx.reshape(-1), ret.reshape(-1), far.reshape(-1))
+    assert got.reshape(-1).tolist() == want
+    assert 0 < sum(want) < len(want)

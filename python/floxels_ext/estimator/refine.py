@@ -231,12 +231,25 @@ def _worse_on_a_side(sides, q: torch.Tensor, cid: torch.Tensor, C: int, u: torch
     """(C,) bool: the clusters whose per-row motion ``u`` explains some group of ``sides`` (lists of
     support scans; empty ones skipped) worse than ``ref`` does: the summed loss-weighted squared
     robust residuals of the cluster's sample rows ``q`` (grouped by cluster ``cid``)."""
-    worse = torch.zeros(C, dtype=torch.bool, device=q.device)
+    diffs = []
     for side in sides:
         if side:
-            d = _weighted_residual(side, q, u, tau, True) - _weighted_residual(side, q, ref, tau, True)
-            worse |= ~(segment_sum(C, cid, d) <= 0)  # (a NaN sum counts as worse)
-    return worse
+            r = _weighted_residuals(side, q, [u, ref], tau, True)
+            diffs.append(r[0] - r[1])
+    if not diffs:
+        return torch.zeros(C, dtype=torch.bool, device=q.device)
+    # every side's sums in one pass (each column its own fixed-point sum: the same bits)
+    return (~(segment_sum(C, cid, torch.stack(diffs, 1)) <= 0)).any(dim=1)  # (a NaN sum counts as worse)
+
+
+def _weighted_residuals(supports: list[Support], q: torch.Tensor, us: list[torch.Tensor], tau: float,
+                        squared: bool, observed: torch.Tensor | None = None) -> torch.Tensor:
+    """(len(us), m): :func:`_weighted_residual` of each per-row motion of ``us`` at the rows ``q``
+    (m, 3), in one ``floxels::dt_residual`` launch (the rows stacked; each row's sum is its own,
+    so the same bits as one call per motion: fewer launches from the thread that feeds the GPU)."""
+    k = len(us)
+    ob = None if observed is None else observed.repeat(k)
+    return _weighted_residual(supports, q.repeat(k, 1), torch.cat(us), tau, squared, ob).view(k, -1)
 
 
 def _weighted_residual(supports: list[Support], q: torch.Tensor, u: torch.Tensor, tau: float,
@@ -372,13 +385,17 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     q, cid = points[rows], lab[rows]
     segments = _segments(cid, C)
     n = segments.diff().clamp_min(1).to(dt)  # sample points per cluster
-    cen = segment_sum(C, cid, q) / n[:, None]  # (C, 3)
+    wsum = max(sum(s.w for s in supports), 1e-12)  # all zero (lambda_d = 0): no cost, nothing accepted
+    # the centroids' sums and zero flow's cost (the acceptance test's, below) in one pass: each
+    # column its own fixed-point sum, the same bits as apart
+    r_0 = _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum
+    sums = segment_sum(C, cid, torch.cat([q, r_0[:, None].to(q.dtype)], 1))
+    cen, zero_cost = sums[:, :3] / n[:, None], sums[:, 3].to(r_0.dtype) / n  # (C, 3), (C,)
     rel = q - cen[cid]
     # planar rigid motion (vx, vy, yaw rate); the vertical velocity stays the flow's mean (the
     # scans of vertical faces hardly constrain it, and road users move on the road)
     theta = torch.cat([mean_flow[:, :2], torch.zeros(C, 1, device=dev, dtype=dt)], 1)  # (C, 3)
     vz = mean_flow[:, 2]
-    wsum = max(sum(s.w for s in supports), 1e-12)  # all zero (lambda_d = 0): no cost, nothing accepted
     # Levenberg-Marquardt on every cluster at once (floxels::rigid_lm: one launch on CUDA; the
     # reference is floxels_ext.reference.rigid_lm); the sample rows are grouped by cluster
     dts, origins, spacing, ts, ws = _packed(supports)
@@ -399,7 +416,6 @@ def rigid_refine_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
         vz = torch.where(lower, vz_s, vz)
     # keep the rigid motion where it is evidence of motion: it explains the scans clearly
     # better than zero flow (the same test as the search); else the cluster keeps its flow
-    zero_cost = segment_sum(C, cid, _weighted_residual(supports, q, torch.zeros_like(q), tau, True) / wsum) / n
     accept = sel & (cur < (1 - SEARCH_GAIN) * zero_cost)
     fits = accept.clone()
     if sided:

@@ -34,6 +34,7 @@ synchronisation; a scan's sight is built with its distance transform and cached 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -53,7 +54,8 @@ NUM_AZ = int(round(2 * math.pi / AZ_BIN))
 NUM_EL = int(round(math.pi / EL_BIN)) + 1
 SENSOR_REACH = 1000.0        # m: beyond any lidar's range; a "sensor" this far from every point of its
                              # scan is not its sensor (a position in another frame than the scans)
-CHUNK_ELEMENTS = 1 << 23     # observed_bits: scans tested together, at most this many (scan, point) pairs
+CHUNK_ELEMENTS = 1 << 21     # observed_bits: scans tested together, at most this many (scan, point) pairs
+                             # (the seen-through test holds 2 x THROUGH_BINS look-ups of each at once)
 
 
 @dataclass
@@ -215,6 +217,15 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
             (front.to(torch.int32) << shifts).sum(0, dtype=torch.int32))
 
 
+@functools.lru_cache(maxsize=16)
+def _steps(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_through`'s constant offsets on ``device``, made once: the elevation steps (2,
+    THROUGH_BINS) above (1..) and below (-1..) a bin, and the azimuth steps (2,) to the columns
+    beside it."""
+    d = list(range(1, THROUGH_BINS + 1))
+    return (device_values([d, [-x for x in d]], torch.int64, device), device_values([-1, 1], torch.int64, device))
+
+
 def _through(flat: torch.Tensor, tops: torch.Tensor, idx: torch.Tensor, ret: torch.Tensor,
              far: torch.Tensor) -> torch.Tensor:
     """(I, n) bool: the point's bin (``idx`` into the stacked nearest-return images ``flat``, its
@@ -231,23 +242,22 @@ def _through(flat: torch.Tensor, tops: torch.Tensor, idx: torch.Tensor, ret: tor
     static foliage 3-10 m up (small groups the other sweep missed) took 0.66 m/frame on 40 points
     (static EPE 0.0070 -> 0.0074); with both checks 23 points (0.0073)."""
     ie = idx % NUM_EL  # the elevation bin (each image is NUM_EL-bin columns)
-    through = ret < 0
-    for sign in (1, -1):
-        side = torch.full_like(ret, -1.0)  # the nearest return on this side, -1 while none
-        for d in range(1, THROUGH_BINS + 1):
-            e = ie + sign * d
-            inside = (e >= 0) & (e < NUM_EL)
-            v = torch.where(inside, flat[(idx + sign * d).clamp(0, flat.numel() - 1)], torch.full_like(ret, -1.0))
-            side = torch.where(side < 0, v, side)
-        ok = side >= far
-        if sign > 0:  # above: or nothing above at all in the column
-            ok |= (side < 0) & (ie > tops.view(-1)[idx // NUM_EL])
-        through &= ok
+    # the THROUGH_BINS bins above and below, in one gather (I, n, 2, THROUGH_BINS): few launches
+    # from the thread that feeds the GPU (a loop over the bins took ~60)
+    steps, beside = _steps(idx.device)
+    e = ie[..., None, None] + steps
+    v = torch.where((e >= 0) & (e < NUM_EL), flat[(idx[..., None, None] + steps).clamp(0, flat.numel() - 1)], -1.0)
+    # the nearest return on each side: the first bin with one (argmax: the first of equal
+    # maxima), -1 where none (the first bin's -1 then)
+    first = (v >= 0).to(torch.uint8).argmax(dim=-1, keepdim=True)
+    side = v.gather(-1, first).squeeze(-1)  # (I, n, 2)
+    ok = side >= far[..., None]
+    # above: or nothing above at all in the column
+    above = ok[..., 0] | ((side[..., 0] < 0) & (ie > tops.view(-1)[idx // NUM_EL]))
+    through = (ret < 0) & above & ok[..., 1]
     # the open place reaches the azimuth columns beside it at its elevation (no return there, or
     # only beyond it): a hole in foliage has the foliage beside it
     local = idx % (NUM_AZ * NUM_EL)
     ia = local // NUM_EL
-    for step in (-1, 1):  # (azimuth wraps around)
-        v = flat[idx - local + ((ia + step) % NUM_AZ) * NUM_EL + ie]
-        through &= (v < 0) | (v >= far)
-    return through
+    v = flat[(idx - local + ie)[..., None] + (ia[..., None] + beside) % NUM_AZ * NUM_EL]  # (azimuth wraps around)
+    return through & ((v < 0) | (v >= far[..., None])).all(dim=-1)

@@ -22,7 +22,7 @@ import torch
 
 from floxels_ext.estimator.group_sums import segment_sum
 from floxels_ext.estimator.host_reads import Steps, rows_where, run_one
-from floxels_ext.estimator.refine import SEARCH_GAIN, TAU, RigidMotions, Support, _weighted_residual
+from floxels_ext.estimator.refine import SEARCH_GAIN, TAU, RigidMotions, Support, _weighted_residuals
 
 __all__ = ["spread_rigid", "spread_rigid_steps", "BOX_CHUNK"]
 
@@ -80,14 +80,14 @@ def spread_rigid_steps(points: torch.Tensor, flow: torch.Tensor, labels: torch.T
     u = m.motion_at(p, ref_c[j])
     ob = None if observed is None else observed[idx]
     f = flow[idx]
-    r_u = _weighted_residual(supports, p, u, tau, False, ob)
-    r_f = _weighted_residual(supports, p, f, tau, False, ob)
-    r_0 = _weighted_residual(supports, p, torch.zeros_like(p), tau, False, ob)
+    # the three motions' residuals in one launch, their group sums in one pass (each column its
+    # own fixed-point sum: the same bits as one call each)
+    r = _weighted_residuals(supports, p, [u, f, torch.zeros_like(p)], tau, False, ob)
     # groups: a DBSCAN cluster, or an unclustered point alone (only if within the radius)
     li = lab[idx]
     key = torch.where(li >= 0, li, C + torch.arange(idx.shape[0], device=points.device))
     rows = C + idx.shape[0]
-    s_u, s_f, s_0 = (segment_sum(rows, key, r) for r in (r_u, r_f, r_0))
+    s_u, s_f, s_0 = segment_sum(rows, key, r.T).unbind(1)
     better = (s_u < s_f) & (s_u < (1 - SEARCH_GAIN) * s_0)
     take = better[key] & ((li >= 0) | close)
     out = flow.clone()

@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 
 from floxels_ext.estimator.group_sums import segment_sum
-from floxels_ext.estimator.refine import REFINE_MIN_SPEED, SEARCH_GAIN, TAU, Support, _weighted_residual
+from floxels_ext.estimator.refine import REFINE_MIN_SPEED, SEARCH_GAIN, TAU, Support, _weighted_residuals
 from floxels_ext.ops._small import device_values
 
 __all__ = ["hidden_keeps", "LANDING_RADIUS", "LANDING_SHARE"]
@@ -62,8 +62,8 @@ def hidden_keeps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
     p, u = points[idx], flow[idx]
     wsum = max(sum(s.w for s in supports), 1e-12)
     # the flow kept explains the scans clearly better than zero flow (per cluster, summed)
-    s_u = segment_sum(C, lab, _weighted_residual(supports, p, u, tau, False))
-    s_0 = segment_sum(C, lab, _weighted_residual(supports, p, torch.zeros_like(u), tau, False))
+    # (both motions' residuals in one launch, their sums in one pass: the same bits as apart)
+    s_u, s_0 = segment_sum(C, lab, _weighted_residuals(supports, p, [u, torch.zeros_like(u)], tau, False).T).unbind(1)
     keep = s_u < (1 - SEARCH_GAIN) * s_0
     # its moved place at each support scan's time is not the target's static structure; the
     # static points are those inside the moved places' box (a brute-force search over them all
@@ -76,8 +76,8 @@ def hidden_keeps(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor,
         hit = ((q - ref[F.nearest_neighbor(q, ref)]).norm(dim=1) <= LANDING_RADIUS).to(p.dtype)
         w = device_values([s.w / wsum for s in supports], p.dtype, p.device)  # (no blocking copy on CUDA)
         landed = (w[:, None] * hit.view(len(supports), -1)).sum(dim=0)
-        count = segment_sum(C, lab, torch.ones_like(landed))
-        share = segment_sum(C, lab, landed) / count.clamp_min(1)
+        landed_sum, count = segment_sum(C, lab, torch.stack([landed, torch.ones_like(landed)], 1)).unbind(1)
+        share = landed_sum / count.clamp_min(1)
         keep &= share < LANDING_SHARE
     out = torch.zeros_like(cand)
     out[idx] = keep[lab]
