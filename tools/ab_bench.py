@@ -46,6 +46,9 @@ FIGURES = [
     ("sequence frames/s (bench_speed, batch 16)", "speed", ("seq_fps",), False, 1.0),
     ("floxels run KITTI frames/s", "run", ("runs", "kitti", "frames_per_s"), False, 1.0),
     ("floxels run AV2 frames/s", "run", ("runs", "av2", "frames_per_s"), False, 1.0),
+    # the rows of bench_run's --variant paper=... (the first run's preset being another one)
+    ("floxels run KITTI frames/s, variant paper", "run", ("runs", "kitti+paper", "frames_per_s"), False, 1.0),
+    ("floxels run AV2 frames/s, variant paper", "run", ("runs", "av2+paper", "frames_per_s"), False, 1.0),
     ("in-memory ceiling frames/s", "run", ("ceiling", "frames_per_s"), False, 1.0),
 ]
 

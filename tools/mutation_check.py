@@ -163,6 +163,16 @@ MUTATIONS = [
      "if False:", ["tests/test_bench_run_data.py"]),
     ("accurate keeps three engines", ENGINE_COUNTS, 'return ACCURATE_ENGINES if preset == "accurate" else 3', "return 3",
      [ENGINES_DEFAULT, "tests/lidar/test_run_engines.py::test_engine_count_follows_the_preset_in_effect"]),
+    # ---- issue 42, tenth session: tasks balanced over the local engines ----
+    ("few frames for the engines: tasks of the run's size (42)", "python/floxels_ext/lidar/dataset/tasks.py",
+     "want = task_size(-(-todo_frames // (TASKS_PER_ENGINE * engines)), align)", "want = size",
+     ["tests/lidar/test_run_engines.py::test_few_frames_for_the_engines_give_smaller_tasks"]),
+    ("a sequence on engines not cut at the balanced size (42)", "python/floxels_ext/lidar/dataset/local.py",
+     "task_frames = balanced_task_size(len(todo), engines.n, task_frames, align)", "pass",
+     ["tests/lidar/test_run_engines.py::test_the_run_cuts_its_tasks_at_the_balanced_size"]),
+    ("a dataset on engines not re-cut at the balanced size (42)", "python/floxels_ext/lidar/dataset/run.py",
+     "if size != task_size(task_frames, align):", "if False:",
+     ["tests/lidar/test_run_engines.py::test_the_run_cuts_its_tasks_at_the_balanced_size"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
     ("floxels run's default preset paper", RUN_ARGS,
      'return "accurate" if getattr(args, "method", "floxels") == "floxels" else "paper"', 'return "paper"',

@@ -158,6 +158,57 @@ def test_a_dataset_on_engines_equals_one_engine(tmp_path, capsys):
     _same(tmp_path / "two", tmp_path / "one")
 
 
+def test_few_frames_for_the_engines_give_smaller_tasks():
+    """Tasks of a run with few frames to do get smaller (multiples of the chunk, never below it),
+    so that every engine gets three: 768 frames in tasks of 128 on four engines left two engines
+    idle for the last third of the run (issue 42, tools/engine_timeline.py on an H100)."""
+    from floxels_ext.lidar.dataset.tasks import TASKS_PER_ENGINE, balanced_task_size
+
+    assert TASKS_PER_ENGINE == 3
+    assert balanced_task_size(768, 4, 128, 64) == 64    # 12 tasks of 64, three an engine
+    assert balanced_task_size(768, 3, 128, 64) == 128   # 6 tasks of 128: two each already
+    assert balanced_task_size(1537, 4, 128, 64) == 128  # a long run keeps its tasks
+    assert balanced_task_size(1536, 4, 128, 64) == 128
+    assert balanced_task_size(1535, 4, 128, 64) == 128  # ceil(1535 / 12) = 128
+    assert balanced_task_size(1000, 4, 256, 64) == 128  # ceil(1000 / 12) = 84, up to the chunk multiple
+    assert balanced_task_size(100, 4, 128, 64) == 64    # never below the chunk
+    assert balanced_task_size(768, 1, 128, 64) == 128   # one engine: nothing to balance
+    assert balanced_task_size(768, 4, 0, 64) == 0       # whole sequences (KISS-ICP) stay whole
+    assert balanced_task_size(0, 4, 128, 64) == 128
+    assert balanced_task_size(768, 4, 2, 4) == 2        # a task below the chunk (--chunk) is not grown
+
+
+@pytest.mark.parametrize("dataset", [False, True])
+def test_the_run_cuts_its_tasks_at_the_balanced_size(tmp_path, monkeypatch, capsys, dataset):
+    """Without --task-frames the run asks ``tasks.balanced_task_size`` (the frames to do, the
+    engines, its task size and its chunk) and cuts its tasks at the answer, a sequence or a
+    dataset alike; the bytes stay one engine's. With --task-frames the user's size stands."""
+    from floxels_ext.evaluation.sim import simulate_sequence
+    from floxels_ext.lidar.dataset import tasks as tasks_mod
+
+    root = tmp_path / "ds"
+    for k, n in enumerate((6, 4) if dataset else (6,)):
+        save_sequence(root / f"s{k}" if dataset else root, simulate_sequence("urban", n, k, beams=16,
+                                                                             azimuth_steps=360))
+    calls = []
+
+    def balanced(todo, engines, size, align):
+        calls.append((todo, engines, size, align))
+        return 2
+
+    monkeypatch.setattr(tasks_mod, "balanced_task_size", balanced)
+    spy = _Spy(monkeypatch)
+    base = ["run", str(root), *FLAGS]
+    assert cli.main([*base, "--out", str(tmp_path / "one"), "--engines", "1"]) == 0
+    assert calls == []  # one engine: nothing to balance
+    assert cli.main([*base, "--out", str(tmp_path / "two"), "--engines", "2"]) == 0
+    assert calls == [(10 if dataset else 6, 2, 1, 1)]
+    assert [t.stop - t.start for t in spy.pools[-1].tasks] == ([2, 2, 2, 2, 2] if dataset else [2, 2, 2])
+    _same(tmp_path / "two", tmp_path / "one")
+    assert cli.main([*base, "--out", str(tmp_path / "three"), "--engines", "2", "--task-frames", "3"]) == 0
+    assert len(calls) == 1 and [t.stop - t.start for t in spy.pools[-1].tasks] == ([3, 3, 3, 1] if dataset else [3, 3])
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="kills the engine by its process id")
 def test_a_killed_engine_s_task_is_redone(seq, tmp_path, monkeypatch, capsys):

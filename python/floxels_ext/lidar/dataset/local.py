@@ -32,10 +32,12 @@ from pathlib import Path
 __all__ = ["run_sequence", "run_dataset"]
 
 
-def run_sequence(args, engines=None, task_frames: int = 0) -> int:
+def run_sequence(args, engines=None, task_frames: int = 0, align: int = 1) -> int:
     """``floxels run SEQ``: one task of the sequence's selected frames through the engine; with
     ``engines`` (``engines.Engines``), cut into tasks of ``task_frames`` frames for them
-    (:func:`_sequence_on_engines`) when more than one of them has frames to do."""
+    (:func:`_sequence_on_engines`) when more than one of them has frames to do; fewer frames a
+    task where the frames to do are few for the engines (``tasks.balanced_task_size``, multiples
+    of ``align``), unless ``--task-frames`` says."""
     from floxels_ext.lidar.dataset.sequence import failure_lines, open_sequence, write_sequence_summary
     from floxels_ext.lidar.dataset.worker import run_context, run_jobs
     from floxels_ext.lidar.pipeline.progress import Progress
@@ -58,9 +60,11 @@ def run_sequence(args, engines=None, task_frames: int = 0) -> int:
     task = _sequence_task(args)
     job = open_sequence(task, ctx, say=info)  # the start lines, temporaries swept, what is left to do
     if engines is not None:
-        from floxels_ext.lidar.dataset.tasks import split_task
+        from floxels_ext.lidar.dataset.tasks import balanced_task_size, split_task
 
         todo = {job.seq.frames[i].name for i in job.todo}
+        if getattr(args, "task_frames", None) is None:
+            task_frames = balanced_task_size(len(todo), engines.n, task_frames, align)
         planned = split_task(task, task_frames)
         run = [t for t in planned if todo.intersection(t.names)]
         if len(run) > 1:

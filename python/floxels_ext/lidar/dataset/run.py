@@ -173,7 +173,8 @@ def _run_input(args, workers) -> int:
 def _run_tasks(args, workers, engines: int, pool) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.dataset.local import run_dataset, run_sequence
-    from floxels_ext.lidar.dataset.tasks import SequenceSpec, discover_dataset, plan_tasks, written_names
+    from floxels_ext.lidar.dataset.tasks import (SequenceSpec, balanced_task_size, discover_dataset, plan_tasks,
+                                                 task_size)
 
     specs = discover_dataset(args.input, args.out, args.sequences)
     _check_options(args, specs is not None, engines)
@@ -190,11 +191,9 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
         if args.sequences:
             raise CLIError(f"--sequences selects sequences of a dataset, but {args.input} is one sequence")
         if args.ray is None:
-            from floxels_ext.lidar.dataset.tasks import task_size
-
             # KISS-ICP runs over a whole sequence once: one task (as plan_tasks does)
             size = 0 if args.odometry or args.chunk is not None and args.chunk < 1 else task_size(task_frames, align)
-            return run_sequence(args, pool, size)
+            return run_sequence(args, pool, size, align)
         specs = [SequenceSpec(Path(args.input).resolve(), Path("."),
                               Path(args.poses) if args.poses else None, Path(args.calib) if args.calib else None)]
     from floxels_ext.lidar.pipeline.run_args import resolve_preset
@@ -215,13 +214,12 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
         raise CLIError(f"{len(problems)} of the {len(specs)} sequences cannot run (fix them or leave them out "
                        f"with --sequences):\n  " + "\n  ".join(problems))
     written: dict = {}  # out_dir -> names of its outputs: one listing a sequence, not a stat a frame
-    for t in tasks:  # what is left to do (the run skips written frames the same way)
-        if args.force:
-            t.todo = list(t.names)
-            continue
-        if t.out_dir not in written:
-            written[t.out_dir] = written_names(t.out_dir)
-        t.todo = [n for n in t.names if n not in written[t.out_dir]]
+    _set_todo(tasks, args, written)
+    if pool is not None and args.task_frames is None:  # few frames for the engines: smaller tasks
+        size = balanced_task_size(sum(len(t.todo) for t in tasks), engines, task_size(task_frames, align), align)
+        if size != task_size(task_frames, align):
+            tasks, _ = plan_tasks(specs, out, args, task_frames=size, align=align)
+            _set_todo(tasks, args, written)
     _check_written_tasks([t for t in tasks if not t.todo], args)
     from floxels_ext.lidar.dataset.tasks import common_options
 
@@ -234,6 +232,20 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
         split = 0 if args.odometry or task_frames <= 0 else 1
         return run_on_ray(tasks, args, common, n_sequences=len(specs), workers=workers, align=split)
     return run_dataset(tasks, args, n_sequences=len(specs), engines=pool)
+
+
+def _set_todo(tasks, args, written: dict) -> None:
+    """Each task's frames left to do (the run skips written frames the same way); ``written``:
+    out_dir -> names of its outputs, filled as sequences are listed (one listing a sequence)."""
+    from floxels_ext.lidar.dataset.tasks import written_names
+
+    for t in tasks:
+        if args.force:
+            t.todo = list(t.names)
+            continue
+        if t.out_dir not in written:
+            written[t.out_dir] = written_names(t.out_dir)
+        t.todo = [n for n in t.names if n not in written[t.out_dir]]
 
 
 def _check_written_tasks(tasks, args) -> None:

@@ -326,6 +326,23 @@ def task_size(task_frames: int, align: int) -> int:
     return 0 if task_frames <= 0 else -(-task_frames // align) * align
 
 
+# A run of few frames on local engines (``--engines N``) gets at least this many tasks an engine:
+# 768 frames in tasks of 128 left two of four engines idle for the last third of the run (6
+# tasks: two engines ran two, two ran one; bench/RESULTS.md, tools/engine_timeline.py).
+TASKS_PER_ENGINE = 3
+
+
+def balanced_task_size(todo_frames: int, engines: int, size: int, align: int) -> int:
+    """Frames a task of a run with ``todo_frames`` to do on ``engines`` local engines: ``size``
+    (the run's, a multiple of ``align``; 0: whole sequences), or less, so that every engine gets
+    ``TASKS_PER_ENGINE`` tasks where tasks of ``align`` frames or more allow it. Never below
+    ``align`` (the run's chunk: each task is one method call of whole chunks) nor above ``size``."""
+    if size <= 0 or engines <= 1 or todo_frames <= 0:
+        return size
+    want = task_size(-(-todo_frames // (TASKS_PER_ENGINE * engines)), align)
+    return max(min(align, size), min(size, want))
+
+
 def _cuts(start: int, stop: int, step: int) -> list[tuple[int, int]]:
     cuts = [*range(start, stop, step or stop - start), stop]
     return list(zip(cuts[:-1], cuts[1:]))
