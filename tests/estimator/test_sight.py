@@ -250,7 +250,7 @@ def test_a_sensor_beyond_any_lidars_reach_is_not_used(scene):
     assert np.array_equal(c, d)
 
 
-def _through_oracle(flat, tops, idx, ret, far):
+def _through_oracle(flat, tops, idx, ret, far, bins=THROUGH_BINS):
     """The seen-through rule of estimator/sight.py element by element, as its docstring reads."""
     from floxels_ext.estimator.sight import NUM_AZ, NUM_EL
     out = []
@@ -258,7 +258,7 @@ def _through_oracle(flat, tops, idx, ret, far):
         ie, col = i % NUM_EL, i - i % NUM_EL  # the bin's elevation, its column's first bin
         ok = r < 0
         for sign in (1, -1):  # the nearest return above / below within THROUGH_BINS
-            side = next((flat[col + ie + sign * d] for d in range(1, THROUGH_BINS + 1)
+            side = next((flat[col + ie + sign * d] for d in range(1, bins + 1)
                          if 0 <= ie + sign * d < NUM_EL and flat[col + ie + sign * d] >= 0), -1.0)
             up_empty = sign > 0 and side < 0 and ie > tops[(i // NUM_EL)]
             ok &= side >= f or up_empty
@@ -271,12 +271,17 @@ def _through_oracle(flat, tops, idx, ret, far):
     return out
 
 
+@pytest.mark.parametrize("bins", [THROUGH_BINS, 2, 0])
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
-def test_seen_through_matches_the_rule_bin_by_bin(device):
+def test_seen_through_matches_the_rule_bin_by_bin(device, bins, monkeypatch):
     """The seen-through test (its look-ups in one gather, the nearest return on each side by an
     argmax: issue 42's fewer launches) against the rule evaluated bin by bin, on two random
-    sparse images (columns at the image's elevation ends and its azimuth wrap included)."""
+    sparse images (columns at the image's elevation ends and its azimuth wrap included); with
+    THROUGH_BINS set otherwise too (tests turn the seen-through bins off with 0)."""
+    from floxels_ext.estimator import sight
     from floxels_ext.estimator.sight import NUM_AZ, NUM_EL, _through
+
+    monkeypatch.setattr(sight, "THROUGH_BINS", bins)
     g = np.random.default_rng(3)
     flat = np.full(2 * NUM_AZ * NUM_EL, -1.0, dtype=np.float32)
     hit = g.random(flat.shape) < 0.3
@@ -291,6 +296,6 @@ def test_seen_through_matches_the_rule_bin_by_bin(device):
     far = g.uniform(1.0, 30.0, idx.shape).astype(np.float32)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
     got = _through(t(flat), t(top.reshape(2, NUM_AZ)), t(idx), t(ret), t(far))
-    want = _through_oracle(flat, top, idx.reshape(-1), ret.reshape(-1), far.reshape(-1))
+    want = _through_oracle(flat, top, idx.reshape(-1), ret.reshape(-1), far.reshape(-1), bins)
     assert got.reshape(-1).tolist() == want
-    assert 0 < sum(want) < len(want)
+    assert (0 < sum(want) < len(want)) if bins else sum(want) == 0

@@ -224,11 +224,11 @@ def _seen(p: torch.Tensor, sights: list[Sight], ks: list[int]) -> tuple[torch.Te
 
 
 @functools.lru_cache(maxsize=16)
-def _steps(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+def _steps(device: torch.device, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`_through`'s constant offsets on ``device``, made once: the elevation steps (2,
-    THROUGH_BINS) above (1..) and below (-1..) a bin, and the azimuth steps (2,) to the columns
+    ``bins``) above (1..) and below (-1..) a bin, and the azimuth steps (2,) to the columns
     beside it."""
-    d = list(range(1, THROUGH_BINS + 1))
+    d = list(range(1, bins + 1))
     return (device_values([d, [-x for x in d]], torch.int64, device), device_values([-1, 1], torch.int64, device))
 
 
@@ -247,10 +247,12 @@ def _through(flat: torch.Tensor, tops: torch.Tensor, idx: torch.Tensor, ret: tor
     the columns beside the place checked: with an empty side anywhere counted, the AV2 pair's
     static foliage 3-10 m up (small groups the other sweep missed) took 0.66 m/frame on 40 points
     (static EPE 0.0070 -> 0.0074); with both checks 23 points (0.0073)."""
+    if THROUGH_BINS <= 0:  # no bins searched: no nearest return below, so never seen through
+        return torch.zeros_like(ret, dtype=torch.bool)
     ie = idx % NUM_EL  # the elevation bin (each image is NUM_EL-bin columns)
     # the THROUGH_BINS bins above and below, in one gather (I, n, 2, THROUGH_BINS): few launches
     # from the thread that feeds the GPU (a loop over the bins took ~60)
-    steps, beside = _steps(idx.device)
+    steps, beside = _steps(idx.device, THROUGH_BINS)
     e = ie[..., None, None] + steps
     v = torch.where((e >= 0) & (e < NUM_EL), flat[(idx[..., None, None] + steps).clamp(0, flat.numel() - 1)], -1.0)
     # the nearest return on each side: the first bin with one (argmax: the first of equal
