@@ -63,8 +63,8 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                    help="frames per task (what an engine or a Ray worker takes at a time): longer sequences "
                         "are cut into tasks (rounded up to a multiple of --chunk, else of 64; support scans beyond "
                         "a task are still read, and the outputs do not depend on the cut); 0 = whole sequences "
-                        "(default: with --engines, --chunk (128): no method call is cut; fewer, multiples of 64, for a run of few "
-                        "frames, so that each engine gets three tasks; with --ray, 192)")
+                        "(default: with --engines, --chunk (128): no method call is cut; fewer, multiples of "
+                        "64, for a run of few frames, so that each engine gets three tasks; with --ray, 192)")
     g.add_argument("--retries", type=int, default=3, metavar="N",
                    help="workers started in place of ones that died, at most (default 3); a dead worker's "
                         "tasks go to the others in any case")
