@@ -60,6 +60,7 @@ LONG = E + "test_long_windows.py"
 SEEN = E + "test_seen_evidence.py"
 SPREAD = E + "test_spread.py"
 UNSEEN_T = E + "test_unseen.py"
+CHECKS_T = E + "test_evidence_checks.py"
 HOSTR = E + "test_host_reads.py"
 COMPOSE = E + "test_accurate_composition.py"
 EVAL = "tests/evaluation/test_eval_scope.py"
@@ -69,6 +70,8 @@ QUERY = ["tests/ops/test_dt_query.py", "tests/ops/test_dt_query_observed.py"]
 
 CFG = "python/floxels_ext/estimator/config.py"
 PRESETS_PY = "python/floxels_ext/presets.py"  # the preset table (no torch: the Ray driver reads it)
+CHECKS_PY = "python/floxels_ext/estimator/evidence_checks.py"
+POST_PY = "python/floxels_ext/estimator/post.py"
 REF = "python/floxels_ext/reference/estimator.py"
 SOLVER = "python/floxels_ext/ops/solver.py"
 STOP = "python/floxels_ext/estimator/early_stopping.py"
@@ -393,6 +396,17 @@ MUTATIONS = [
      '"evidence_keep_unseen": False,', [ACC]),
     ("accurate without refine_level (47)", PRESETS_PY, '"refine_level": True,', '"refine_level": False,', [ACC]),
     ("accurate without refine_spread (47)", PRESETS_PY, '"refine_spread": 1.0,', '"refine_spread": 0.0,', [ACC]),
+    ("accurate without evidence_upright (47)", PRESETS_PY, '"evidence_upright": True,', '"evidence_upright": False,',
+     [ACC]),
+    ("upright against the whole flow's length (47)", CHECKS_PY, "return f[:, 2].abs() > f[:, :2].norm(dim=1)",
+     "return f[:, 2].abs() > f.norm(dim=1)", [CHECKS_T]),
+    ("upright clusters by each point's own flow (47)", CHECKS_PY,
+     "f = torch.where((lab >= 0)[:, None], mean[lab.clamp_min(0)], flow)", "f = flow", [CHECKS_T]),
+    ("upright verdict not applied to the flow (47)", POST_PY,
+     "flow = torch.where(up[:, None], torch.zeros_like(flow), flow)", "pass", [CHECKS_T]),
+    ("far test keeps the nearest scans (47)", CHECKS_PY,
+     "far = [float(w) if abs(float(t)) > near * (1 + 1e-6) else 0.0 for t, w in zip(offsets, weights)]",
+     "far = [float(w) for t, w in zip(offsets, weights)]", [CHECKS_T]),
     ("weights scale not normalised to the paper's 4 (47)", CFG,
      "return 4.0 * sum(self.time_weight(t) for t in offsets) / ref", "return sum(self.time_weight(t) for t in offsets)",
      [LONG]),

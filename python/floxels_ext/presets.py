@@ -36,8 +36,10 @@ PRESETS: dict[str, dict] = {
     # motion fits (evidence_keep_unseen), the refinement also without vertical velocity
     # (refine_level) and its motions offered to the rest of each object (refine_spread, m).
     # Chosen on the simulator's seeds 0 and 1 (32 beams); bench/accurate_map.py scores held-out seeds.
+    # Then (issue 47's static EPE): no group keeps a flow more vertical than horizontal
+    # (evidence_upright: lidar rings sliding along static structure; estimator/evidence_checks.py).
     "accurate": {"num_scans": 11, "evidence": "zero", "rigid_refine": True, "refine_max_supports": 2,
                  "reg_scale": "weights", "max_offset": 5, "evidence_seen_mean": True, "evidence_keep_unseen": True,
-                 "refine_level": True, "refine_spread": 1.0,
+                 "refine_level": True, "refine_spread": 1.0, "evidence_upright": True,
                  "refine_sided": True, "refine_search": True, "range_mask": True, "visibility": True},
 }

@@ -24,7 +24,8 @@ ACCURATE = {"num_scans": 11, "evidence": "zero", "rigid_refine": True, "refine_m
             "refine_sided": True, "refine_search": True, "range_mask": True, "visibility": True,
             # issue 47 (tests/estimator/test_long_windows.py, test_seen_evidence.py, test_spread.py)
             "reg_scale": "weights", "max_offset": 5, "evidence_seen_mean": True, "evidence_keep_unseen": True,
-            "refine_level": True, "refine_spread": 1.0}
+            "refine_level": True, "refine_spread": 1.0,
+            "evidence_upright": True}  # tests/estimator/test_evidence_checks.py
 
 
 def test_accurate_preset_fields_are_pinned():

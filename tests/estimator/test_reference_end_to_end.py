@@ -38,7 +38,8 @@ REFERENCE_SETTINGS = dict(
     velocity_search=False, rigid_refine=False, refine_max_supports=0, refine_sided=False, refine_search=False,
     range_mask=False, visibility=False,
     # issue 47's (in the accurate preset): off
-    max_offset=0, evidence_seen_mean=False, evidence_keep_unseen=False, refine_level=False, refine_spread=0.0)
+    max_offset=0, evidence_seen_mean=False, evidence_keep_unseen=False, refine_level=False, refine_spread=0.0,
+    evidence_upright=False, evidence_far="off")
 
 SCENES = [("crossing", 3), ("parking", 1), ("urban", 2)]
 

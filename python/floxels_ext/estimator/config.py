@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from floxels_ext.estimator.config_fields import check_field_types
 from floxels_ext.estimator.evidence import EVIDENCE_MODES
+from floxels_ext.estimator.evidence_checks import FAR_MODES
 from floxels_ext.estimator.config_fields import parse_option_value as _parse_field
 from floxels_ext.ops.grid import DEFAULT_MAX_CELLS
 from floxels_ext.presets import DEFAULT_NUM_SCANS, PRESETS
@@ -88,6 +89,15 @@ class FloxelsConfig:
     # scans' weights), and groups no support scan saw keep their flow (no evidence either way)
     evidence_seen_mean: bool = False
     evidence_keep_unseen: bool = False
+    # with the evidence test on, a group whose final flow is more vertical than horizontal keeps none:
+    # no road user moves mostly up or down, a lidar's rings sliding along a facade as the sensor
+    # moves do (estimator/evidence_checks.py, judged after the refinement: estimator/post.py)
+    evidence_upright: bool = False
+    # the groups that pass must also explain the window's farther scans (all but the nearest in
+    # time) better than zero flow, by evidence_ratio of their residual: the nearest scans carry most
+    # of the weight, and a lone far point fits their sampling (estimator/evidence_checks.py; "off",
+    # "unclustered": DBSCAN noise's groups only, "all")
+    evidence_far: str = "off"
 
     # ---- beyond the paper (issue 33; the "accurate" preset, estimator/refine.py) ----------
     # Off in the paper's configuration (results bit for bit as before).
@@ -194,6 +204,9 @@ class FloxelsConfig:
             raise ValueError(f"FloxelsConfig.truncation_mode must be 'zero' or 'clamp', got {self.truncation_mode!r}")
         if self.evidence not in EVIDENCE_MODES:
             raise ValueError(f"FloxelsConfig.evidence must be 'off', 'score' or 'zero', got {self.evidence!r}")
+        if self.evidence_far not in FAR_MODES:
+            raise ValueError(f"FloxelsConfig.evidence_far must be one of {', '.join(map(repr, FAR_MODES))}, "
+                             f"got {self.evidence_far!r}")
         em, er = self.evidence_margin, self.evidence_ratio
         if not (math.isfinite(em) and em >= 0):
             raise ValueError(f"FloxelsConfig.evidence_margin must be a non-negative finite number (m), got {em!r}")
