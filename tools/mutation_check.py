@@ -174,7 +174,7 @@ MUTATIONS = [
      "task_frames = balanced_task_size(len(todo), engines.n, task_frames, align)", "pass",
      ["tests/lidar/test_run_engines.py::test_the_run_cuts_its_tasks_at_the_balanced_size"]),
     ("a dataset on engines not re-cut at the balanced size (42)", "python/floxels_ext/lidar/dataset/run.py",
-     "if size != task_size(task_frames, align):", "if False:",
+     "if size != planned:", "if False:",
      ["tests/lidar/test_run_engines.py::test_the_run_cuts_its_tasks_at_the_balanced_size"]),
     # ---- issue 42, seventh session (faracc): accurate as floxels run's default ----
     ("floxels run's default preset paper", RUN_ARGS,

@@ -41,11 +41,10 @@ from collections.abc import Sequence
 
 import torch
 
+from floxels_ext.estimator.evidence import run_evidence
 from floxels_ext.estimator.group_sums import cluster_means
 
 __all__ = ["far_fails", "upright_groups", "FAR_MODES"]
-
-F = torch.ops.floxels
 
 # FloxelsConfig.evidence_far: "off", "unclustered" (only DBSCAN noise's cell groups are looked at
 # again), "all" (every group)
@@ -67,11 +66,11 @@ def far_fails(points: torch.Tensor, flow: torch.Tensor, labels: torch.Tensor | N
     total = sum(far)
     if total <= 0:
         return None
-    norm = [w / total for w in far]
-    _, _, rf, rz = F.dt_evidence(
-        points.to(torch.float32).contiguous(), flow.to(torch.float32).contiguous(), labels, cells, list(dts),
-        [float(x) for o in origins for x in o], float(dt_cell), [float(t) for t in offsets],
-        norm, float(truncation), 0.0, float(ratio), observed)
+    # the evidence test's own call with the farther scans' weights (it normalises them); only its
+    # residuals are read
+    ev = run_evidence(points, flow, labels, cells, dts, origins, offsets, far, dt_cell=dt_cell,
+                      truncation=truncation, margin=0.0, ratio=ratio, observed=observed)
+    rf, rz = ev.residual_flow, ev.residual_zero
     fails = (rz > 0) & (rz - rf <= ratio * rz)
     if unclustered and labels is not None:
         fails &= labels < 0

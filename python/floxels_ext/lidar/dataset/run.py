@@ -217,8 +217,9 @@ def _run_tasks(args, workers, engines: int, pool) -> int:
     written: dict = {}  # out_dir -> names of its outputs: one listing a sequence, not a stat a frame
     _set_todo(tasks, args, written)
     if pool is not None and args.task_frames is None:  # few frames for the engines: smaller tasks
-        size = balanced_task_size(sum(len(t.todo) for t in tasks), engines, task_size(task_frames, align), align)
-        if size != task_size(task_frames, align):
+        planned = task_size(task_frames, align)
+        size = balanced_task_size(sum(len(t.todo) for t in tasks), engines, planned, align)
+        if size != planned:  # (the sequences listed again: only a run of few frames gets here)
             tasks, _ = plan_tasks(specs, out, args, task_frames=size, align=align)
             _set_todo(tasks, args, written)
     _check_written_tasks([t for t in tasks if not t.todo], args)
