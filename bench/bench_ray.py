@@ -361,7 +361,9 @@ def main() -> None:
                 def ray_row(name, argv, out, **kw):
                     row = record(name, run_job(argv, out), gpus=k, ray_init_s=init_s, workers_per_gpu=w, **kw)
                     row["workers"] = job_workers(out)
-                    row["all_tasks_ended_s"] = job_info(out).get("all_tasks_ended_s")  # the driver knew
+                    info = job_info(out)
+                    row["all_tasks_ended_s"] = info.get("all_tasks_ended_s")  # the driver knew
+                    row["tasks_run"] = info.get("tasks_run")  # each task's frames, worker and end: the tail
                     row["workers_asked"] = n  # against those that wrote frames: fewer means some never started
                     row["workers_writing"] = sum(1 for x in row["workers"] if (x.get("written") or 0) > 0)
                     return row
@@ -462,6 +464,18 @@ def main() -> None:
             print(f"  {r['mode']:<10} {w['name'][-8:]} ({kind}, GPU {','.join(w.get('gpus') or []) or '-'}, "
                   f"{w.get('written')} frames): {format_timeline(w['timeline'])}"
                   + (f"; warm-up failed: {w['warm_error']}" if w.get("warm_error") else ""))
+    for r in rows:  # the tail: each GPU's last output, and the last tasks to end (frames, worker, when)
+        ends: dict[str, float] = {}
+        for w in r.get("workers", []):
+            last = (w.get("timeline") or {}).get("last_output")
+            for g in w.get("gpus") or ["-"]:
+                if last is not None:
+                    ends[g] = max(ends.get(g, last), last)
+        if ends:
+            print(f"  {r['mode']:<10} tail: last output by GPU " + ", ".join(f"{g} +{t:.2f}" for g, t in sorted(ends.items()))
+                  + "; last tasks: " + ", ".join(f"{t['task'].rsplit(' frames ', 1)[-1]} ({t['worker'][-8:]}, "
+                                                 f"+{t['ended_s']:.2f})" for t in (r.get("tasks_run") or [])[-4:]
+                                                 if "ended_s" in t))
     for r in rows:
         if r["rc"] != 0:
             print(f"\n{r['mode']} failed (exit {r['rc']}):\n{r.get('stderr_tail', '')}")

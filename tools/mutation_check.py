@@ -136,7 +136,8 @@ MUTATIONS = [
     ("the driver's rates never told of frames", RAY_RUNNER, "tail.written(slot.name, sum(frames.values()), time.time())",
      "pass", [TAIL_E2E]),
     ("tasks_run not recorded", RAY_RUNNER,
-     'ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome})', "pass", [TAIL_E2E]),
+     'ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome,\n'
+     '                            "ended_s": round(time.time() - workers.t0, 3)})', "pass", [TAIL_E2E]),
     # ---- issue 44, ninth session: Ray's workers a GPU follow the local engines ----
     ("Ray's default share from the most cores a GPU", ENGINE_COUNTS,
      'w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)',

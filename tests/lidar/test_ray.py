@@ -288,6 +288,8 @@ def test_tail_cut_where_the_share_says_same_outputs(cluster, dataset, tmp_path, 
     frames = sorted(r["task"].rsplit(" frames ", 1)[1] for r in job["tasks_run"])
     assert frames == ["0:1", "0:4", "0:4", "1:4"], frames
     assert {r["outcome"] for r in job["tasks_run"]} == {"done"}
+    ends = [r["ended_s"] for r in job["tasks_run"]]  # when the driver learnt of each end, in that order
+    assert ends == sorted(ends) and 0 < ends[-1] <= job["wall_s"], ends
     assert {r["worker"] for r in job["tasks_run"]} <= {w["name"] for w in job["workers"]}
     assert calls[0][1] == 4 and calls[0][2] == 2  # the first hand-out: 4 frames, 2 tasks queued behind it
     tail = calls[0][4]  # the driver's rates: every worker that wrote frames reported them

@@ -60,11 +60,14 @@ def _same(out: Path, ref: Path, summaries: bool = True) -> None:
 
 class _Spy:
     """Captures the run's ``Engines`` and can hold engine 0 back until engine 1 has taken a
-    task, so that the hand-out differs from the natural one (engine 0 first)."""
+    task, so that the hand-out differs from the natural one (engine 0 first). ``slow_after``:
+    every task handed out after the first comes that many seconds late (a run that cannot end
+    before a test's interrupt lands, however loaded the machine)."""
 
-    def __init__(self, monkeypatch, engine1_first: bool = False) -> None:
+    def __init__(self, monkeypatch, engine1_first: bool = False, slow_after: float = 0.0) -> None:
         self.pools: list = []
         self.took1 = False
+        self.handed = 0
         init, take = engines_mod.Engines.__init__, engines_mod.Handout.take
         spy = self
 
@@ -82,6 +85,10 @@ class _Spy:
             k = take(self, engine, wait)
             if engine == 1 and isinstance(k, int):
                 spy.took1 = True
+            if isinstance(k, int):
+                spy.handed += 1
+                if spy.handed > 1 and slow_after:
+                    time.sleep(slow_after)
             return k
 
         monkeypatch.setattr(engines_mod.Engines, "__init__", init_spy)
@@ -244,7 +251,9 @@ def test_a_killed_engine_s_task_is_redone(seq, tmp_path, monkeypatch, capsys):
 @pytest.mark.slow
 def test_interrupt_stops_the_engines_and_the_rerun_completes(seq, tmp_path, monkeypatch, capsys):
     d, ref = seq
-    spy = _Spy(monkeypatch)
+    # the tasks after the first come 0.5 s apart: on a loaded machine the whole run had ended
+    # between the first output and the interrupt (rc 0, not 130)
+    spy = _Spy(monkeypatch, slow_after=0.5)
     out = tmp_path / "out"
 
     class Interrupter(threading.Thread):

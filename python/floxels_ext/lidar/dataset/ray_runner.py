@@ -276,7 +276,8 @@ def run_on_ray(tasks, args, common: dict, n_sequences: int, workers, align: int 
                 task_ended(k, outcome, part)
                 slot.leases.discard(k)
                 ended[k] = (outcome, lines)
-                ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome})
+                ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome,
+                            "ended_s": round(time.time() - workers.t0, 3)})  # the tail, read afterwards
                 live.pop(k, None)
                 failures.extend(lines)
                 done_frames += _count_written(todo_tasks[k], since)
