@@ -152,6 +152,21 @@ def test_show_refuses_a_changed_source_with_the_same_point_count(run_dir, tmp_pa
     assert not png.exists()
 
 
+def test_show_names_a_replaced_or_missing_source_not_a_broken_output(run_dir, tmp_path, capsys):
+    # it said "<out>.npz: not a floxels flow output (expected a .npz written by 'floxels run')"
+    # for an intact output whose input file was replaced (other point count) or deleted
+    png = tmp_path / "f1.png"
+    src = tmp_path / "in" / "000001.npy"
+    np.save(src, np.load(src)[:-3])
+    rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
+    assert rc == 2 and "changed since the run wrote this flow" in cap.err and "000001.npy" in cap.err, cap.err
+    assert "not a floxels flow output" not in cap.err and "Re-run floxels run" in cap.err
+    src.unlink()
+    rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
+    assert rc == 2 and "cannot be read" in cap.err and "no such file" in cap.err, cap.err
+    assert "not a floxels flow output" not in cap.err and not png.exists()
+
+
 def test_a_stray_far_point_is_reported_with_its_cost(seq, fake, tmp_path, capsys):
     # one return 1 km away with the range crop off: the scan's distance transform grows ~10x
     d = _npy_dir(seq, tmp_path / "in", edit=lambda i, p: np.concatenate([p, [[1000.0, 0.0, 1.0]]]) if i == 2 else p)

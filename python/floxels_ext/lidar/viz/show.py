@@ -160,7 +160,7 @@ def load_flow_output(path: Path) -> dict:
     ``flow``, ``mask``, ``dynamic``, ...); anything else is a CLIError saying the file is not a
     floxels flow output and why."""
     from floxels_ext.errors import CLIError
-    from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
+    from floxels_ext.lidar.io.outputs import OutputError, SourceError, read_flow_output
 
     path = Path(path)
     not_output = f"{path}: not a floxels flow output (expected a .npz written by 'floxels run'"
@@ -172,6 +172,8 @@ def load_flow_output(path: Path) -> dict:
         raise CLIError(f"{not_output}; this file is not a .npz (zip) archive)")
     try:
         return read_flow_output(path)
+    except SourceError as e:  # a floxels output whose input file went missing or changed
+        raise CLIError(str(e)) from None
     except OutputError as e:
         raise CLIError(f"{not_output}): {e}") from None
 
