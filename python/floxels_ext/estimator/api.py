@@ -256,9 +256,14 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     warn_if_no_sensors(cfg, sensor_origins)
     period = frame_period_of(times, frame_period)
     to_unit = _unit_factor(flow_unit, times, frame_period)
+    if callback is not None and not callable(callback):  # else it fails after the first frame's work
+        raise TypeError(f"callback must be a function callback(frame, result), got {type(callback).__name__}")
     if frames is None:
         frames = list(range(n))
     else:
+        if isinstance(frames, (int, np.integer, str, bytes)) or not hasattr(frames, "__iter__"):
+            raise TypeError(f"frames must be a sequence of integer indices (e.g. [{frames!r}]), got "
+                            f"{type(frames).__name__}")
         given = list(frames)
         for f in given:
             if isinstance(f, bool) or not isinstance(f, (int, np.integer)):
