@@ -239,6 +239,9 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:
         raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
+    if isinstance(scans, (dict, set, frozenset, str, bytes)):  # list() of a dict is its keys
+        raise TypeError(f"scans must be a sequence (list or tuple) of (N_i, 3) arrays in time order, got "
+                        f"{type(scans).__name__}" + (" (pass list(d.values()) in time order)" if isinstance(scans, dict) else ""))
     if not isinstance(scans, collections.abc.Sequence):
         scans = list(scans)  # an iterator or a stacked array: materialise it
     # a Sequence is read lazily, window by window (``floxels run`` passes scans that are still
