@@ -113,6 +113,14 @@ def test_existing_directory_as_output_file_is_refused_before_the_work(run_dir, t
     (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "-1"], "argument --radius: must be a finite "
                                                                               "number > 0, got '-1'"),
     (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "nan"], "argument --radius: must be a finite"),
+    # ignored before: --radius without --mode chain, --no-flow with chain; > 127 neighbours wrapped
+    # the int8 time_offset property around
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "2"], "--radius is the neighbour search "
+                                                                             "radius of --mode chain"),
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--mode", "chain", "--no-flow"], "--no-flow merges "
+                                                                                           "without moving"),
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--neighbours", "200"], "--neighbours must be in [1, "
+                                                                                  "127], got 200"),
     (["simulate", "{tmp}/s", "--small", "--range-noise", "nan"], "argument --range-noise: must be a finite number"),
     (["simulate", "{tmp}/s", "--small", "--max-range", "inf"], "argument --max-range: must be a finite number"),
     (["simulate", "{tmp}/s", "--small", "--seed", "-1"], "argument --seed: must be an integer >= 0"),
