@@ -41,3 +41,29 @@ def test_a_failed_read_releases_the_lock(tmp_path):
         load_npy(tmp_path / "broken.npz")
     np.save(tmp_path / "ok.npy", np.arange(3))
     assert load_npy(tmp_path / "ok.npy").tolist() == [0, 1, 2]  # (a held lock would hang here)
+
+
+@pytest.mark.parametrize("content, says", [(b"", "empty file"), (b"garbage\n", "not a .npy file"),
+                                           (b"<html>404</html>", "not a .npy file")])
+def test_a_file_that_is_no_npy_says_so_not_pickled_data(tmp_path, content, says):
+    # np.load took such files for pickles ("load it unsafely using allow_pickle=") or raised EOFError
+    (tmp_path / "x.npy").write_bytes(content)
+    with pytest.raises(ValueError, match=says) as e:
+        load_npy(tmp_path / "x.npy")
+    assert "pickle" not in str(e.value)
+    (tmp_path / "x.npz").write_bytes(content)
+    with pytest.raises(ValueError, match=says.replace("npy", "npz")):
+        with open_npz(tmp_path / "x.npz"):
+            pass
+
+
+def test_npy_and_npz_swapped_are_named(tmp_path):
+    np.save(tmp_path / "a.npy", np.eye(3))
+    np.savez(tmp_path / "b.npz", a=np.eye(3))
+    (tmp_path / "a.npz").write_bytes((tmp_path / "a.npy").read_bytes())
+    (tmp_path / "b.npy").write_bytes((tmp_path / "b.npz").read_bytes())
+    with pytest.raises(ValueError, match="a .npy array, not a .npz archive"):
+        with open_npz(tmp_path / "a.npz"):
+            pass
+    with pytest.raises(ValueError, match="a .npz .zip. archive, not a .npy array"):
+        load_npy(tmp_path / "b.npy")

@@ -156,6 +156,28 @@ def test_sequence_accepts_negative_frames():
         estimate_sequence(scans, cfg, frames=[1.5])
 
 
+def test_a_dict_of_scans_is_refused_by_name():
+    # list(dict) is its keys: it said "scan 0 must be a numpy array or torch tensor ..., got int"
+    scans, _ = _scans_at([0, 0.1, 0.2])
+    d = dict(enumerate(scans))
+    for call in (lambda: estimate_flow(d, config=FAST), lambda: estimate_sequence(d, FAST),
+                 lambda: Floxels(FAST).fit(d)):
+        with pytest.raises(TypeError, match=r"scans must be a sequence \(list or tuple\).*got dict .pass list\(d"):
+            call()
+
+
+def test_sequence_refuses_a_bare_frame_index_and_a_callback_that_is_no_function(monkeypatch):
+    # frames=2 was "'int' object is not iterable"; callback=5 failed only after the first frame's work
+    import floxels_ext.estimator.api as api
+
+    monkeypatch.setattr(api, "window_for", lambda *a: pytest.fail("work started"))
+    scans, _ = _scans_at([0, 0.1, 0.2])
+    with pytest.raises(TypeError, match=r"frames must be a sequence of integer indices \(e\.g\. \[2\]\), got int"):
+        estimate_sequence(scans, FAST, frames=2)
+    with pytest.raises(TypeError, match="callback must be a function callback.frame, result., got int"):
+        estimate_sequence(scans, FAST, callback=5)
+
+
 def test_nan_warning_points_at_the_callers_line():
     scans, _ = _scans_at([0, 0.1, 0.2])
     scans[1] = scans[1].copy()

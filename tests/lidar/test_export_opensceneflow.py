@@ -160,6 +160,22 @@ def test_dataset_run_gives_one_scene_per_sequence(seq, fake, tmp_path):
     assert index == [[s, str(i)] for s in ("a", "b") for i in range(N_FRAMES)]
 
 
+def test_a_second_export_into_the_same_out_keeps_the_first_scenes_indexed(seq, fake, tmp_path, capsys):
+    # the index files were replaced: the first run's .h5 stayed but the trainer no longer saw it
+    save_sequence(tmp_path / "sim", seq)
+    _run(tmp_path / "sim", "--out", tmp_path / "a")
+    _run(tmp_path / "sim", "--out", tmp_path / "b")
+    assert _export(tmp_path / "a", tmp_path / "h5") == 0 and _export(tmp_path / "b", tmp_path / "h5") == 0
+    assert "also keep the 1 scene(s) already in" in capsys.readouterr().out
+    index, samples = _read_like_hdf5dataset(tmp_path / "h5")
+    assert index == [[s, str(i)] for s in ("a", "b") for i in range(N_FRAMES)] and len(samples) == 2 * (N_FRAMES - 1)
+    assert _export(tmp_path / "a", tmp_path / "h5") == 0  # a re-export replaces its own entries, once
+    assert _read_like_hdf5dataset(tmp_path / "h5")[0] == [[s, str(i)] for s in ("b", "a") for i in range(N_FRAMES)]
+    (tmp_path / "h5" / "b.h5").unlink()  # a scene whose file is gone leaves the index
+    assert _export(tmp_path / "a", tmp_path / "h5") == 0
+    assert _read_like_hdf5dataset(tmp_path / "h5")[0] == [["a", str(i)] for i in range(N_FRAMES)]
+
+
 def test_refusals(seq, fake, tmp_path, capsys):
     d, poses = _sensor_frames(seq, tmp_path / "scans")
     _run(d, "--poses", poses, "--out", tmp_path / "run")

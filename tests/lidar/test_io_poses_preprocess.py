@@ -72,6 +72,24 @@ def test_pose_errors_name_the_file(tmp_path):
     assert check_poses(np.eye(4), "x").shape == (1, 4, 4)
 
 
+def test_empty_or_foreign_pose_and_calib_files_are_named(tmp_path):
+    # an empty poses .npy raised EOFError (a traceback from floxels run); a text file saved as
+    # .npy was "pickled (object) data"; a missing --calib a bare "[Errno 2] ..."
+    (tmp_path / "p.npy").write_bytes(b"")
+    with pytest.raises(PoseFormatError, match=r"p\.npy: cannot read poses \(empty file"):
+        read_poses(tmp_path / "p.npy")
+    (tmp_path / "q.npz").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(PoseFormatError, match=r"q\.npz: cannot read poses \(not a \.npz file") as e:
+        read_poses(tmp_path / "q.npz")
+    assert "pickle" not in str(e.value)
+    np.save(tmp_path / "ok.npy", _poses(2))
+    with pytest.raises(PoseFormatError, match=r"none\.txt: calib file does not exist"):
+        read_poses(tmp_path / "ok.npy", calib=tmp_path / "none.txt")
+    (tmp_path / "bin.txt").write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(PoseFormatError, match=r"bin\.txt: not a text file"):
+        read_poses(tmp_path / "ok.npy", calib=tmp_path / "bin.txt")
+
+
 def test_av2_poses_and_timestamp_matching(tmp_path):
     pa = pytest.importorskip("pyarrow")
     feather = pytest.importorskip("pyarrow.feather")

@@ -51,6 +51,19 @@ def test_bin_errors(tmp_path):
         read_points(tmp_path / "e.bin")
 
 
+def test_truncated_kitti_bin_read_as_5_columns_says_truncated(tmp_path):
+    # a 4-column file cut at a size 20 divides (not 16 or 12) read as 5 columns; the hint was
+    # "pass --bin-columns 3 if the rows are x y z only", a count its size does not allow
+    rng = np.random.default_rng(0)
+    az = np.sort(rng.uniform(-np.pi, np.pi, 1000))
+    r = rng.uniform(5, 40, 1000)
+    a = np.c_[r * np.cos(az), r * np.sin(az), rng.uniform(-2, 1, 1000), rng.uniform(0, 1, 1000)].astype(np.float32)
+    (tmp_path / "000003.bin").write_bytes(a.tobytes()[:15980])
+    with pytest.raises(LidarFormatError, match=r"000003\.bin.*4th column is negative.*15980 bytes.*truncated") as e:
+        read_points(tmp_path / "000003.bin")
+    assert "--bin-columns 3" not in str(e.value)
+
+
 def test_bin_that_shrinks_while_read_names_the_file(tmp_path, monkeypatch):
     """The size is listed before the read (it picks the column count); a file cut shorter in
     between (a copy still being written, a sync) is an error naming it, not a frame of

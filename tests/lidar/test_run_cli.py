@@ -281,6 +281,9 @@ def test_show_rerun_missing_and_fake(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "rerun", None)  # import rerun -> ImportError
     rc = cli.main(["show", str(tmp_path / "f.npz"), "--png", str(tmp_path / "a.png"), "--rerun", str(tmp_path / "r.rrd")])
     assert rc == 2 and "pip install 'floxels_ext[viz]'" in capsys.readouterr().err
+    assert not (tmp_path / "a.png").exists()  # refused before any work (the PNG was written first)
+    rc = cli.main(["show", str(tmp_path / "f.npz"), "--png", str(tmp_path / "a.png"), "--rerun", str(tmp_path)])
+    assert rc == 2 and f"--rerun {tmp_path} is an existing directory" in capsys.readouterr().err
     logged = {}
     rr = types.SimpleNamespace(init=lambda *a, **k: None, save=lambda p: logged.setdefault("save", p),
                                log=lambda path, obj: logged.setdefault(path, obj),

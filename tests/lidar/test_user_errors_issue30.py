@@ -113,6 +113,14 @@ def test_existing_directory_as_output_file_is_refused_before_the_work(run_dir, t
     (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "-1"], "argument --radius: must be a finite "
                                                                               "number > 0, got '-1'"),
     (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "nan"], "argument --radius: must be a finite"),
+    # ignored before: --radius without --mode chain, --no-flow with chain; > 127 neighbours wrapped
+    # the int8 time_offset property around
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--radius", "2"], "--radius is the neighbour search "
+                                                                             "radius of --mode chain"),
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--mode", "chain", "--no-flow"], "--no-flow merges "
+                                                                                           "without moving"),
+    (["accumulate", "{run}", "1", "--out", "{tmp}/a.ply", "--neighbours", "200"], "--neighbours must be in [1, "
+                                                                                  "127], got 200"),
     (["simulate", "{tmp}/s", "--small", "--range-noise", "nan"], "argument --range-noise: must be a finite number"),
     (["simulate", "{tmp}/s", "--small", "--max-range", "inf"], "argument --max-range: must be a finite number"),
     (["simulate", "{tmp}/s", "--small", "--seed", "-1"], "argument --seed: must be an integer >= 0"),
@@ -150,6 +158,21 @@ def test_show_refuses_a_changed_source_with_the_same_point_count(run_dir, tmp_pa
     rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
     assert rc == 2 and "changed since the run wrote this flow" in cap.err and "000001.npy" in cap.err
     assert not png.exists()
+
+
+def test_show_names_a_replaced_or_missing_source_not_a_broken_output(run_dir, tmp_path, capsys):
+    # it said "<out>.npz: not a floxels flow output (expected a .npz written by 'floxels run')"
+    # for an intact output whose input file was replaced (other point count) or deleted
+    png = tmp_path / "f1.png"
+    src = tmp_path / "in" / "000001.npy"
+    np.save(src, np.load(src)[:-3])
+    rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
+    assert rc == 2 and "changed since the run wrote this flow" in cap.err and "000001.npy" in cap.err, cap.err
+    assert "not a floxels flow output" not in cap.err and "Re-run floxels run" in cap.err
+    src.unlink()
+    rc, cap = _main(["show", run_dir, "--frame", "000001", "--png", png], capsys)
+    assert rc == 2 and "cannot be read" in cap.err and "no such file" in cap.err, cap.err
+    assert "not a floxels flow output" not in cap.err and not png.exists()
 
 
 def test_a_stray_far_point_is_reported_with_its_cost(seq, fake, tmp_path, capsys):

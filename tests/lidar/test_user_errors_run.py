@@ -120,6 +120,10 @@ def test_calib_without_poses_and_out_equal_to_input(seq, fake, tmp_path, capsys)
     rc, cap = _run([d, "--out", d, "--method", "fake", "--poses", tmp_path / "poses.txt"], capsys)
     assert rc == 2 and "is the input directory" in cap.err
     assert sorted(p.suffix for p in d.iterdir()) == [".bin"] * N  # nothing written there
+    # --odometry was silently ignored next to --poses
+    rc, cap = _run([*_base(tmp_path, d), "--odometry", "kiss-icp"], capsys)
+    assert rc == 2 and "--poses FILE and --odometry kiss-icp both give the ego-motion" in cap.err, cap.err
+    assert not (tmp_path / "out").exists()
 
 
 def test_outputs_dynamic_ego_motion_summary_and_reader(seq, fake, tmp_path, capsys):

@@ -239,6 +239,9 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:
         raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
+    if isinstance(scans, (dict, set, frozenset, str, bytes)):  # list() of a dict is its keys
+        raise TypeError(f"scans must be a sequence (list or tuple) of (N_i, 3) arrays in time order, got "
+                        f"{type(scans).__name__}" + (" (pass list(d.values()) in time order)" if isinstance(scans, dict) else ""))
     if not isinstance(scans, collections.abc.Sequence):
         scans = list(scans)  # an iterator or a stacked array: materialise it
     # a Sequence is read lazily, window by window (``floxels run`` passes scans that are still
@@ -256,9 +259,14 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     warn_if_no_sensors(cfg, sensor_origins)
     period = frame_period_of(times, frame_period)
     to_unit = _unit_factor(flow_unit, times, frame_period)
+    if callback is not None and not callable(callback):  # else it fails after the first frame's work
+        raise TypeError(f"callback must be a function callback(frame, result), got {type(callback).__name__}")
     if frames is None:
         frames = list(range(n))
     else:
+        if isinstance(frames, (int, np.integer, str, bytes)) or not hasattr(frames, "__iter__"):
+            raise TypeError(f"frames must be a sequence of integer indices (e.g. [{frames!r}]), got "
+                            f"{type(frames).__name__}")
         given = list(frames)
         for f in given:
             if isinstance(f, bool) or not isinstance(f, (int, np.integer)):

@@ -177,6 +177,9 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     t_start = time.perf_counter()
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
+    if isinstance(scans, (dict, set, frozenset, str, bytes)):  # list() of a dict is its keys: "scan 0 ... got int"
+        raise TypeError(f"scans must be a sequence (list or tuple) of (N_i, 3) arrays in time order, got "
+                        f"{type(scans).__name__}" + (" (pass list(d.values()) in time order)" if isinstance(scans, dict) else ""))
     scans = list(scans)
     if len(scans) < 2:
         raise ValueError(f"Floxels needs at least 2 scans (a target and a support scan), got {len(scans)}")

@@ -145,6 +145,30 @@ def _write_pickle(path: Path, value) -> None:
             tmp.unlink()
 
 
+class _PlainUnpickler(pickle.Unpickler):
+    """Reads lists of [str, str] only: a file in OUT is not trusted to run code (no globals)."""
+
+    def find_class(self, module, name):
+        raise pickle.UnpicklingError(f"not an index of scene ids and timestamps ({module}.{name})")
+
+
+def _kept_entries(out_dir: Path, written: set) -> tuple[list, list, list]:
+    """The index entries of scenes an earlier export wrote to ``out_dir`` that this one does not
+    rewrite and whose ``.h5`` is still there (total, with flow, scene ids). Why: the trainer
+    reads only the scenes the index lists (OpenSceneFlow builds it from every .h5 of the
+    directory), and a second export into the same OUT replaced it: the first run's scenes were
+    left on disk but silently dropped from training."""
+    old = []
+    for name in ("index_total.pkl", "index_flow.pkl"):
+        try:
+            with open(out_dir / name, "rb") as fh:
+                entries = _PlainUnpickler(fh).load()
+            old.append([e for e in entries if e[0] not in written and (out_dir / f"{e[0]}.h5").is_file()])
+        except (OSError, EOFError, pickle.UnpicklingError, TypeError, IndexError, AttributeError):
+            old.append([])  # none, or not an index of ours: written afresh as before
+    return old[0], old[1], list(dict.fromkeys(e[0] for e in old[0]))
+
+
 def export_opensceneflow(run_dir, out_dir, *, report=print) -> dict:
     """Write OUT/<scene_id>.h5 per sequence of RUN and OUT/index_total.pkl, index_flow.pkl;
     returns a summary. Every sequence is checked before anything is written."""
@@ -161,8 +185,11 @@ def export_opensceneflow(run_dir, out_dir, *, report=print) -> dict:
         total += [[scene, k] for k in keys]
         with_flow += [[scene, k] for k in keys[:n]]
         frames += len(keys)
-    _write_pickle(out_dir / "index_total.pkl", total)
-    _write_pickle(out_dir / "index_flow.pkl", with_flow)
+    kept = _kept_entries(out_dir, set(ids))
+    _write_pickle(out_dir / "index_total.pkl", kept[0] + total)
+    _write_pickle(out_dir / "index_flow.pkl", kept[1] + with_flow)
     report(f"wrote {len(plans)} scene(s), {frames} frames ({len(with_flow)} with flow) to {out_dir} "
            f"(OpenSceneFlow .h5 + index_total.pkl, index_flow.pkl)")
+    if kept[2]:
+        report(f"the index files also keep the {len(kept[2])} scene(s) already in {out_dir}: {', '.join(kept[2])}")
     return {"scenes": len(plans), "frames": frames, "with_flow": len(with_flow), "out": str(out_dir)}

@@ -73,6 +73,12 @@ class OutputError(ValueError):
     """A run output cannot be read (the message names the file)."""
 
 
+class SourceError(OutputError):
+    """The output itself is fine, but the input points it recorded (its ``source`` file) are
+    missing, unreadable or changed since the run: callers say so instead of calling the
+    output broken."""
+
+
 def cleanup_temps(out: Path, names=None) -> int:
     """Remove the temporary files an interrupted run left in ``out``; returns how many.
 
@@ -237,11 +243,11 @@ def _source_points(d: dict, path: Path) -> np.ndarray:
     try:
         pts = read_points(src, bin_columns=cols).points
     except (ValueError, OSError) as e:
-        raise OutputError(f"{path}: its input points are not stored (run without --self-contained) and its "
+        raise SourceError(f"{path}: its input points are not stored (run without --self-contained) and its "
                           f"source {src} cannot be read: {e}") from None
     pts = np.asarray(pts, np.float32)
     if "source_crc32" in d and len(pts) == len(d["flow"]) and points_crc32(pts) != int(d["source_crc32"]):
-        raise OutputError(f"{path}: its source {src} changed since the run wrote this flow (same {len(pts)} points, "
+        raise SourceError(f"{path}: its source {src} changed since the run wrote this flow (same {len(pts)} points, "
                           f"other coordinates: checksum differs); its flow does not belong to these points. Re-run "
                           f"floxels run (--force) on the current files, or keep the points with --self-contained")
     return pts
@@ -269,9 +275,12 @@ def read_flow_output(path, *, points: bool = True) -> dict:
     out: dict = {"flow": flow}
     if points:
         pts = d["points"] if "points" in d else _source_points(d, path)
+        if pts.shape != flow.shape and "points" not in d:  # the source file was replaced since the run
+            raise SourceError(f"{path}: its source {d.get('source')} changed since the run wrote this flow (it "
+                              f"now holds {len(pts)} points, the flow has {n} rows). Re-run floxels run (--force) "
+                              f"on the current files, or keep the points with --self-contained")
         if pts.shape != flow.shape:
-            raise OutputError(f"{path}: {len(pts)} points ({'stored' if 'points' in d else d.get('source')}) "
-                              f"but 'flow' has {n} rows")
+            raise OutputError(f"{path}: {len(pts)} points (stored) but 'flow' has {n} rows")
         if "points" not in d and "points_frame" in d and str(d["points_frame"]) == "world":
             pass  # seqio input: the source stores the points in the same (world) frame as written
         out["points"] = np.asarray(pts, np.float32)

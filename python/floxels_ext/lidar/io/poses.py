@@ -73,7 +73,14 @@ def check_poses(poses, where: str) -> np.ndarray:
 
 def read_kitti_calib(path) -> np.ndarray:
     """The 4x4 velodyne-to-camera transform ``Tr`` of a KITTI odometry ``calib.txt``."""
-    for line in Path(path).read_text().splitlines():
+    p = Path(path)
+    if not p.is_file():  # named as such, not a bare "[Errno 2] No such file or directory"
+        raise PoseFormatError(f"{p}: calib file does not exist" if not p.exists() else f"{p}: calib is not a file")
+    try:
+        text = p.read_text()
+    except UnicodeDecodeError:
+        raise PoseFormatError(f"{p}: not a text file (KITTI calib.txt expected)") from None
+    for line in text.splitlines():
         if line.startswith("Tr:"):
             vals = line.split()[1:]
             if len(vals) != 12:

@@ -134,10 +134,16 @@ def _check_bin_plausible(path, a: np.ndarray, cols: int, flat: np.ndarray, size:
     inten = inten[np.isfinite(inten)]
     neg = float((inten < 0).mean()) if len(inten) else 0.0
     if neg > 0.01:  # an intensity is >= 0; a coordinate (x y z-only rows read as 4) is not
-        hint = f"pass --bin-columns {best}" if best is not None else \
-            "pass --bin-columns 3 if the rows are x y z only, or the file's column count"
+        if best is not None:
+            hint = f"pass --bin-columns {best}"
+        elif size % 12 == 0:
+            hint = "pass --bin-columns 3 if the rows are x y z only, or the file's column count"
+        else:  # no 3-column reading exists: a KITTI file cut at a size that 5 columns happen to divide
+            hint = (f"its size ({size} bytes) is a whole number of rows of no other count among 3 and 4 columns: "
+                    f"truncated or damaged? (a KITTI file has 4 columns, 16 bytes a row)")
+        why = f" (x y z-only rows read as {cols} columns?)" if best is not None or size % 12 == 0 else ""
         raise _fail(path, f"{guess}, but its 4th column is negative in {100 * neg:.0f}% of the rows: not an "
-                          f"intensity (x y z-only rows read as {cols} columns?); {hint}")
+                          f"intensity{why}; {hint}")
 
 
 def _read_float32(path, size: int) -> np.ndarray:

@@ -124,6 +124,8 @@ def check_args(args, torch):
         raise CLIError(f"--dynamic-threshold must be a finite number >= 0 (m per frame), got {args.dynamic_threshold}")
     if args.calib and not args.poses:
         raise CLIError("--calib turns the camera poses of --poses into lidar poses; it needs --poses FILE")
+    if args.poses and getattr(args, "odometry", None):  # one would be silently ignored (--odometry)
+        raise CLIError(f"--poses FILE and --odometry {args.odometry} both give the ego-motion; give one of them")
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
         raise CLIError(f"--device must be cpu or cuda, got {device!r}")

@@ -150,12 +150,13 @@ def add_parser(sub) -> None:
     p.add_argument("frame", metavar="FRAME", help="frame name (e.g. 000042) or its index among the run's input "
                    "frames (as floxels run --frames counts them)")
     p.add_argument("--out", required=True, metavar="FILE.ply")
-    p.add_argument("--neighbours", type=int, default=2, help="scans on each side (default 2: t-2 .. t+2)")
+    p.add_argument("--neighbours", type=int, default=2, help="scans on each side (default 2: t-2 .. t+2; at most 127)")
     p.add_argument("--mode", choices=["constant-velocity", "chain"], default="constant-velocity")
     p.add_argument("--mask-only", action="store_true", help="only points that were optimised (no ground/far)")
     from floxels_ext.cli_types import positive_float
 
-    p.add_argument("--radius", type=positive_float, default=1.0, help="m, neighbour search radius of --mode chain")
+    p.add_argument("--radius", type=positive_float, default=None,
+                   help="m, neighbour search radius of --mode chain (default 1)")
     p.add_argument("--no-flow", action="store_true", help="merge without moving (for comparison)")
     p.set_defaults(func=run)
 
@@ -171,13 +172,18 @@ def run(args: argparse.Namespace) -> int:
     from floxels_ext.errors import CLIError
     from floxels_ext.lidar.io.writers import write_ply
 
-    if args.neighbours < 1:
-        raise CLIError("--neighbours must be >= 1")
+    if not 1 <= args.neighbours <= 127:  # time_offset is an int8 property: more would wrap around
+        raise CLIError(f"--neighbours must be in [1, 127], got {args.neighbours}")
+    if args.no_flow and (args.mode == "chain" or args.radius is not None):
+        raise CLIError("--no-flow merges without moving; --mode chain and --radius do not apply")
+    if args.radius is not None and args.mode != "chain":
+        raise CLIError("--radius is the neighbour search radius of --mode chain; it does not apply to "
+                       "--mode constant-velocity")
     from floxels_ext.output_paths import check_output_file
 
     out = check_output_file(args.out, "--out", "dense.ply")
     pts, off, names = accumulate_run(args.run_dir, args.frame, neighbours=args.neighbours, mode=args.mode,
-                                     mask_only=args.mask_only, radius=args.radius, use_flow=not args.no_flow)
+                                     mask_only=args.mask_only, radius=args.radius or 1.0, use_flow=not args.no_flow)
     rgb = np.array(_OFFSET_COLOURS, np.uint8)[np.minimum(np.abs(off) * 2 - (off < 0), len(_OFFSET_COLOURS) - 1)]
     write_ply(out, pts, time_offset=off.astype(np.int8), red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
     print(f"wrote {out}: {len(pts)} points from frames {names[0]}..{names[-1]} "

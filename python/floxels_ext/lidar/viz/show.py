@@ -160,7 +160,7 @@ def load_flow_output(path: Path) -> dict:
     ``flow``, ``mask``, ``dynamic``, ...); anything else is a CLIError saying the file is not a
     floxels flow output and why."""
     from floxels_ext.errors import CLIError
-    from floxels_ext.lidar.io.outputs import OutputError, read_flow_output
+    from floxels_ext.lidar.io.outputs import OutputError, SourceError, read_flow_output
 
     path = Path(path)
     not_output = f"{path}: not a floxels flow output (expected a .npz written by 'floxels run'"
@@ -172,6 +172,8 @@ def load_flow_output(path: Path) -> dict:
         raise CLIError(f"{not_output}; this file is not a .npz (zip) archive)")
     try:
         return read_flow_output(path)
+    except SourceError as e:  # a floxels output whose input file went missing or changed
+        raise CLIError(str(e)) from None
     except OutputError as e:
         raise CLIError(f"{not_output}): {e}") from None
 
@@ -196,6 +198,15 @@ def run(args: argparse.Namespace) -> int:
     if args.frame_period is not None and not args.frame_period > 0:
         raise CLIError(f"--frame-period must be > 0 seconds, got {args.frame_period}")
     png = check_output_file(args.png if args.png else f"{path.stem}.png", "--png", f"{path.stem}.png")
+    rerun = None
+    if args.rerun:  # before the picture: a missing package or place must not leave half the output
+        from floxels_ext.lidar.io._optional import require
+
+        rerun = check_output_file(args.rerun, "--rerun", f"{path.stem}.rrd")
+        try:
+            require("rerun", "viz", "rerun-sdk", "writing rerun recordings (--rerun)")
+        except MissingDependencyError as e:
+            raise CLIError(str(e)) from None
     n_mov = int(data["dynamic"].sum())
     try:
         from floxels_ext.lidar.viz.flow_plot import plot_flow_bev
@@ -216,10 +227,7 @@ def run(args: argparse.Namespace) -> int:
         write_png(png, img)
         size = f"{img.shape[1]}x{img.shape[0]}"
     print(f"wrote {png} (frame {path.stem}, {size}, {len(data['points'])} points, {n_mov} moving)")
-    if args.rerun:
-        try:
-            write_rerun(Path(args.rerun), data, path.stem)
-        except MissingDependencyError as e:
-            raise CLIError(str(e)) from None
-        print(f"wrote {args.rerun}")
+    if rerun is not None:
+        write_rerun(rerun, data, path.stem)
+        print(f"wrote {rerun}")
     return 0
