@@ -13,15 +13,19 @@ from pathlib import Path
 __all__ = ["check_output_file", "check_writable_dir", "replace_atomically"]
 
 
-def check_output_file(path, option: str, example: str = "out") -> Path:
+def check_output_file(path, option: str, example: str = "out", suffix: str | None = None) -> Path:
     """``path`` as a Path if a file can be written there: not an existing directory, in an
     existing directory. Raises ``CLIError`` naming ``option`` otherwise. ``example``: a file
-    name suggested inside a directory given by mistake."""
+    name suggested inside a directory given by mistake. ``suffix``: the only file name ending
+    accepted (e.g. ".png": PNG bytes under another name mislead every viewer)."""
     from floxels_ext.errors import CLIError
 
     if not str(path).strip():
         raise CLIError(f"{option} is empty; give a file name, e.g. {example}")
     p = Path(path)
+    if suffix is not None and p.suffix.lower() != suffix and not p.is_dir():
+        raise CLIError(f"{option} {p}: writes a {suffix} file; give a name ending in {suffix}, e.g. "
+                       f"{p.with_suffix(suffix).name if p.name else example}")
     if p.is_dir():
         raise CLIError(f"{option} {p} is an existing directory; give a file name, e.g. {p / example}")
     parent = Path(os.path.realpath(p)).parent if p.is_symlink() else p.parent  # a link is written through

@@ -150,7 +150,7 @@ def test_dataset_user_errors(kitti_tree, tmp_path, capsys):
     assert cli.main(["run", str(kitti_tree), "--out", out, "--poses", "x.txt", *FAST]) == 2
     assert "--poses/--calib name one sequence's files" in capsys.readouterr().err
     assert cli.main(["run", str(kitti_tree), "--out", out, "--max-tasks", "2", *FAST]) == 2
-    assert "only apply with --ray" in capsys.readouterr().err
+    assert "--max-tasks only applies with --ray" in capsys.readouterr().err
     assert cli.main(["run", str(kitti_tree / "sim/s0"), "--out", out, "--sequences", "a", *FAST]) == 2
     assert "is one sequence" in capsys.readouterr().err
     (kitti_tree / "poses/01.txt").rename(kitti_tree / "poses/01.bak")

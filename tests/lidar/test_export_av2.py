@@ -245,7 +245,7 @@ def test_refusals_write_nothing(pair, run_dir, masks, tmp_path, capsys):
     refused(plain, "--masks", masks, says="not the output of an Argoverse 2 sweep")
     refused(tmp_path / "nothing", "--masks", masks, says="does not exist")
     rc = cli.main(["export", str(run_dir), str(out), "--format", "opensceneflow", "--masks", str(masks)])
-    assert rc == 2 and "only apply to --format av2-submission" in capsys.readouterr().err
+    assert rc == 2 and "--masks only applies to --format av2-submission" in capsys.readouterr().err
 
 
 def test_partial_exports_what_the_run_has_and_says_so(pair, run_dir, tmp_path, capsys):

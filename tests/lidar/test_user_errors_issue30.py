@@ -105,6 +105,16 @@ def test_existing_directory_as_output_file_is_refused_before_the_work(run_dir, t
     assert not (tmp_path / "o2").exists()
 
 
+@pytest.mark.parametrize("argv", [
+    ["show", "{run}", "--frame", "000001", "--png", "{tmp}/f1.jpg"],
+    ["demo", "--png", "{tmp}/demo.jpg", "--small", "--iters", "1"],
+])
+def test_a_png_under_another_name_is_refused_before_the_work(run_dir, tmp_path, capsys, argv):
+    rc, cap = _main([a.format(run=run_dir, tmp=tmp_path) for a in argv], capsys)
+    assert rc == 2 and cap.err.startswith("floxels: error: --png ") and "give a name ending in .png" in cap.err, cap.err
+    assert cap.out == "" and not list(tmp_path.glob("*.jpg"))
+
+
 @pytest.mark.parametrize("argv, message", [
     (["show", "{run}", "--frame", "1", "--flow-scale", "nan"], "argument --flow-scale: must be a finite number"),
     (["show", "{run}", "--frame", "1", "--extent", "inf"], "argument --extent: must be a finite number"),

@@ -122,7 +122,8 @@ def offsets_from_times(times: list[float], target: int, supports: list[int], per
 def _as_tensor(scan, i: int) -> torch.Tensor:
     if isinstance(scan, np.ndarray):
         if scan.dtype.kind not in "fiub":  # from_numpy refuses strings, objects, ...
-            raise TypeError(f"scan {i} must hold floats (float32/float64), got {scan.dtype}")
+            raise TypeError(f"scan {i} must hold floating-point coordinates (float32 or float64; float16 and "
+                            f"bfloat16 are widened), got {scan.dtype}")
         if not scan.dtype.isnative:  # e.g. big-endian data read from a file
             scan = scan.astype(scan.dtype.newbyteorder("="))
         t = torch.from_numpy(np.ascontiguousarray(scan))
@@ -133,7 +134,8 @@ def _as_tensor(scan, i: int) -> torch.Tensor:
     if t.dim() != 2 or t.shape[1] != 3:
         raise ValueError(f"scan {i} must have shape (N, 3), got {tuple(t.shape)}")
     if not t.dtype.is_floating_point:
-        raise TypeError(f"scan {i} must hold floats (float32/float64), got {scan.dtype}")
+        raise TypeError(f"scan {i} must hold floating-point coordinates (float32 or float64; float16 and "
+                        f"bfloat16 are widened), got {scan.dtype}")
     return t
 
 

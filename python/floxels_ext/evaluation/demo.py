@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         cfg = cfg.replace(max_iters=args.iters, patience=min(cfg.patience, args.iters))
     from floxels_ext.output_paths import check_output_file
 
-    png = check_output_file(args.png, "--png", "floxels_demo.png")
+    png = check_output_file(args.png, "--png", "floxels_demo.png", suffix=".png")
     t0 = time.perf_counter()
     scans, target, gt, dyn = prepare_demo_scans(args.scene, args.seed, args.scans, args.small)
     if verbosity > 0:

@@ -120,7 +120,7 @@ def _check_options(args, dataset: bool, engines: int = 1) -> None:
                                         ("--retries", args.retries, 3), ("--keep-workers", args.keep_workers, 120.0))
                 if v != default]
         if used:
-            raise CLIError(f"{', '.join(used)} only apply with --ray")
+            raise CLIError(f"{', '.join(used)} only {'applies' if len(used) == 1 else 'apply'} with --ray")
         if args.task_frames is not None and engines == 1:
             raise CLIError("--task-frames only applies with --ray or --engines N > 1 (one engine runs whole sequences)")
     if dataset and (args.poses or args.calib):

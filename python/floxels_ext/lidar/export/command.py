@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if args.format != "av2-submission":
         given = [o for o, v in (("--masks", args.masks), ("--zip", args.zip), ("--partial", args.partial)) if v]
         if given:
-            raise CLIError(f"{', '.join(given)} only apply to --format av2-submission")
+            raise CLIError(f"{', '.join(given)} only {'applies' if len(given) == 1 else 'apply'} to --format av2-submission")
     try:
         if args.format == "av2-submission":
             from floxels_ext.lidar.export.av2_submission import export_av2_submission

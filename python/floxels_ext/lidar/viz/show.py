@@ -197,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError("--extent and --resolution must be > 0 and give at most 16000 pixels across")
     if args.frame_period is not None and not args.frame_period > 0:
         raise CLIError(f"--frame-period must be > 0 seconds, got {args.frame_period}")
-    png = check_output_file(args.png if args.png else f"{path.stem}.png", "--png", f"{path.stem}.png")
+    png = check_output_file(args.png if args.png else f"{path.stem}.png", "--png", f"{path.stem}.png", suffix=".png")
     rerun = None
     if args.rerun:  # before the picture: a missing package or place must not leave half the output
         from floxels_ext.lidar.io._optional import require
