@@ -113,6 +113,11 @@ RAY_REPORT = "python/floxels_ext/lidar/dataset/ray_report.py"
 RAY_PRELOAD = "python/floxels_ext/lidar/dataset/ray_preload.py"
 PRELOAD_TEST = "tests/lidar/test_ray_preload.py"
 RUN_ARGS = "python/floxels_ext/lidar/pipeline/run_args.py"
+NUMPY_FILES = "python/floxels_ext/numpy_files.py"
+OSF = "python/floxels_ext/lidar/export/opensceneflow.py"
+ACCUMULATE = "python/floxels_ext/lidar/viz/accumulate.py"
+OUT_PATHS = "python/floxels_ext/output_paths.py"
+API_PY = "python/floxels_ext/estimator/api.py"
 DEFAULT_PRESET = "tests/lidar/test_run_cli.py::test_default_preset_is_accurate_and_paper_outputs_say_how_to_resume"
 SCORE_ZERO = "tests/estimator/test_evidence.py::test_accurate_score_is_zero_before_the_zeroing"
 FAR_SENSOR = "tests/estimator/test_sight.py::test_a_sensor_beyond_any_lidars_reach_is_not_used"
@@ -138,6 +143,20 @@ MUTATIONS = [
     ("tasks_run not recorded", RAY_RUNNER,
      'ran.append({"task": todo_tasks[k].label, "worker": slot.name, "outcome": outcome,\n'
      '                            "ended_s": round(time.time() - workers.t0, 3)})', "pass", [TAIL_E2E]),
+    # ---- eleventh session: the bad-input sweep (helper qa) and its polish ----
+    ("an empty .npy read as a pickle", NUMPY_FILES, 'raise ValueError("empty file (0 bytes)")', "pass",
+     ["tests/test_numpy_files.py", "tests/lidar/test_io_poses_preprocess.py"]),
+    ("a second opensceneflow export drops the first's scenes", OSF, "kept = _kept_entries(out_dir, set(ids))",
+     "kept = ([], [], [])", ["tests/lidar/test_export_opensceneflow.py"]),
+    ("--poses with --odometry: odometry silently ignored", RUN_ARGS,
+     'if args.poses and getattr(args, "odometry", None):', "if False:", ["tests/lidar/test_user_errors_run.py"]),
+    ("--radius without --mode chain silently ignored", ACCUMULATE,
+     'if args.radius is not None and args.mode != "chain":', "if False:", ["tests/lidar/test_user_errors_issue30.py"]),
+    ("--png f.jpg writes PNG bytes under .jpg", OUT_PATHS,
+     "if suffix is not None and p.suffix.lower() != suffix and not p.is_dir():", "if False:",
+     ["tests/lidar/test_user_errors_issue30.py"]),
+    ("a callback that is no function found after the first frame", API_PY,
+     "if callback is not None and not callable(callback):", "if False:", ["tests/estimator/test_user_errors_api.py"]),
     # ---- issue 44, ninth session: Ray's workers a GPU follow the local engines ----
     ("Ray's default share from the most cores a GPU", ENGINE_COUNTS,
      'w = default_engines("cuda", int(min(per_gpu)) if per_gpu else 0, preset)',
