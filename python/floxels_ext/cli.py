@@ -129,8 +129,27 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"floxels: warning: {message}", file=sys.stderr if file is None else file, flush=True)
 
 
+def _slice_values(argv: list[str]) -> list[str]:
+    """``--frames -1:`` as ``--frames=-1:``: argparse reads a value that starts with "-" and is no
+    plain number as the next option ("expected one argument"), so a slice from the end needed
+    the "=" form."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--frames" and i + 1 < len(argv) and argv[i + 1][:1] == "-" and ":" in argv[i + 1] \
+                and all(c in "-0123456789:" for c in argv[i + 1]):
+            out.append(f"--frames={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = _slice_values([str(a) for a in (sys.argv[1:] if argv is None else argv)])
     args = parser.parse_args(argv)  # argparse itself exits 2 on bad usage (and --help exits 0)
     # imported after parsing: they load numpy, which `floxels --help` does not need
     from floxels_ext.lidar.io import LidarFormatError, MissingDependencyError

@@ -376,3 +376,14 @@ def test_preset_accurate(seq, tmp_path, capsys, fake):
     assert rc == 2 and "--preset accurate sets Floxels options" in cap.err
     rc, cap = _run([tmp_path / "sim", "--out", tmp_path / "p", "--preset", "fast"], capsys)
     assert rc == 2 and "fast" in cap.err
+
+
+def test_a_slice_from_the_end_needs_no_equals_sign():
+    # argparse read "-1:" as the next option ("expected one argument"); only --frames=-1: worked
+    from floxels_ext.cli import _slice_values, build_parser
+
+    for given in ("-1:", "-3:-1", "-2:"):
+        args = build_parser().parse_args(_slice_values(["run", "x", "--out", "o", "--frames", given]))
+        assert args.frames == given
+    assert _slice_values(["run", "x", "--frames", "-q"]) == ["run", "x", "--frames", "-q"]  # an option stays one
+    assert _slice_values(["eval", "p", "g", "--frames", "-2:"]) == ["eval", "p", "g", "--frames=-2:"]
