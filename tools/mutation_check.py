@@ -155,6 +155,8 @@ MUTATIONS = [
     ("--png f.jpg writes PNG bytes under .jpg", OUT_PATHS,
      "if suffix is not None and p.suffix.lower() != suffix and not p.is_dir():", "if False:",
      ["tests/lidar/test_user_errors_issue30.py"]),
+    ("--frames -1: read as the next option", "python/floxels_ext/cli.py", 'out.append(f"--frames={argv[i + 1]}")',
+     "out.extend(argv[i:i + 2])", ["tests/lidar/test_run_cli.py::test_a_slice_from_the_end_needs_no_equals_sign"]),
     ("a callback that is no function found after the first frame", API_PY,
      "if callback is not None and not callable(callback):", "if False:", ["tests/estimator/test_user_errors_api.py"]),
     # ---- issue 44, ninth session: Ray's workers a GPU follow the local engines ----
