@@ -25,7 +25,7 @@ from floxels_ext.estimator.distance import DistanceTransform, EarlyDts
 from floxels_ext.estimator.group import fit_group
 from floxels_ext.estimator.poses import resolve_sensors
 from floxels_ext.estimator.result import HOST_PARTS, FloxelsResult
-from floxels_ext.estimator.scans import check_ground, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
+from floxels_ext.estimator.scans import check_ground, check_scan_container, check_sensors, check_times, frame_period_of, prepare_scans, resolve_device, warn_if_no_sensors
 from floxels_ext.estimator.schedule import serial_stages
 from floxels_ext.estimator.windows import RAMP_START, Window, solve_windows, window_for
 from floxels_ext.ops.solver import MAX_PROBLEMS
@@ -239,9 +239,7 @@ def estimate_sequence(scans: Sequence, config: FloxelsConfig | None = None, devi
     cfg = _config_of(config, preset)
     if getattr(scans, "ndim", None) == 2:
         raise TypeError(f"scans must be a sequence of (N_i, 3) arrays, not a single {tuple(scans.shape)} array")
-    if isinstance(scans, (dict, set, frozenset, str, bytes)):  # list() of a dict is its keys
-        raise TypeError(f"scans must be a sequence (list or tuple) of (N_i, 3) arrays in time order, got "
-                        f"{type(scans).__name__}" + (" (pass list(d.values()) in time order)" if isinstance(scans, dict) else ""))
+    check_scan_container(scans)  # (before list(): a dict would give its keys)
     if not isinstance(scans, collections.abc.Sequence):
         scans = list(scans)  # an iterator or a stacked array: materialise it
     # a Sequence is read lazily, window by window (``floxels run`` passes scans that are still

@@ -179,9 +179,7 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
     t_start = time.perf_counter()
     if isinstance(scans, (np.ndarray, torch.Tensor)):
         raise TypeError("scans must be a sequence of (N_i, 3) arrays, not a single array")
-    if isinstance(scans, (dict, set, frozenset, str, bytes)):  # list() of a dict is its keys: "scan 0 ... got int"
-        raise TypeError(f"scans must be a sequence (list or tuple) of (N_i, 3) arrays in time order, got "
-                        f"{type(scans).__name__}" + (" (pass list(d.values()) in time order)" if isinstance(scans, dict) else ""))
+    check_scan_container(scans)
     scans = list(scans)
     if len(scans) < 2:
         raise ValueError(f"Floxels needs at least 2 scans (a target and a support scan), got {len(scans)}")
@@ -256,6 +254,14 @@ def prepare_scans(scans: Sequence, target: int | None, device, converted: dict |
                          recentring=recentring, sensors=sensors, grounds=grounds,
                          timings={"checks": t_checked - t_start, "recentre": t_recentred - t_checked,
                                   "stage": time.perf_counter() - t_recentred})
+
+
+def check_scan_container(scans) -> None:
+    """TypeError for a container that ``list()`` would not turn into the scans in time order (a
+    dict gives its keys: "scan 0 ... got int"; a set has no order; a string its characters)."""
+    if isinstance(scans, (dict, set, frozenset, str, bytes)):
+        raise TypeError(f"scans must be a sequence (list or tuple) of (N_i, 3) arrays in time order, got "
+                        f"{type(scans).__name__}" + (" (pass list(d.values()) in time order)" if isinstance(scans, dict) else ""))
 
 
 def check_sensors(sensors, n: int, first_index: int = 0) -> list[np.ndarray | None]:
