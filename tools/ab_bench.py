@@ -116,8 +116,11 @@ def run(args) -> int:
                          *shlex.split(args.speed_args)],
                "run": ["bench/bench_run.py", "--device", args.device, *shlex.split(args.run_args)]}
     for rnd in range(args.rounds):
+        # --alternate: A, B in odd rounds, B, A in even ones, so that neither source always runs
+        # first after the other's bench (the order moved a figure by 9 % once: RESULTS, the guard)
+        order = names[::-1] if args.alternate and rnd % 2 else names
         for bench in args.benches:
-            for name in names:
+            for name in order:
                 # --benches-from-last: every build timed by the newest source's bench scripts (options
                 # an older source's scripts lack, e.g. bench_run's --data); the build is still its own
                 src = AB / (names[-1] if args.benches_from_last else name)
@@ -165,6 +168,7 @@ def main() -> None:
     r.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
                    help="cpu: a smoke test of this script (CPU builds; give small --speed-args/--run-args)")
     r.add_argument("--rounds", type=int, default=2, help="0: only build")
+    r.add_argument("--alternate", action="store_true", help="reverse the sources' order every other round")
     r.add_argument("--skip-built", action="store_true", help="keep builds already in /tmp/ab (an earlier run's)")
     r.add_argument("--benches", nargs="+", default=["speed", "run"], choices=["speed", "run"])
     r.add_argument("--speed-args", default="--repeats 7 --seq-repeats 2")
