@@ -26,6 +26,14 @@ PyObject* PyInit__C(void) {
 }
 
 TORCH_LIBRARY(floxels, m) {
+  // --- fixed-point sums by row (csrc/kernels/segment_sum.h) ---
+  // out (rows, C [+1]) float64: per row r, the sum over the terms i with index[i] == r of
+  // values[i] (M, C), each term clamped to +-limit and rounded to a multiple of 2^-24, summed as
+  // int64: the same bits in any order and on any device. A non-finite term makes its row's
+  // column NaN (void_row: the row's every value column); count appends the row's number of
+  // terms. Terms whose index is outside [0, rows) are ignored. Data only (no autograd).
+  m.def("fixed_segment_sum(Tensor values, Tensor index, int rows, float limit, bool void_row, bool count) -> Tensor");
+
   // --- trilinear family (csrc/kernels/trilinear.h) ---
   // out (N, C) = grid (C, Z, Y, X) interpolated at points; border clamping.
   m.def("trilinear_gather(Tensor grid, Tensor points, float[] origin, float spacing) -> Tensor");

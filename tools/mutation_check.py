@@ -94,6 +94,9 @@ LAYOUT = "python/floxels_ext/lidar/dataset/layout.py"
 EVAL_CLI = "python/floxels_ext/evaluation/eval_cli.py"
 PREPROC_SET = "python/floxels_ext/lidar/preprocess/settings.py"
 DT_LOSS_H = "csrc/kernels/dt_loss.h"
+SEGSUM_H = "csrc/kernels/segment_sum.h"
+SEGSUM_CPU = "csrc/cpu/segment_sum_cpu.cpp"
+SEGSUM_T = "tests/ops/test_segment_sum.py"
 RAY_WORKER = "python/floxels_ext/lidar/dataset/ray_worker.py"
 RAY_POOL = "python/floxels_ext/lidar/dataset/ray_pool.py"
 RAY_RUNNER = "python/floxels_ext/lidar/dataset/ray_runner.py"
@@ -168,9 +171,8 @@ MUTATIONS = [
     ("Ray's default share not rounded to Ray's precision", ENGINE_COUNTS, "return math.floor(1e4 / w) / 1e4",
      "return 1 / w", [RAY_UNIT]),
     # ---- issue 42, eighth session: accurate's GPU time (group sums, run bounds), its engines ----
-    ("group sums keep a non-finite term's row finite", GROUP_SUMS,
-     'out = torch.where(acc[:, cols:] > 0, float("nan")', 'out = torch.where(acc[:, cols:] < 0, float("nan")',
-     [E + "test_segment_sums.py"]),
+    ("group sums keep a non-finite term's row finite", SEGSUM_CPU, "bad[void_row ? r : r * C + c] = 1;",
+     "bad[void_row ? r : r * C + c] = 0;", [E + "test_segment_sums.py", SEGSUM_T]),
     ("group sums clamp every term to 1", GROUP_SUMS, "MAX_FIXED_SUM = float(2 ** 18)", "MAX_FIXED_SUM = 1.0",
      [E + "test_segment_sums.py"]),
     ("seen evidence's runs end where they start", EVIDENCE, "table[1].scatter_(0, torch.where(ends, run, spare), idx)",
@@ -363,13 +365,15 @@ MUTATIONS = [
      "lower = sel & (cur_s > cur)", [SEARCH, REFINE]),
     ("static clusters refined (speed floor 0)", REFINE_PY, "REFINE_MIN_SPEED = 0.1", "REFINE_MIN_SPEED = 0.0",
      [REFINE, SEARCH]),
-    ("cluster means' fixed point at 2^-10 m/frame", GROUP_SUMS, "FIXED_POINT = float(2 ** 24)",
-     "FIXED_POINT = float(2 ** 10)", [REFINE]),
-    ("cluster means' fixed point not clamped", GROUP_SUMS,
-     "f = f.nan_to_num(0.0, 0.0, 0.0).clamp(-MAX_FIXED_FLOW, MAX_FIXED_FLOW)", "f = f.nan_to_num(0.0, 0.0, 0.0)",
-     [REFINE]),
-    ("cluster with a non-finite flow refined", GROUP_SUMS, "bad = ~torch.isfinite(f).all(dim=1)",
-     "bad = torch.zeros_like(f[:, 0], dtype=torch.bool)", [REFINE]),
+    ("cluster means' fixed point at 2^-10 m/frame", SEGSUM_H, "constexpr double kScale = 16777216.0;",
+     "constexpr double kScale = 1024.0;", [REFINE, SEGSUM_T]),
+    ("cluster means' fixed point not clamped", GROUP_SUMS, "fixed_segment_sum(flow, lab, C, MAX_FIXED_FLOW,",
+     "fixed_segment_sum(flow, lab, C, 2.0 ** 28,", [REFINE, SEGSUM_T]),
+    ("cluster with a non-finite flow refined", GROUP_SUMS, "MAX_FIXED_FLOW, void_row=True, count=True)",
+     "MAX_FIXED_FLOW, void_row=False, count=True)", [REFINE, SEGSUM_T]),
+    ("fixed-point sums count a row's first-row terms only", SEGSUM_CPU, "if (count) ++n[r];",
+     "if (count && r > 0) ++n[r];", [REFINE, SEGSUM_T]),
+    ("fixed-point sums not clamped above", SEGSUM_H, "(x > limit ? limit : x)", "x", [SEGSUM_T]),
     # the evidence test
     ("evidence_ratio default 0.05 -> 0.25 (46)", CFG, "evidence_ratio: float = 0.05", "evidence_ratio: float = 0.25",
      [EVT]),

@@ -97,4 +97,21 @@ inline void nearest(const at::Tensor& x, const at::Tensor& y) {
             y.size(0));
 }
 
+inline void segment_sum(const at::Tensor& values, const at::Tensor& index, int64_t rows, double limit) {
+  FLX_CHECK(values.dim() == 2, "floxels: fixed_segment_sum: values must be (M, C), got shape ", values.sizes());
+  FLX_CHECK(values.scalar_type() == at::kFloat || values.scalar_type() == at::kDouble,
+            "floxels: fixed_segment_sum: values must be float32 or float64, got ", values.scalar_type());
+  FLX_CHECK(index.dim() == 1 && index.size(0) == values.size(0), "floxels: fixed_segment_sum: index must be (",
+            values.size(0), ",), got shape ", index.sizes());
+  FLX_CHECK(index.scalar_type() == at::kLong || index.scalar_type() == at::kInt,
+            "floxels: fixed_segment_sum: index must be int64 or int32, got ", index.scalar_type());
+  check_same_device(values, index, "values", "index");
+  FLX_CHECK(rows >= 0 && rows < (int64_t(1) << 31), "floxels: fixed_segment_sum: rows must be in [0, 2^31), got ",
+            rows);
+  // limit * 2^24 below 2^52: every clamped term is an exact integer in a double, and 2^11 terms
+  // of that size still fit an int64 row (the callers' terms are far smaller)
+  FLX_CHECK(std::isfinite(limit) && limit > 0 && limit <= 268435456.0,
+            "floxels: fixed_segment_sum: limit must be in (0, 2^28], got ", limit);
+}
+
 }  // namespace floxels::args

@@ -15,6 +15,7 @@ from floxels_ext.ops.grid import DEFAULT_MAX_CELLS, GridTooLargeError, grid_for_
 from floxels_ext.ops.lidar import frame_flow, lidar_keep_mask, lidar_point_classes, lidar_select, rigid_transform
 from floxels_ext.ops.nearest import nearest_neighbor
 from floxels_ext.ops.rigid_lm import rigid_lm
+from floxels_ext.ops.segment_sum import fixed_segment_sum
 from floxels_ext.ops.velocity_search import velocity_search
 from floxels_ext.ops.setup import ProblemSetup, problem_setup, stage_points
 from floxels_ext.ops.trilinear import trilinear_gather, trilinear_scatter
@@ -31,5 +32,6 @@ __all__ = [
     "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",
     "problem_setup", "ProblemSetup", "stage_points",
     "nearest_neighbor",
+    "fixed_segment_sum",
     "lidar_keep_mask", "lidar_point_classes", "rigid_transform", "lidar_select", "frame_flow",
 ]

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import torch
 
 __all__ = [
+    "fixed_segment_sum",
     "trilinear_gather",
     "trilinear_scatter",
     "points_to_occupancy",
@@ -401,3 +402,29 @@ def nearest_neighbor(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     d = (x[:, None, :] - y[None, :, :]).square().sum(dim=2)
     d = torch.where(torch.isnan(d), torch.full_like(d, float("inf")), d)
     return d.argmin(dim=1)
+
+
+def fixed_segment_sum(values: torch.Tensor, index: torch.Tensor, rows: int, limit: float, void_row: bool = False,
+                      count: bool = False) -> torch.Tensor:
+    """(rows, C [+1]) float64 sums of ``values`` (M, C) by ``index`` (M,): each finite term
+    clamped to +-limit and rounded (ties to even) to a multiple of 2^-24, the integers summed;
+    a non-finite term makes its row's column NaN (``void_row``: the whole row's value columns);
+    ``count`` appends the row's number of terms; terms of an index outside [0, rows) are ignored
+    (the op's rule, csrc/kernels/segment_sum.h)."""
+    scale = float(2 ** 24)
+    idx = index.to(torch.int64)
+    keep = (idx >= 0) & (idx < rows)
+    v, idx = values.to(torch.float64)[keep], idx[keep]
+    C = v.shape[1]
+    bad = ~torch.isfinite(v)
+    fixed = torch.round(v.nan_to_num(0.0, 0.0, 0.0).clamp(-limit, limit) * scale).to(torch.int64)
+    acc = torch.zeros(rows, C, dtype=torch.int64, device=v.device).index_add_(0, idx, fixed)
+    flags = torch.zeros(rows, C, dtype=torch.int64, device=v.device).index_add_(0, idx, bad.to(torch.int64))
+    flagged = flags > 0
+    if void_row:
+        flagged = flagged.any(dim=1, keepdim=True).expand(rows, C)
+    out = torch.where(flagged, float("nan"), acc.to(torch.float64) / scale)
+    if count:
+        n = torch.zeros(rows, dtype=torch.int64, device=v.device).index_add_(0, idx, torch.ones_like(idx))
+        out = torch.cat([out, n.to(torch.float64)[:, None]], 1)
+    return out
