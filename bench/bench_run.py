@@ -191,7 +191,7 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=None,
                     help="scans per window of every run (default: each run's preset's own, as a user gets it); the "
                          "ceiling uses this or the paper's 5")
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--device", default=None, help="cuda or cpu (default: cuda if there is a GPU)")
     ap.add_argument("--max-iters", type=int, help="optimiser iterations (default: the config's)")
     ap.add_argument("--run-args", default="", help="extra floxels run arguments (quoted)")
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=ARGS",
@@ -215,6 +215,11 @@ def main() -> None:
     ap.add_argument("--windows", type=Path, help="also write each timed run's [t0, t1] (time.time()) as a JSON "
                     "list of {name, t0, t1}: tools/host_sampler.py --windows summarises the GPU's busy share per run")
     args = ap.parse_args()
+    if args.device is None:
+        # asked through NVML, not by initialising CUDA in this process: the runs below are in this
+        # process, and floxels run's --mps must come before this process's CUDA initialisation
+        os.environ.setdefault("PYTORCH_NVML_BASED_CUDA_CHECK", "1")
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
 
     if args.gil_switch_interval is not None:
         import floxels_ext.lidar.dataset.stream as engine

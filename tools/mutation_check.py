@@ -100,6 +100,9 @@ SEGSUM_T = "tests/ops/test_segment_sum.py"
 RAY_WORKER = "python/floxels_ext/lidar/dataset/ray_worker.py"
 RAY_POOL = "python/floxels_ext/lidar/dataset/ray_pool.py"
 RAY_RUNNER = "python/floxels_ext/lidar/dataset/ray_runner.py"
+MPS = "python/floxels_ext/lidar/dataset/mps.py"
+TASKS_PY = "python/floxels_ext/lidar/dataset/tasks.py"
+MPS_T = "tests/lidar/test_mps.py"
 TASKS = "python/floxels_ext/lidar/dataset/tasks.py"
 RAY_UNIT = "tests/lidar/test_ray_worker.py"
 RAY_SAME = "tests/lidar/test_ray.py::test_ray_equals_local_and_warm_pool"
@@ -461,6 +464,14 @@ MUTATIONS = [
      PREPROC),
     ("ground rise cap default 0.5 m -> none", PREPROC_SET, "ground_max_rise: float | None = 0.5 ",
      "ground_max_rise: float | None = None ", PREPROC),
+
+    # ---- twelfth session: floxels run --mps (lidar/dataset/mps.py) ----
+    ("--mps: the user's MPS replaced by a private one", MPS, "    if env.get(PIPE):\n", "    if False:\n", [MPS_T]),
+    ("--mps: a daemon whose CUDA client failed still used", MPS, "if probe != 0 or not servers:",
+     "if not servers:", [MPS_T]),
+    ("--mps: on the CPU too", MPS, 'if device is not None and not device.startswith("cuda"):', "if False:", [MPS_T]),
+    ("--mps: an option of the tasks", TASKS_PY, '"keep_workers", "engines", "mps"}', '"keep_workers", "engines"}',
+     [MPS_T]),
 
     # ---- C++ (csrc/kernels/dt_loss.h: the evidence test and the residuals, CPU and CUDA) ----
     ("evidence test gain >= threshold (46)", DT_LOSS_H, "return gain > thr;  // false for NaN",

@@ -130,6 +130,10 @@ def render(part: dict, wall: float) -> dict:
                "stages_s": _stages(part["stages"])}
     if len(part["stages"]) > 1:
         summary["engines"] = len(part["stages"])
+    if str(head["device"]).startswith("cuda"):
+        from floxels_ext.lidar.dataset.mps import sharing
+
+        summary["mps"] = sharing()  # (--mps)
     summary.update({k: head[k] for k in ("workers", "writers", "worker_kind", "writer_kind", "preprocess_device")})
     summary["settings"] = head["settings"]
     return summary

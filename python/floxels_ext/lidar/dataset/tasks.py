@@ -36,7 +36,7 @@ __all__ = ["common_options", "SequenceSpec", "Task", "discover_dataset", "is_seq
 # run options that a task sets itself (per sequence / per task) or that belong to the driver
 _DRIVER_KEYS = {"command", "func", "input", "out", "frames", "poses", "calib", "device", "list_methods",
                 "ray", "gpus_per_task", "cpus_per_task", "max_tasks", "task_frames", "retries", "sequences",
-                "keep_workers", "engines"}
+                "keep_workers", "engines", "mps"}
 
 
 def common_options(args) -> dict:
