@@ -101,7 +101,6 @@ RAY_WORKER = "python/floxels_ext/lidar/dataset/ray_worker.py"
 RAY_POOL = "python/floxels_ext/lidar/dataset/ray_pool.py"
 RAY_RUNNER = "python/floxels_ext/lidar/dataset/ray_runner.py"
 MPS = "python/floxels_ext/lidar/dataset/mps.py"
-TASKS_PY = "python/floxels_ext/lidar/dataset/tasks.py"
 MPS_T = "tests/lidar/test_mps.py"
 TASKS = "python/floxels_ext/lidar/dataset/tasks.py"
 RAY_UNIT = "tests/lidar/test_ray_worker.py"
@@ -470,7 +469,7 @@ MUTATIONS = [
     ("--mps: a daemon whose CUDA client failed still used", MPS, "if probe != 0 or not servers:",
      "if not servers:", [MPS_T]),
     ("--mps: on the CPU too", MPS, 'if device is not None and not device.startswith("cuda"):', "if False:", [MPS_T]),
-    ("--mps: an option of the tasks", TASKS_PY, '"keep_workers", "engines", "mps"}', '"keep_workers", "engines"}',
+    ("--mps: an option of the tasks", TASKS, '"keep_workers", "engines", "mps"}', '"keep_workers", "engines"}',
      [MPS_T]),
 
     # ---- C++ (csrc/kernels/dt_loss.h: the evidence test and the residuals, CPU and CUDA) ----
