@@ -466,8 +466,9 @@ MUTATIONS = [
 
     # ---- twelfth session: floxels run --mps (lidar/dataset/mps.py) ----
     ("--mps: the user's MPS replaced by a private one", MPS, "    if env.get(PIPE):\n", "    if False:\n", [MPS_T]),
-    ("--mps: a daemon whose CUDA client failed still used", MPS, "if probe != 0 or not servers:",
-     "if not servers:", [MPS_T]),
+    ("--mps: a daemon whose CUDA client failed still used", MPS,
+     "probe = subprocess.run(PROBE_ARGS, env=env, capture_output=True, timeout=timeout).returncode",
+     "probe = 0 * subprocess.run(PROBE_ARGS, env=env, capture_output=True, timeout=timeout).returncode", [MPS_T]),
     ("--mps: on the CPU too", MPS, 'if device is not None and not device.startswith("cuda"):', "if False:", [MPS_T]),
     ("--mps: an option of the tasks", TASKS, '"keep_workers", "engines", "mps"}', '"keep_workers", "engines"}',
      [MPS_T]),
