@@ -20,6 +20,9 @@
 # PRESTART=1: the cluster starts with Ray's worker prestart and module preload
 #   (floxels_ext.lidar.dataset.ray_preload.RAY_ENV, as docs/datasets-and-ray.md tells users), and
 #   the bench waits (up to 90 s) for the idle workers' imports before its rows.
+# MPS=1: a CUDA MPS control daemon on the host (the driver's default pipe, /tmp/nvidia-mps) before
+#   ray start, so that the workers sharing each GPU run their kernels side by side (as
+#   docs/datasets-and-ray.md tells users); stopped after ray stop.
 # SKIP_BUILD=1: the package is built already (a second pass in the same call). DATA=DIR: bench_ray's
 #   dataset directory (kept between passes; made if missing).
 # ROUNDS=R repeats the Ray (and procs) rows R times, interleaved; SPY=N py-spy dumps of N busy workers of each kind.
@@ -45,6 +48,10 @@ log "TMPDIR=${TMPDIR:-/tmp}"
 if [ "${SKIP_BUILD:-0}" = 1 ]; then log "build skipped (SKIP_BUILD=1)"; else
   OUT=$W tools/gpu_run.sh build > /dev/null 2>&1; log "build: $(grep -h 'build rc\|cuda kernels' $W/summary.log | tr '\n' ' ')"; fi
 # (b)
+if [ "${MPS:-0}" = 1 ]; then
+  unset CUDA_MPS_PIPE_DIRECTORY; mkdir -p $W/mps_log
+  CUDA_MPS_LOG_DIRECTORY=$W/mps_log nvidia-cuda-mps-control -d; log "MPS control daemon (default pipe) rc=$?"
+fi
 if [ "${PRESTART:-0}" = 1 ]; then
   env $(python3 -c 'from floxels_ext.lidar.dataset.ray_preload import RAY_ENV as e; print(" ".join(f"{k}={v}" for k, v in e.items()))') \
     python3 -m ray.scripts.scripts start --head --num-gpus $NG --num-cpus $NC --include-dashboard=false --disable-usage-stats \
@@ -73,6 +80,9 @@ timeout $t python3 bench/bench_ray.py --device cuda --gpus $GPUS --workers-per-g
 log "bench_ray rc=$?"
 mkdir -p $W/hs; touch $W/hs/stop; wait $HS
 python3 -m ray.scripts.scripts stop > /dev/null 2>&1
+if [ "${MPS:-0}" = 1 ]; then
+  log "MPS clients: $(grep -c 'NEW CLIENT' $W/mps_log/control.log 2>/dev/null)"; echo quit | nvidia-cuda-mps-control
+fi
 # (e)
 if [ -f $OUT/bench_ray.json ]; then
   python3 tools/host_sampler.py --summarise $W/hs --windows $OUT/bench_ray.json > $OUT/host_summary.log 2>&1
