@@ -66,7 +66,7 @@ def test_plan(fake, mode, device, engines, ray, env, init, expect):
 
 @pytest.mark.parametrize("device,engines,ray,words", [
     ("cpu", 4, False, "contradicts --device cpu"),
-    ("cuda", 1, False, "--engines 1 runs one"),
+    ("cuda", 1, False, "this run has one"),
     (None, 4, True, "before 'ray start'"),
 ])
 def test_plan_on_refuses_what_cannot_share(fake, device, engines, ray, words):
@@ -156,7 +156,8 @@ def test_watcher_stops_the_daemon_after_the_process(fake, tmp_path):
 
 @pytest.mark.parametrize("extra,words", [
     (["--mps", "on", "--device", "cpu"], "contradicts --device cpu"),
-    (["--mps", "on", "--engines", "1", "--device", "cuda"], "--engines 1 runs one"),
+    (["--mps", "on", "--engines", "1", "--device", "cuda"], "this run has one"),
+    (["--mps", "on", "--worker-kind", "process", "--device", "cuda"], "--worker-kind process"),
     (["--mps", "on", "--ray"], "before 'ray start'"),
 ])
 def test_cli_refuses(fake, tmp_path, capsys, extra, words):

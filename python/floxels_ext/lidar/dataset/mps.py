@@ -91,7 +91,8 @@ def mps_plan(mode: str, device: str | None, engines: int, ray: bool, environ=Non
         return "none", "Ray's workers"
     if engines < 2:
         if on:
-            raise ValueError("--mps on shares a GPU between engines; --engines 1 runs one")
+            raise ValueError("--mps on shares a GPU between engines; this run has one (--engines 1 or "
+                             "--worker-kind process)")
         return "none", "one engine"
     if env.get(PIPE):
         return "user", f"MPS already set up ({PIPE}={env[PIPE]})"
@@ -183,7 +184,7 @@ def use_mps(mode: str, device: str | None, engines: int, ray: bool) -> None:
             raise CLIError(f"--mps on: CUDA MPS did not start ({e.args[0]})") from None
         if code not in NO_CUDA:
             print(f"floxels: note: CUDA MPS did not start ({e.args[0]}); the engines take turns on the GPU "
-                  f"(--mps off says so without trying)", file=sys.stderr)
+                  f"(--mps off skips the attempt)", file=sys.stderr)
 
 
 def sharing() -> str:
