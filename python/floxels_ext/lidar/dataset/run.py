@@ -81,11 +81,11 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
                         f"already uses); 1: one engine in this process; at most {MAX_ENGINES}")
     g.add_argument("--mps", choices=["auto", "on", "off"], default="auto",
                    help="engines sharing a GPU run their kernels side by side through CUDA MPS, in a private "
-                        "daemon started for the run and stopped after it (1.10-1.19x the frames/s of --preset "
+                        "daemon started for the run and stopped after it (1.11-1.21x the frames/s of --preset "
                         "accurate with four engines on an H100, measured; the same outputs). auto (default): "
                         "when several engines share a GPU, nvidia-cuda-mps-control is on the PATH and no MPS is "
                         "set up already (CUDA_MPS_PIPE_DIRECTORY: yours is used); on: the same, an error if it "
-                        "cannot start; off: the engines take turns on the GPU")
+                        "cannot start; off: none is started")
     g.add_argument("--sequences", action="append", metavar="GLOB",
                    help="only the sequences whose output sub-path matches this shell pattern (e.g. "
                         "'sequences/0[0-9]/*'); repeatable")
