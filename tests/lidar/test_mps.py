@@ -136,10 +136,16 @@ def test_use_mps_on_failure_is_an_error(fake, monkeypatch):
         mps.use_mps("on", "cuda", 4, False)
 
 
-def test_use_mps_keeps_the_users_daemon(fake, monkeypatch):
+@pytest.mark.parametrize("mode", ["auto", "on", "off"])
+def test_use_mps_keeps_the_users_daemon(fake, monkeypatch, mode):
     monkeypatch.setenv(mps.PIPE, "/tmp/their-mps")
-    mps.use_mps("auto", "cuda", 4, False)
-    assert mps.sharing() == "user" and _lines(fake) == []  # nothing started
+    mps.use_mps(mode, "cuda", 4, False)
+    assert mps.sharing() == "user" and _lines(fake) == []  # nothing started; "off" cannot undo theirs
+
+
+def test_off_without_mps_says_off(fake):
+    mps.use_mps("off", "cuda", 4, False)
+    assert mps.sharing() == "off" and _lines(fake) == []
 
 
 def test_watcher_stops_the_daemon_after_the_process(fake, tmp_path):

@@ -133,6 +133,8 @@ def start_private_mps(timeout: float = 30.0) -> str:
         probe = subprocess.run(PROBE_ARGS, env=env, capture_output=True, timeout=timeout).returncode
     except subprocess.TimeoutExpired:
         probe = "no answer in %.0f s" % timeout
+    except OSError as e:
+        probe = str(e)
     servers = ""
     if probe == 0:
         try:
@@ -170,11 +172,13 @@ def use_mps(mode: str, device: str | None, engines: int, ray: bool) -> None:
         what, _ = mps_plan(mode, device, engines, ray, cuda_initialized=initialized)
     except ValueError as e:
         raise CLIError(str(e)) from None
-    if what == "user":
-        if not (_state["sharing"] == "private" and os.environ.get(PIPE) == _state.get("pipe")):
-            _state["sharing"] = "user"  # (a later run of this process keeps the daemon it started: "private")
-        return
     if what != "start":
+        # an MPS set up before the run serves its engines whatever --mps says ("off" starts none);
+        # a later run of this process keeps the daemon an earlier one started ("private")
+        mine = _state["sharing"] == "private" and os.environ.get(PIPE) == _state.get("pipe")
+        theirs = what == "user" or os.environ.get(PIPE) or os.path.exists(os.path.join(DEFAULT_PIPE, "control"))
+        if theirs and not mine:
+            _state["sharing"] = "user"
         return
     try:
         start_private_mps()
