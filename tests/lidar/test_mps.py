@@ -148,6 +148,15 @@ def test_off_without_mps_says_off(fake):
     assert mps.sharing() == "off" and _lines(fake) == []
 
 
+def test_a_process_without_use_mps_sees_the_users_daemon(fake, tmp_path, monkeypatch):
+    """(a Ray worker: no --mps of its own; the node's daemon in the default place serves it)"""
+    assert mps.sharing() == "off"
+    (tmp_path / "nvidia-mps").mkdir()
+    (tmp_path / "nvidia-mps" / "control").write_text("")
+    monkeypatch.setattr(mps, "DEFAULT_PIPE", str(tmp_path / "nvidia-mps"))
+    assert mps.sharing() == "user"
+
+
 def test_watcher_stops_the_daemon_after_the_process(fake, tmp_path):
     root = tmp_path / "mpsroot"
     (root / "pipe").mkdir(parents=True)

@@ -173,11 +173,10 @@ def use_mps(mode: str, device: str | None, engines: int, ray: bool) -> None:
     except ValueError as e:
         raise CLIError(str(e)) from None
     if what != "start":
-        # an MPS set up before the run serves its engines whatever --mps says ("off" starts none);
-        # a later run of this process keeps the daemon an earlier one started ("private")
+        # a later run of this process keeps the daemon an earlier one started ("private"); an MPS
+        # set up before the run serves its engines whatever --mps says (sharing() finds it, "off" too)
         mine = _state["sharing"] == "private" and os.environ.get(PIPE) == _state.get("pipe")
-        theirs = what == "user" or os.environ.get(PIPE) or os.path.exists(os.path.join(DEFAULT_PIPE, "control"))
-        if theirs and not mine:
+        if what == "user" and not mine:
             _state["sharing"] = "user"
         return
     try:
@@ -193,5 +192,8 @@ def use_mps(mode: str, device: str | None, engines: int, ray: bool) -> None:
 
 def sharing() -> str:
     """Whether this process (and the engines it starts) use MPS: "private" (a daemon started by
-    ``--mps``), "user" (one set up before the run) or "off"."""
+    ``--mps``), "user" (one set up before the run: also what a Ray worker finds, which runs no
+    ``--mps`` of its own) or "off"."""
+    if _state["sharing"] is None and (os.environ.get(PIPE) or os.path.exists(os.path.join(DEFAULT_PIPE, "control"))):
+        return "user"
     return _state["sharing"] or "off"
