@@ -6,18 +6,17 @@ Why: without MPS each engine process has its own CUDA context, and a GPU runs on
 kernels at a time (time slices). ``accurate``'s ~500 small kernels a frame (the refinement, the
 sights, the evidence) fill a few SMs each, so while one engine's small kernel runs the rest of
 the GPU waits for the next time slice. Through one MPS server the engines' kernels share the SMs:
-one H100, 16 cores, four engines, 768 frames, three runs each interleaved: ``accurate`` KITTI
-layout 85.1 -> 100.9 frames/s (median), AV2 layout 118.4 -> 130.8; ``paper`` 264.8 -> 294.3 and
-252.1 -> 254.2 (bench/RESULTS.md, "The engines through CUDA MPS"). The arithmetic is each
-kernel's own: the outputs are the same arrays with and without it.
+H100s, 16 cores, four engines, 768 frames, MPS and plain runs interleaved (medians of 8 and 6
+runs): ``accurate`` KITTI layout 84.7 -> 102.7 frames/s, AV2 layout 114.3 -> 126.9; ``paper``
+254.7 -> 278.6 and 248.6 -> 253.7 (bench/RESULTS.md, "The engines through CUDA MPS"). The
+arithmetic is each kernel's own: the outputs are the same arrays with and without it.
 
 ``auto`` (the default) starts a *private* MPS control daemon for the run (its pipe and log in a
 temporary directory; nothing system-wide is touched) when several engines share a CUDA device,
 the daemon's program is on the PATH, and no MPS is set up already (``CUDA_MPS_PIPE_DIRECTORY``
 set, or a daemon in the default ``/tmp/nvidia-mps``: the user's own, which this process and its
-engines then use as they are). It is
-started before this process touches CUDA (so that engine 0, the run's own process, is a client
-too) and tested with a CUDA client of its own (the driver API through ctypes, in a subprocess);
+engines then use as they are). It is started before this process touches CUDA (so that engine 0,
+the run's own process, is a client too) and tested with a CUDA client of its own (the driver API through ctypes, in a subprocess);
 anything that fails leaves the run without MPS, with a note (``auto``) or as an error (``on``).
 A watcher process stops the daemon once the run's process has exited, however it exits, and
 removes its directory. With ``--ray``, the workers are Ray's processes: start MPS on each node
@@ -64,6 +63,16 @@ _WATCH = 'while kill -0 "$1" 2>/dev/null; do sleep 1; done; echo quit | "$2" >/d
 _state: dict = {"sharing": None}  # this process: "private" (started here), "user" (already set up) or None
 
 
+def _set_up(env) -> str | None:
+    """Where an MPS set up before the run listens (``CUDA_MPS_PIPE_DIRECTORY``, else a daemon in
+    the driver's default place), or None."""
+    if env.get(PIPE):
+        return f"{PIPE}={env[PIPE]}"
+    if os.path.exists(os.path.join(DEFAULT_PIPE, "control")):
+        return f"a daemon in {DEFAULT_PIPE}"
+    return None
+
+
 class MpsError(RuntimeError):
     """The private MPS daemon could not be started or did not serve a CUDA client."""
 
@@ -94,10 +103,9 @@ def mps_plan(mode: str, device: str | None, engines: int, ray: bool, environ=Non
             raise ValueError("--mps on shares a GPU between engines; this run has one (--engines 1 or "
                              "--worker-kind process)")
         return "none", "one engine"
-    if env.get(PIPE):
-        return "user", f"MPS already set up ({PIPE}={env[PIPE]})"
-    if os.path.exists(os.path.join(DEFAULT_PIPE, "control")):
-        return "user", f"an MPS daemon already listens in {DEFAULT_PIPE}"
+    theirs = _set_up(env)
+    if theirs:
+        return "user", f"MPS already set up ({theirs})"
     if shutil.which(CONTROL) is None:
         if on:
             raise ValueError(f"--mps on: {CONTROL} is not on the PATH (it comes with the NVIDIA driver)")
@@ -194,6 +202,6 @@ def sharing() -> str:
     """Whether this process (and the engines it starts) use MPS: "private" (a daemon started by
     ``--mps``), "user" (one set up before the run: also what a Ray worker finds, which runs no
     ``--mps`` of its own) or "off"."""
-    if _state["sharing"] is None and (os.environ.get(PIPE) or os.path.exists(os.path.join(DEFAULT_PIPE, "control"))):
+    if _state["sharing"] is None and _set_up(os.environ):
         return "user"
     return _state["sharing"] or "off"
