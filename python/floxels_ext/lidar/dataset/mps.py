@@ -16,8 +16,9 @@ temporary directory; nothing system-wide is touched) when several engines share 
 the daemon's program is on the PATH, and no MPS is set up already (``CUDA_MPS_PIPE_DIRECTORY``
 set, or a daemon in the default ``/tmp/nvidia-mps``: the user's own, which this process and its
 engines then use as they are). It is started before this process touches CUDA (so that engine 0,
-the run's own process, is a client too) and tested with a CUDA client of its own (the driver API through ctypes, in a subprocess);
-anything that fails leaves the run without MPS, with a note (``auto``) or as an error (``on``).
+the run's own process, is a client too) and tested with a CUDA client of its own (the driver API
+through ctypes, in a subprocess); anything that fails leaves the run without MPS, with a note
+(``auto``) or as an error (``on``).
 A watcher process stops the daemon once the run's process has exited, however it exits, and
 removes its directory. With ``--ray``, the workers are Ray's processes: start MPS on each node
 before ``ray start`` (README, "Several GPUs and machines")."""
