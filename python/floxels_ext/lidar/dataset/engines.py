@@ -129,6 +129,7 @@ class _Engine:
     done: bool = False
     stopping: bool = False
     error: str | None = None
+    stamps: dict = dataclasses.field(default_factory=dict)  # its start, step by step (time.time(), warm_up's)
     thread: threading.Thread | None = None
     ended: threading.Event = dataclasses.field(default_factory=threading.Event)  # said "done", or gone
 
@@ -202,6 +203,7 @@ class Engines:
                 except OSError:
                     break
             elif kind == "ready":
+                e.stamps = msg[2]
                 e.ready = True
             elif kind == "done":
                 e.done = True

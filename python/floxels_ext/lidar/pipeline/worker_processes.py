@@ -14,7 +14,7 @@ from __future__ import annotations
 import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 
-__all__ = ["process_pool", "forkserver_context"]
+__all__ = ["process_pool", "forkserver_context", "start_forkserver"]
 
 # what the fork server imports once for every child: the readers' and writers' modules, and
 # torch with the engine (``floxels run --engines``: each engine process then starts in about the
@@ -55,3 +55,13 @@ def forkserver_context():
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(_PRELOAD)
     return ctx
+
+
+def start_forkserver() -> None:
+    """Starts the fork server now, without waiting for it: its imports (torch and the package,
+    ~1-2 s) then run beside the caller's own instead of after them, at the first engine's or
+    worker's start. Returns at once; a fork server already running is kept."""
+    from multiprocessing import forkserver
+
+    forkserver_context()  # the preload list first: the server takes the list of its start
+    forkserver.ensure_running()
