@@ -50,6 +50,9 @@ FIGURES = [
     ("floxels run KITTI frames/s, variant paper", "run", ("runs", "kitti+paper", "frames_per_s"), False, 1.0),
     ("floxels run AV2 frames/s, variant paper", "run", ("runs", "av2+paper", "frames_per_s"), False, 1.0),
     ("in-memory ceiling frames/s", "run", ("ceiling", "frames_per_s"), False, 1.0),
+    # bench_run_fresh.py: a fresh process a run, its start inside the wall (as a user runs it)
+    ("floxels run KITTI frames/s, fresh process", "fresh", ("runs", "kitti", "frames_per_s"), False, 1.0),
+    ("floxels run AV2 frames/s, fresh process", "fresh", ("runs", "av2", "frames_per_s"), False, 1.0),
 ]
 
 
@@ -111,10 +114,11 @@ def run(args) -> int:
             print(f"build {name}: rc {rc} in {s:.0f} s", flush=True)
             if rc != 0:
                 return 1
-    results: dict[str, dict[str, list]] = {n: {"speed": [], "run": []} for n in names}
+    results: dict[str, dict[str, list]] = {n: {"speed": [], "run": [], "fresh": []} for n in names}
     benches = {"speed": ["bench/bench_speed.py", "--device", args.device, "--no-reference", "--no-cpu",
                          *shlex.split(args.speed_args)],
-               "run": ["bench/bench_run.py", "--device", args.device, *shlex.split(args.run_args)]}
+               "run": ["bench/bench_run.py", "--device", args.device, *shlex.split(args.run_args)],
+               "fresh": ["bench/bench_run_fresh.py", "--device", args.device, *shlex.split(args.fresh_args)]}
     for rnd in range(args.rounds):
         # --alternate: A, B in odd rounds, B, A in even ones, so that neither source always runs
         # first after the other's bench (the order moved a figure by 9 % once: RESULTS, the guard)
@@ -170,9 +174,11 @@ def main() -> None:
     r.add_argument("--rounds", type=int, default=2, help="0: only build")
     r.add_argument("--alternate", action="store_true", help="reverse the sources' order every other round")
     r.add_argument("--skip-built", action="store_true", help="keep builds already in /tmp/ab (an earlier run's)")
-    r.add_argument("--benches", nargs="+", default=["speed", "run"], choices=["speed", "run"])
+    r.add_argument("--benches", nargs="+", default=["speed", "run"], choices=["speed", "run", "fresh"])
     r.add_argument("--speed-args", default="--repeats 7 --seq-repeats 2")
     r.add_argument("--run-args", default="--repeat 1")
+    r.add_argument("--fresh-args", default="--frames 768 --data /tmp/ab_data",
+                   help="bench_run_fresh.py's arguments (with --benches fresh; its --data is bench_run's)")
     r.add_argument("--timeout", type=int, default=200, help="seconds per bench run")
     r.add_argument("--benches-from-last", action="store_true",
                    help="time every build with the last source's bench scripts (their newer options)")
