@@ -102,6 +102,7 @@ RAY_POOL = "python/floxels_ext/lidar/dataset/ray_pool.py"
 RAY_RUNNER = "python/floxels_ext/lidar/dataset/ray_runner.py"
 MPS = "python/floxels_ext/lidar/dataset/mps.py"
 MPS_T = "tests/lidar/test_mps.py"
+FORK_T = "tests/lidar/test_fork_server_start.py"
 TASKS = "python/floxels_ext/lidar/dataset/tasks.py"
 RAY_UNIT = "tests/lidar/test_ray_worker.py"
 RAY_SAME = "tests/lidar/test_ray.py::test_ray_equals_local_and_warm_pool"
@@ -472,6 +473,16 @@ MUTATIONS = [
     ("--mps: on the CPU too", MPS, 'if device is not None and not device.startswith("cuda"):', "if False:", [MPS_T]),
     ("--mps: an option of the tasks", TASKS, '"keep_workers", "engines", "mps"}', '"keep_workers", "engines"}',
      [MPS_T]),
+    # ---- thirteenth session: the fork server started before the run imports torch ----
+    ("fork server early for one engine too", "python/floxels_ext/lidar/dataset/run.py",
+     "return args.engines > 1", "return args.engines >= 1", [FORK_T]),
+    ("fork server never started early", "python/floxels_ext/lidar/dataset/run.py",
+     "    if _forks_ahead(args):\n", "    if False:\n", [FORK_T]),
+    ("fork server early with every GPU hidden", "python/floxels_ext/lidar/dataset/run.py",
+     'not in ("", "-1") and os.path.exists("/dev/nvidiactl")', 'not in ("",) and os.path.exists("/dev/nvidiactl")',
+     [FORK_T]),
+    ("fork server early on a CPU-only host", "python/floxels_ext/lidar/dataset/run.py",
+     'and os.path.exists("/dev/nvidiactl")', "", [FORK_T]),
 
     # ---- C++ (csrc/kernels/dt_loss.h: the evidence test and the residuals, CPU and CUDA) ----
     ("evidence test gain >= threshold (46)", DT_LOSS_H, "return gain > thr;  // false for NaN",
