@@ -95,16 +95,22 @@ def main() -> int:
             ev = sorted(rec.events)
             per: dict[int, dict] = {}
             held: dict[tuple, float] = {}
+            spans: dict[int, list] = {}  # engine -> [take, end] of its tasks (a stream holds several at once)
             for t, kind, e, k in ev:
                 d = per.setdefault(e, {"first_take_s": t - t0, "busy_s": 0.0, "tasks": 0, "frames": 0, "last_end_s": 0.0})
                 d.setdefault("first_take_s", t - t0)
                 if kind == "take":
                     held[(e, k)] = t
                 else:
-                    d["busy_s"] += t - held.pop((e, k), t)
+                    spans.setdefault(e, []).append((held.pop((e, k), t), t))
                     d["tasks"] += 1
                     d["frames"] += frames_of(rec.tasks[k]) if k < len(rec.tasks) else 0
                     d["last_end_s"] = t - t0
+            for e, sp in spans.items():  # busy: the union of its tasks' spans, not their sum
+                end = -1.0
+                for a, b in sorted(sp):
+                    per[e]["busy_s"] += max(0.0, b - max(a, end))
+                    end = max(end, b)
             for e, t in rec.first_frame.items():
                 per.setdefault(e, {})["first_frame_s"] = t - t0
             # engines 1..: their start, step by step, from the Engines' creation (s after the run's start)
