@@ -206,8 +206,9 @@ def _run_input(args, workers) -> int:
         from floxels_ext.lidar.pipeline.worker_processes import start_forkserver
 
         # after the MPS set-up (the server's children inherit its environment), before this
-        # process imports torch: the two imports run side by side, and the engines come ~1-2 s
-        # sooner (their start held `accurate` 768-frame runs at one engine's rate for ~4 s)
+        # process imports torch (4-5 s on a CUDA image): the two imports run side by side, and
+        # the engines join seconds sooner (a fresh 768-frame run: 1.14-1.28x the frames/s,
+        # bench/RESULTS.md, "Where a 768-frame `floxels run` loses half its rate")
         start_forkserver()
     engines = engine_count(args)
     device = None
