@@ -136,8 +136,9 @@ class _Engine:
 
 class Engines:
     """Engines 1..N-1 and the hand-out (module docstring). Started early (:func:`early_engines`:
-    before the run lists its input, so their start overlaps it), on a thread (the fork server's
-    first start takes a second or two); each is served by a thread of its own that answers its
+    before the run lists its input, so their start overlaps it), on a thread (each start waits
+    for the fork server's imports, which ``run._run_input`` set going before the run imported
+    torch: seconds on a CUDA image); each is served by a thread of its own that answers its
     questions and passes on what it says. :meth:`run` loads the tasks and runs engine 0 here."""
 
     def __init__(self, n: int, device: str, threads: dict) -> None:

@@ -4,8 +4,9 @@ fork server that also starts its engine processes (``--engines``, ``dataset/engi
 They come from a fork server (``multiprocessing``'s "forkserver"), not a plain fork of the run:
 the run is multi-threaded and has used torch (and CUDA) by then, and a forked copy of it
 deadlocked inside its first torch op call (a lock some other thread held at the fork). The fork
-server is a fresh, single-threaded interpreter that imports the package once (~1-2 s, once per
-Python process) and forks every worker from that clean state. Workers ignore Ctrl-C: the run
+server is a fresh, single-threaded interpreter that imports the package once (~2 s on a CPU
+host, ~5 s on a CUDA image, once per Python process; ``floxels run`` starts it before importing
+torch itself: :func:`start_forkserver`) and forks every worker from that clean state. Workers ignore Ctrl-C: the run
 stops them after finishing what is queued.
 """
 
