@@ -213,7 +213,9 @@ def main() -> None:
     ap.add_argument("--no-ceiling", action="store_true", help="leave out the in-memory ceiling (paper preset)")
     ap.add_argument("--json", help="output (default bench/results/bench_run_<device>.json)")
     ap.add_argument("--windows", type=Path, help="also write each timed run's [t0, t1] (time.time()) as a JSON "
-                    "list of {name, t0, t1}: tools/host_sampler.py --windows summarises the GPU's busy share per run")
+                    "list of {name, t0, t1}, and for runs on several engines their steady part (from the last "
+                    "engine's first frame to the last frame, NAME steady): tools/host_sampler.py --windows "
+                    "summarises the GPU's busy share per window")
     args = ap.parse_args()
     if args.device is None:
         # asked through NVML, not by initialising CUDA in this process: the runs below are in this
@@ -272,8 +274,20 @@ def main() -> None:
                                 os.environ[k] = v
                     r = {"wall_s": wall, "frames_per_s": summ["written"] / wall, "summary": summ,
                          "run_args": " ".join(common[2:] + extra)}
+                    # the steady part: from the last engine's first frame on (engines_start, a run
+                    # on several engines); its window lets host_sampler give the steady GPU busy share
+                    st = summ.get("engines_start") or {}
+                    steady = ""
+                    if st.get("frames_per_s_after_join"):
+                        r["steady_frames_per_s"] = st["frames_per_s_after_join"]
+                        r["all_joined_s"] = st["all_joined_s"]
+                        windows.append({"name": f"{key} (run {rep + 1}) steady",
+                                        "t0": st["run_started_at"] + st["all_joined_s"],
+                                        "t1": st["run_started_at"] + st["last_frame_s"]})
+                        steady = (f"; {r['steady_frames_per_s']:.1f} after all {len(st['first_frame_s'])} engines "
+                                  f"had joined ({st['all_joined_s']:.2f} s)")
                     reps.setdefault(key, []).append(r)
-                    print(f"  {key} (run {rep + 1}): {r['frames_per_s']:.1f} frames/s", flush=True)
+                    print(f"  {key} (run {rep + 1}): {r['frames_per_s']:.1f} frames/s{steady}", flush=True)
             if ceil_runs is None:
                 continue
             # the ceiling in the same repetition: each run's ratio to it is taken at the same time
@@ -285,6 +299,7 @@ def main() -> None:
         for key, runs in reps.items():  # the median run (an odd count: a real run)
             order = sorted(runs, key=lambda r: r["frames_per_s"])
             rows[key] = dict(order[(len(order) - 1) // 2], repeats_frames_per_s=[r["frames_per_s"] for r in runs],
+                             repeats_steady_frames_per_s=[r.get("steady_frames_per_s") for r in runs],
                              repeats_ratio_to_ceiling=[r.get("ratio_to_ceiling", NAN) for r in runs],
                              # each run against the ceiling timed in its own repetition: the median
                              ratio_to_ceiling=statistics.median(r.get("ratio_to_ceiling", NAN) for r in runs))

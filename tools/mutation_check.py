@@ -103,6 +103,9 @@ RAY_RUNNER = "python/floxels_ext/lidar/dataset/ray_runner.py"
 MPS = "python/floxels_ext/lidar/dataset/mps.py"
 MPS_T = "tests/lidar/test_mps.py"
 FORK_T = "tests/lidar/test_fork_server_start.py"
+JOIN = "python/floxels_ext/lidar/dataset/engine_start.py"
+JOIN_T = "tests/lidar/test_engine_start.py"
+ENGINES_T = "tests/lidar/test_run_engines.py::test_engines_same_bytes_whoever_runs_which_task"
 TASKS = "python/floxels_ext/lidar/dataset/tasks.py"
 RAY_UNIT = "tests/lidar/test_ray_worker.py"
 RAY_SAME = "tests/lidar/test_ray.py::test_ray_equals_local_and_warm_pool"
@@ -483,6 +486,15 @@ MUTATIONS = [
      [FORK_T]),
     ("fork server early on a CPU-only host", "python/floxels_ext/lidar/dataset/run.py",
      'and os.path.exists("/dev/nvidiactl")', "", [FORK_T]),
+    # ---- thirteenth session: when the engines joined (run_summary.json's engines_start) ----
+    ("engines joined at the first engine's first frame", JOIN, "if len(self.first) == self.n:",
+     "if len(self.first) >= 1:", [JOIN_T]),
+    ("failed frames counted in the steady rate", JOIN, "        if ok:\n            self.written += 1",
+     "        if True:\n            self.written += 1", [JOIN_T]),
+    ("engines_start not in the sequence's summary", "python/floxels_ext/lidar/dataset/local.py",
+     'merged["engines_start"] = res["start"]', "pass", [ENGINES_T]),
+    ("engines_start dropped by the summary's render", "python/floxels_ext/lidar/dataset/summary.py",
+     'if "engines_start" in part:', "if False:", [ENGINES_T]),
 
     # ---- C++ (csrc/kernels/dt_loss.h: the evidence test and the residuals, CPU and CUDA) ----
     ("evidence test gain >= threshold (46)", DT_LOSS_H, "return gain > thr;  // false for NaN",

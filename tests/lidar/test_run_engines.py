@@ -112,6 +112,11 @@ def test_engines_same_bytes_whoever_runs_which_task(seq, tmp_path, monkeypatch, 
     _same(out, ref)
     summary = json.loads((out / "run_summary.json").read_text())
     assert summary["engines"] == 2 and summary["written"] == N_FRAMES
+    # when the engines joined (engine_start.JoinClock): both wrote frames, in seconds from the start
+    st = summary["engines_start"]
+    assert set(st["first_frame_s"]) == {"0", "1"} and st["run_started_at"] > 1e9
+    assert 0 <= st["all_joined_s"] == max(st["first_frame_s"].values()) <= st["last_frame_s"]
+    assert "engines_start" not in json.loads((ref / "run_summary.json").read_text())  # one engine: none
     # another cut, engine 0 first: the same bytes
     out2 = tmp_path / "e2b"
     monkeypatch.undo()

@@ -246,7 +246,8 @@ class Engines:
             on_frame: Callable[[object, str, bool], None],
             on_ended: Callable[[object, str, list, dict | None], None]) -> dict:
         """Runs ``tasks`` on the engines, engine 0 here; returns {"lost": [lines], "engines":
-        how many took a task, "stages": {engine: its stage times (s)}, those engines'}. ``on_frame(task, name, ok)``: a frame written (or failed);
+        how many took a task, "stages": {engine: its stage times (s)}, those engines', "start":
+        when they joined (``engine_start.JoinClock.summary``)}. ``on_frame(task, name, ok)``: a frame written (or failed);
         ``on_ended(task, outcome, lines, part)``: a task ended (``worker.run_tasks``'s outcome
         and failure lines; ``part``: its ``summary`` part, None when it could not be opened;
         its ``written`` counts the frames an engine lost on it had written). Both run on
@@ -255,10 +256,12 @@ class Engines:
 
         import torch
 
+        from floxels_ext.lidar.dataset.engine_start import JoinClock
         from floxels_ext.lidar.dataset.tasks import common_options
         from floxels_ext.lidar.dataset.worker import run_tasks
 
         lock = threading.Lock()
+        clock = JoinClock(self.n)  # when each engine joined (the summary's engines_start)
         before: dict[int, int] = {}      # task -> frames written by holders lost before it ended
         written_by: dict[int, int] = {}  # task -> frames written by its current holder
         took: set[int] = set()
@@ -274,6 +277,7 @@ class Engines:
         def frame(engine: int, k: int, name: str, ok: bool) -> None:
             with lock:
                 took.add(engine)
+                clock.frame(engine, ok)
                 written_by[k] = written_by.get(k, 0) + ok
                 on_frame(tasks[k], name, ok)
 
@@ -344,7 +348,8 @@ class Engines:
         for e in self.engines:
             if e.index in took:
                 e.ended.wait(max(0.0, deadline - time.monotonic()))
-        return {"lost": lost, "engines": len(took), "stages": {e: st for e, st in stages.items() if e in took}}
+        return {"lost": lost, "engines": len(took), "stages": {e: st for e, st in stages.items() if e in took},
+                "start": clock.summary()}
 
 
 def _signal(proc, sig: int) -> None:

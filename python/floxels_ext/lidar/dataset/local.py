@@ -154,6 +154,7 @@ def _sequence_on_engines(args, ctx, run: list, planned: list, todo: int, engines
         merged = {"written": 0, "skipped": 0, "failures": {}, "empty_crop": {}, "times": [], "stages": {}}
     if res["stages"]:  # the whole run's (the parts have each engine's up to its last task's end)
         merged["stages"] = res["stages"]
+    merged["engines_start"] = res["start"]
     summary_path = write_summary(merged, say, wall=wall) if "path" in merged else None
     failures = [line for _, (_, line) in sorted(merged["failures"].items())] + unopened
     line = _done_line(merged["written"], merged["skipped"], len(failures), len(merged["empty_crop"]), merged["times"])

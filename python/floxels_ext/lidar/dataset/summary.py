@@ -130,6 +130,8 @@ def render(part: dict, wall: float) -> dict:
                "stages_s": _stages(part["stages"])}
     if len(part["stages"]) > 1:
         summary["engines"] = len(part["stages"])
+    if "engines_start" in part:  # a run on several engines: when they joined (dataset/engine_start.py)
+        summary["engines_start"] = part["engines_start"]
     if str(head["device"]).startswith("cuda"):
         from floxels_ext.lidar.dataset.mps import sharing
 
