@@ -486,6 +486,9 @@ MUTATIONS = [
      [FORK_T]),
     ("fork server early on a CPU-only host", "python/floxels_ext/lidar/dataset/run.py",
      'and os.path.exists("/dev/nvidiactl")', "", [FORK_T]),
+    ("the early fork server's OSError crashes the run", "python/floxels_ext/lidar/pipeline/worker_processes.py",
+     "        forkserver.ensure_running()\n    except OSError:", "        forkserver.ensure_running()\n    except ValueError:",
+     [FORK_T]),
     # ---- thirteenth session: when the engines joined (run_summary.json's engines_start) ----
     ("engines joined at the first engine's first frame", JOIN, "if len(self.first) == self.n:",
      "if len(self.first) >= 1:", [JOIN_T]),

@@ -87,3 +87,15 @@ def test_start_forkserver_returns_at_once_and_serves_children():
     p.start()
     p.join(60)
     assert p.exitcode == 0
+
+
+def test_a_fork_server_that_cannot_start_early_is_left_to_the_engines(monkeypatch):
+    """An OSError at the early start (no process left to spawn) is not the run's crash: the
+    engines' own start reports it later (``Engines._start_all``: a lost engine)."""
+    from multiprocessing import forkserver
+
+    def fail():
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(forkserver, "ensure_running", fail)
+    worker_processes.start_forkserver()  # no exception

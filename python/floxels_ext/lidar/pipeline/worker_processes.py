@@ -62,8 +62,12 @@ def start_forkserver() -> None:
     """Starts the fork server now, without waiting for it: its imports (torch and the package:
     ~2 s on a CPU host, ~5 s on a CUDA image) then run beside the caller's own instead of after
     them, at the first engine's or worker's start. Returns at once; a fork server already
-    running is kept."""
+    running is kept. A server that cannot start now (no process left to spawn, say) is left to
+    the first engine's or worker's start, which reports it as it always has."""
     from multiprocessing import forkserver
 
     forkserver_context()  # the preload list first: the server takes the list of its start
-    forkserver.ensure_running()
+    try:
+        forkserver.ensure_running()
+    except OSError:
+        pass
