@@ -80,6 +80,7 @@ RES = "python/floxels_ext/lidar/pipeline/resume.py"
 SCANS = "python/floxels_ext/estimator/scans.py"
 WINDOWS = "python/floxels_ext/estimator/windows.py"
 RECENTRE = "python/floxels_ext/estimator/recentre.py"
+RECENTRE_T = "tests/estimator/test_recentre_bounds.py"
 GROUP = "python/floxels_ext/estimator/group.py"
 POST = "python/floxels_ext/estimator/post.py"
 EVIDENCE = "python/floxels_ext/estimator/evidence.py"
@@ -334,6 +335,10 @@ MUTATIONS = [
      "return t.to(torch.float32) - s.to(torch.float32)", [FAR]),
     ("grid origin reported without the shift", RECENTRE, "return [float(o) + float(s) for o, s in zip(origin, self.shift)]",
      "return origin", [FAR]),
+    ("re-centring sample bounds taken without a finiteness check", RECENTRE,
+     "if np.isfinite(lo).all() and np.isfinite(hi).all():", "if True:", [RECENTRE_T]),
+    ("re-centring sample bounds checked at their minimum only", RECENTRE,
+     "if np.isfinite(lo).all() and np.isfinite(hi).all():", "if np.isfinite(lo).all():", [RECENTRE_T]),
     ("floxels run: sensors not moved into the chunk's frame", LAYOUT,
      "return None if p is None or anchor is None or p.sensor is None else p.sensor - anchor",
      "return None if p is None or anchor is None or p.sensor is None else p.sensor", [RUN_FAR]),
