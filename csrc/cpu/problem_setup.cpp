@@ -1,7 +1,9 @@
 // floxels::problem_setup: the per-target preparation of the optimiser in one op with one
 // host synchronisation (it used to be ~60 Python-level torch calls with three: DBSCAN's
-// cluster count, torch.unique and torch.nonzero). Written with ATen calls, so the one
-// implementation serves every device; python/floxels_ext/reference/ops.py
+// cluster count, torch.unique and torch.nonzero). Written with ATen calls, so this
+// implementation serves every device (on a GPU the CUDA op, csrc/cuda/problem_setup_binding.cpp,
+// does the same in a dozen launches instead of ~90, and falls back to this one for sparse
+// lattices); python/floxels_ext/reference/ops.py
 // (reference_problem_setup) is the same computation in Python, op for op, and the tests
 // compare the two exactly.
 //
@@ -33,9 +35,9 @@
 #include <tuple>
 #include <vector>
 
-#include "common/check.h"
+#include "common/problem_setup.h"
 
-namespace floxels {
+namespace floxels::setup {
 namespace {
 
 using at::Tensor;
@@ -56,26 +58,13 @@ Tensor host_values(const std::vector<double>& v, at::ScalarType dtype, const at:
 // (at::sort(t, true) would read `true` as the dimension)
 std::tuple<Tensor, Tensor> stable_sort(const Tensor& t) { return at::sort(t, std::optional<bool>(true), 0, false); }
 
-// The dense vertex lattice is renumbered through a mark array when it is at most this many
-// times the number of corner references (cheap, no sort, no host synchronisation);
-// larger (sparse, absurdly wide) lattices go through torch.unique.
-constexpr int64_t kDenseFactor = 16;
+}  // namespace
 
-using Result = std::tuple<Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int64_t>;
-
-Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& labels_in, at::ArrayRef<double> origin,
-                     double spacing, at::IntArrayRef grid_shape, int64_t tile) {
-  FLX_CHECK(points_in.dim() == 2 && points_in.size(1) == 3, "floxels: problem_setup: points must be (N, 3), got ",
-            points_in.sizes());
-  FLX_CHECK(points_in.is_floating_point(), "floxels: problem_setup: points must be float32/float64, got ",
-            points_in.scalar_type());
-  check_origin(origin);
-  check_grid_shape(grid_shape);
-  check_spacing(spacing);
-  FLX_CHECK(tile >= 1, "floxels: problem_setup: tile must be >= 1, got ", tile);
+Result problem_setup_aten(const Tensor& points_in, const std::optional<Tensor>& labels_in,
+                          at::ArrayRef<double> origin, double spacing, at::IntArrayRef grid_shape, int64_t tile) {
+  check_args(points_in, labels_in, origin, spacing, grid_shape, tile);
   const int64_t Z = grid_shape[0], Y = grid_shape[1], X = grid_shape[2];
   const int64_t cells = Z * Y * X;
-  FLX_CHECK(cells > 0 && cells < (int64_t(1) << 50), "floxels: problem_setup: grid of ", cells, " vertices");
   const Tensor P = points_in.contiguous();
   const int64_t n = P.size(0);
   const auto dev = P.device();
@@ -113,7 +102,7 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
   const Tensor ic = clamped(P, true).to(at::kLong);
   Tensor key = ic.select(1, 2).mul(Y).add(ic.select(1, 1)).mul(X).add(ic.select(1, 0));
   Tensor order;
-  if (lab.defined() && (n + 1) < (int64_t(1) << 62) / cells) {  // labels < n: (label + 1) * cells fits
+  if (lab.defined() && one_key(cells, n)) {  // labels < n: (label + 1) * cells fits
     order = std::get<1>(stable_sort(lab.add(1).mul(cells).add(key)));
   } else {
     order = std::get<1>(stable_sort(key));
@@ -140,8 +129,8 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
   // 3. compact vertex rows, in lattice order (= torch.unique(lin, sorted=True))
   const Tensor flat_lin = lin.reshape({-1});
   Tensor inverse, vertices, num_vertices;
-  const bool dense = cells <= kDenseFactor * 8 * n;
-  if (dense) {
+  const bool is_dense = dense(cells, n);
+  if (is_dense) {
     auto mark = at::zeros({cells}, i32);
     mark.index_fill_(0, flat_lin, 1);
     const Tensor pos = mark.cumsum(0, at::kInt);  // inclusive: row + 1 at marked vertices
@@ -174,7 +163,7 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
   FLX_CHECK(sizes.data_ptr<int64_t>()[3] == 1,
             "floxels: problem_setup: points must be finite (found NaN/inf coordinates); drop those rows first");
   FLX_CHECK(M < (int64_t(1) << 31), "floxels: problem_setup: too many touched voxel corners for int32 indexing");
-  if (dense) {
+  if (is_dense) {
     vertices = at::empty({M}, i64);  // each row's lattice index (duplicates write the same value)
     vertices.index_put_({inverse.reshape({-1}).to(at::kLong)}, flat_lin);
   }
@@ -194,8 +183,8 @@ Result problem_setup(const Tensor& points_in, const std::optional<Tensor>& label
           vtx_ptr, ent_order.to(at::kInt), ncl};
 }
 
-}  // namespace
+}  // namespace floxels::setup
 
-TORCH_LIBRARY_IMPL(floxels, CompositeExplicitAutograd, m) { m.impl("problem_setup", &problem_setup); }
-
+namespace floxels {
+TORCH_LIBRARY_IMPL(floxels, CompositeExplicitAutograd, m) { m.impl("problem_setup", &setup::problem_setup_aten); }
 }  // namespace floxels
