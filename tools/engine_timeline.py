@@ -98,7 +98,6 @@ def main() -> int:
             spans: dict[int, list] = {}  # engine -> [take, end] of its tasks (a stream holds several at once)
             for t, kind, e, k in ev:
                 d = per.setdefault(e, {"first_take_s": t - t0, "busy_s": 0.0, "tasks": 0, "frames": 0, "last_end_s": 0.0})
-                d.setdefault("first_take_s", t - t0)
                 if kind == "take":
                     held[(e, k)] = t
                 else:
