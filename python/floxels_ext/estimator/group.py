@@ -152,17 +152,16 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
         live += P.shape[0] > 0
         if not (cfg.cluster_loss and P.shape[0]):
             labels.append(None)
-        elif P.is_cuda:
-            # The target's bounds are known (staging, or point_bounds' one read for all), so
-            # DBSCAN sizes its grid from them instead of reading its bounding box back: one
-            # host synchronisation less a target. Its flag says whether they held; read after
-            # the set-up's synchronisation below (never 1: the bounds are those points').
-            lo, hi = bounds[live - 1]
-            lab, out = F.dbscan_in_bounds(P, cfg.dbscan_eps, cfg.dbscan_min_samples, [*map(float, lo), *map(float, hi)])
-            labels.append(lab)
-            outside.append(out)
-        else:
-            labels.append(F.dbscan(P, cfg.dbscan_eps, cfg.dbscan_min_samples))
+            continue
+        # The target's bounds are known (staging, or point_bounds' one read for all), so on a
+        # GPU DBSCAN sizes its grid from them instead of reading its bounding box back: one
+        # host synchronisation less a target (on the CPU the same op, the same labels). Its
+        # flag says whether they held; read after the set-up's synchronisation below (never
+        # 1: the bounds are those points').
+        lo, hi = bounds[live - 1]
+        lab, out = F.dbscan_in_bounds(P, cfg.dbscan_eps, cfg.dbscan_min_samples, [*map(float, lo), *map(float, hi)])
+        labels.append(lab)
+        outside.append(out)
     timings["dbscan"] = time.perf_counter() - t0
     target_bounds = iter(bounds)
 
