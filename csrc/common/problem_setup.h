@@ -4,6 +4,7 @@
 // falls back to it for sparse lattices and keys that do not fit one int64).
 #pragma once
 #include <ATen/core/Tensor.h>
+#include <ATen/ops/sort.h>
 
 #include <cstdint>
 #include <optional>
@@ -27,6 +28,13 @@ inline bool dense(int64_t cells, int64_t n) { return cells <= kDenseFactor * 8 *
 
 // One sort key per point, (label + 1) * cells + cell, when it fits an int64 (labels < n).
 inline bool one_key(int64_t cells, int64_t n) { return (n + 1) < (int64_t(1) << 62) / cells; }
+
+// Indices of a stable ascending sort of `t` (both implementations sort this way, so equal keys
+// keep their input order and the CPU and CUDA outputs agree). (at::sort(t, true) would read
+// `true` as the dimension.)
+inline at::Tensor stable_order(const at::Tensor& t) {
+  return std::get<1>(at::sort(t, std::optional<bool>(true), 0, false));
+}
 
 // The checks of every implementation; returns the number of lattice vertices.
 inline int64_t check_args(const at::Tensor& points, const std::optional<at::Tensor>& labels,

@@ -55,9 +55,6 @@ Tensor host_values(const std::vector<double>& v, at::ScalarType dtype, const at:
   return pinned.to(device, /*non_blocking=*/true);
 }
 
-// (at::sort(t, true) would read `true` as the dimension)
-std::tuple<Tensor, Tensor> stable_sort(const Tensor& t) { return at::sort(t, std::optional<bool>(true), 0, false); }
-
 }  // namespace
 
 Result problem_setup_aten(const Tensor& points_in, const std::optional<Tensor>& labels_in,
@@ -103,10 +100,10 @@ Result problem_setup_aten(const Tensor& points_in, const std::optional<Tensor>& 
   Tensor key = ic.select(1, 2).mul(Y).add(ic.select(1, 1)).mul(X).add(ic.select(1, 0));
   Tensor order;
   if (lab.defined() && one_key(cells, n)) {  // labels < n: (label + 1) * cells fits
-    order = std::get<1>(stable_sort(lab.add(1).mul(cells).add(key)));
+    order = stable_order(lab.add(1).mul(cells).add(key));
   } else {
-    order = std::get<1>(stable_sort(key));
-    if (lab.defined()) order = order.index_select(0, std::get<1>(stable_sort(lab.index_select(0, order))));
+    order = stable_order(key);
+    if (lab.defined()) order = order.index_select(0, stable_order(lab.index_select(0, order)));
   }
   const Tensor Ps = P.index_select(0, order);
   const Tensor lab_s = lab.defined() ? lab.index_select(0, order) : Tensor();
@@ -176,7 +173,7 @@ Result problem_setup_aten(const Tensor& points_in, const std::optional<Tensor>& 
   // (8S) vertex rows, int32 (M < 2^31 above): a radix sort of 32-bit keys takes half the
   // passes of 64-bit ones, and a stable sort gives the same order either way
   const Tensor flat = inverse.index_select(0, first.slice(0, 0, S)).reshape({-1});
-  const Tensor ent_order = std::get<1>(stable_sort(flat));
+  const Tensor ent_order = stable_order(flat);
   const Tensor counts = at::zeros({M}, i64).index_add_(0, flat, at::ones_like(flat, i64));
   const Tensor vtx_ptr = at::cat({at::zeros({1}, i64), counts.cumsum(0)}).to(at::kInt);
   return {order, Ps, lab_s.defined() ? lab_s : at::empty({0}, i64), inverse.contiguous(), w, vertices, seg_ptr,

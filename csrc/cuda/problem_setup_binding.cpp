@@ -27,10 +27,7 @@ namespace {
 
 using at::Tensor;
 using setup::Result;
-
-Tensor stable_order(const Tensor& t) {
-  return std::get<1>(at::sort(t, std::optional<bool>(true), 0, false));  // (sort(t, true): dim 1)
-}
+using setup::stable_order;
 
 template <typename T>
 cuda::SetupGrid<T> grid_of(at::ArrayRef<double> origin, double spacing, at::IntArrayRef grid_shape) {
