@@ -130,13 +130,6 @@ TORCH_LIBRARY(floxels, m) {
   // labels (N,) int64 identical to sklearn.cluster.DBSCAN(eps, min_samples).fit(points).labels_
   // (Euclidean, neighbourhood includes the point, -1 = noise).
   m.def("dbscan(Tensor points, float eps, int min_samples) -> Tensor");
-  // The same labels for points known to lie within bounds [min x, min y, min z, max x, max y,
-  // max z] (e.g. stage_points' bounds): the grid is sized from them, so the CUDA kernel reads
-  // nothing back (dbscan reads its bounding box: one host synchronisation). outside (1,) int32
-  // on the points' device: 1 if a point lies outside the bounds or is not finite (the labels
-  // are then not DBSCAN's: the caller reads it after its next synchronisation and refuses
-  // them), else 0.
-  m.def("dbscan_in_bounds(Tensor points, float eps, int min_samples, float[] bounds) -> (Tensor, Tensor)");
 
   // --- device-resident optimiser (csrc/kernels/solver.h) ---
   // Runs num_iters Floxels iterations of B independent problems (target frames) whose

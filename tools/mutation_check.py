@@ -82,9 +82,6 @@ WINDOWS = "python/floxels_ext/estimator/windows.py"
 RECENTRE = "python/floxels_ext/estimator/recentre.py"
 RECENTRE_T = "tests/estimator/test_recentre_bounds.py"
 GROUP = "python/floxels_ext/estimator/group.py"
-TBOUNDS = "tests/estimator/test_target_bounds_dbscan.py"
-DBSCAN_CPU = "csrc/cpu/dbscan_cpu.cpp"
-DBB = "tests/ops/test_dbscan_in_bounds.py"
 POST = "python/floxels_ext/estimator/post.py"
 EVIDENCE = "python/floxels_ext/estimator/evidence.py"
 SIGHT_PY = "python/floxels_ext/estimator/sight.py"
@@ -338,10 +335,6 @@ MUTATIONS = [
      "return t.to(torch.float32) - s.to(torch.float32)", [FAR]),
     ("grid origin reported without the shift", RECENTRE, "return [float(o) + float(s) for o, s in zip(origin, self.shift)]",
      "return origin", [FAR]),
-    ("DBSCAN sized from the first target's bounds", GROUP, "lo, hi = bounds[live - 1]", "lo, hi = bounds[0]",
-     [TBOUNDS]),
-    ("targets' bounds flags never read", GROUP, "if outside and int(torch.cat(outside).max()):", "if False:",
-     [TBOUNDS]),
     ("re-centring sample bounds taken without a finiteness check", RECENTRE,
      "if np.isfinite(lo).all() and np.isfinite(hi).all():", "if True:", [RECENTRE_T]),
     ("re-centring sample bounds checked at their minimum only", RECENTRE,
@@ -511,9 +504,6 @@ MUTATIONS = [
     ("engines_start dropped by the summary's render", "python/floxels_ext/lidar/dataset/summary.py",
      'if "engines_start" in part:', "if False:", [ENGINES_T]),
 
-    ("dbscan_in_bounds: a point above the bounds not flagged (CPU)", DBSCAN_CPU,
-     "out |= !(x >= bounds[a] && x <= bounds[3 + a]);  // NaN: outside", "out |= !(x >= bounds[a]);  // NaN: outside",
-     [DBB]),
     # ---- C++ (csrc/kernels/dt_loss.h: the evidence test and the residuals, CPU and CUDA) ----
     ("evidence test gain >= threshold (46)", DT_LOSS_H, "return gain > thr;  // false for NaN",
      "return gain >= thr;  // false for NaN", [EVT]),

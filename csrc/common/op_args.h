@@ -87,15 +87,6 @@ inline void dbscan(const at::Tensor& points, double eps, int64_t min_samples) {
             points.size(0));
 }
 
-// dbscan_in_bounds' bounds: [min x, min y, min z, max x, max y, max z], finite, min <= max.
-inline void dbscan_bounds(at::ArrayRef<double> b) {
-  FLX_CHECK(b.size() == 6, "floxels: dbscan_in_bounds bounds must be 6 values (min xyz, max xyz), got ",
-            int64_t(b.size()));
-  for (int a = 0; a < 3; ++a)
-    FLX_CHECK(std::isfinite(b[a]) && std::isfinite(b[3 + a]) && b[a] <= b[3 + a],
-              "floxels: dbscan_in_bounds bounds must be finite with min <= max, got ", b);
-}
-
 inline void nearest(const at::Tensor& x, const at::Tensor& y) {
   check_points(x, "x");
   check_points(y, "y");

@@ -9,8 +9,6 @@
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
-#include <ATen/ops/full.h>
-#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
 #include <algorithm>
@@ -19,7 +17,6 @@
 #include <cstdint>
 #include <limits>
 #include <numeric>
-#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -203,35 +200,8 @@ at::Tensor dbscan_cpu(const at::Tensor& points, double eps, int64_t min_samples)
   return labels;
 }
 
-// dbscan_in_bounds on the CPU: the bounds checked on the host (1: a point outside them or not
-// finite, labels -1), else dbscan's labels (the CPU kernel sizes its own grid either way).
-std::tuple<at::Tensor, at::Tensor> dbscan_in_bounds_cpu(const at::Tensor& points, double eps, int64_t min_samples,
-                                                        at::ArrayRef<double> bounds) {
-  args::dbscan(points, eps, min_samples);
-  args::dbscan_bounds(bounds);
-  auto outside = at::zeros({1}, points.options().dtype(at::kInt));
-  const auto p = points.contiguous();
-  bool out = false;
-  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "dbscan_in_bounds_cpu", [&] {
-    const scalar_t* v = p.const_data_ptr<scalar_t>();
-    for (int64_t i = 0; i < p.size(0) && !out; ++i)
-      for (int a = 0; a < 3; ++a) {
-        const double x = double(v[3 * i + a]);
-        out |= !(x >= bounds[a] && x <= bounds[3 + a]);  // NaN: outside
-      }
-  });
-  if (out) {
-    outside.fill_(1);
-    return {at::full({p.size(0)}, -1, points.options().dtype(at::kLong)), outside};
-  }
-  return {dbscan_cpu(p, eps, min_samples), outside};
-}
-
 }  // namespace
 
-TORCH_LIBRARY_IMPL(floxels, CPU, m) {
-  m.impl("dbscan", &dbscan_cpu);
-  m.impl("dbscan_in_bounds", &dbscan_in_bounds_cpu);
-}
+TORCH_LIBRARY_IMPL(floxels, CPU, m) { m.impl("dbscan", &dbscan_cpu); }
 
 }  // namespace floxels

@@ -90,22 +90,12 @@ __global__ void bbox_kernel(const T* __restrict__ p, int64_t n, unsigned long lo
   }
 }
 
-// Given bounds (dbscan_in_bounds): where the grid was sized from the caller's bounds, each point is
-// checked against them (a NaN fails every comparison).
-struct GivenBounds {
-  double lo[3], hi[3];
-};
-
 template <typename T>
 __global__ void key_kernel(const T* __restrict__ p, int64_t n, Grid g, uint64_t* __restrict__ keys,
-                           int32_t* __restrict__ idx, GivenBounds box, int* __restrict__ outside) {
+                           int32_t* __restrict__ idx) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  const double x = double(p[i * 3]), y = double(p[i * 3 + 1]), z = double(p[i * 3 + 2]);
-  if (outside && !(x >= box.lo[0] && x <= box.hi[0] && y >= box.lo[1] && y <= box.hi[1] && z >= box.lo[2] &&
-                   z <= box.hi[2]))
-    *outside = 1;
-  keys[i] = dbscan::point_sub_key(g, x, y, z);
+  keys[i] = dbscan::point_sub_key(g, double(p[i * 3]), double(p[i * 3 + 1]), double(p[i * 3 + 2]));
   idx[i] = int32_t(i);
 }
 
@@ -322,7 +312,7 @@ size_t dbscan_workspace_bytes(int64_t n) { return n > 0 ? make_layout(n).total :
 
 template <typename T>
 int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t* labels, void* workspace,
-           size_t workspace_bytes, cudaStream_t stream, const double* bounds, int* outside) {
+           size_t workspace_bytes, cudaStream_t stream) {
   if (n <= 0) return kDbscanOk;
   if (n >= int64_t(INT32_MAX) || min_samples < 1 || !(eps > 0.0) || !std::isfinite(eps)) return kDbscanBadArgs;
   const Layout L = make_layout(n);
@@ -360,28 +350,22 @@ int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t*
   void* temp = at(L.temp);
   const unsigned nb = blocks_for(n);
 
+  // Bounding box, read back (pinned-free: a pageable cudaMemcpy on the stream, then an
+  // explicit stream sync before the host reads it) to size the grid and the sort.
+  if (cudaMemsetAsync(bbox, 0xff, 3 * 8, stream) != cudaSuccess) return kDbscanCudaError;
+  if (cudaMemsetAsync(bbox + 3, 0, 3 * 8, stream) != cudaSuccess) return kDbscanCudaError;
+  const unsigned bb_blocks = nb < 1024u ? nb : 1024u;
+  bbox_kernel<T><<<bb_blocks, kThreads, 0, stream>>>(points, n, bbox);
+  if (!launched()) return kDbscanCudaError;
+  unsigned long long bb_host[6] = {0, 0, 0, 0, 0, 0};
+  if (cudaMemcpyAsync(bb_host, bbox, sizeof(bb_host), cudaMemcpyDeviceToHost, stream) != cudaSuccess)
+    return kDbscanCudaError;
+  if (cudaStreamSynchronize(stream) != cudaSuccess) return kDbscanCudaError;
   double lo[3], hi[3];
-  if (bounds != nullptr) {  // the caller's bounds: nothing to read back (points checked in key_kernel)
-    if (outside == nullptr) return kDbscanBadArgs;
-    for (int a = 0; a < 3; ++a) lo[a] = bounds[a], hi[a] = bounds[3 + a];
-  } else {
-    // Bounding box, read back (pinned-free: a pageable cudaMemcpy on the stream, then an
-    // explicit stream sync before the host reads it) to size the grid and the sort.
-    if (cudaMemsetAsync(bbox, 0xff, 3 * 8, stream) != cudaSuccess) return kDbscanCudaError;
-    if (cudaMemsetAsync(bbox + 3, 0, 3 * 8, stream) != cudaSuccess) return kDbscanCudaError;
-    const unsigned bb_blocks = nb < 1024u ? nb : 1024u;
-    bbox_kernel<T><<<bb_blocks, kThreads, 0, stream>>>(points, n, bbox);
-    if (!launched()) return kDbscanCudaError;
-    unsigned long long bb_host[6] = {0, 0, 0, 0, 0, 0};
-    if (cudaMemcpyAsync(bb_host, bbox, sizeof(bb_host), cudaMemcpyDeviceToHost, stream) != cudaSuccess)
-      return kDbscanCudaError;
-    if (cudaStreamSynchronize(stream) != cudaSuccess) return kDbscanCudaError;
-    for (int a = 0; a < 3; ++a) lo[a] = order_key_inverse(bb_host[a]), hi[a] = order_key_inverse(bb_host[3 + a]);
-  }
-  GivenBounds box{};
   for (int a = 0; a < 3; ++a) {
+    lo[a] = order_key_inverse(bb_host[a]);
+    hi[a] = order_key_inverse(bb_host[3 + a]);
     if (!std::isfinite(lo[a]) || !std::isfinite(hi[a]) || !std::isfinite(hi[a] - lo[a])) return kDbscanNonFinite;
-    box.lo[a] = lo[a], box.hi[a] = hi[a];
   }
   const Params P = stages::make_params(lo, hi, eps, min_samples);
   const int key_bits = P.g.bits[0] + P.g.bits[1] + P.g.bits[2] + dbscan::kSubBits;
@@ -389,7 +373,7 @@ int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t*
   size_t temp_bytes = sort_temp_bytes(n, key_bits);
   if (temp_bytes > L.temp_bytes) return kDbscanBadArgs;
 
-  key_kernel<T><<<nb, kThreads, 0, stream>>>(points, n, P.g, keys_in, idx_in, box, bounds != nullptr ? outside : nullptr);
+  key_kernel<T><<<nb, kThreads, 0, stream>>>(points, n, P.g, keys_in, idx_in);
   if (!launched()) return kDbscanCudaError;
   if (cub::DeviceRadixSort::SortPairs(temp, temp_bytes, static_cast<const uint64_t*>(keys_in), keys,
                                       static_cast<const int32_t*>(idx_in), orig, n, 0, key_bits,
@@ -426,9 +410,7 @@ int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t*
   return launched() ? kDbscanOk : kDbscanCudaError;
 }
 
-template int dbscan<float>(const float*, int64_t, double, int32_t, int64_t*, void*, size_t, cudaStream_t,
-                           const double*, int*);
-template int dbscan<double>(const double*, int64_t, double, int32_t, int64_t*, void*, size_t, cudaStream_t,
-                            const double*, int*);
+template int dbscan<float>(const float*, int64_t, double, int32_t, int64_t*, void*, size_t, cudaStream_t);
+template int dbscan<double>(const double*, int64_t, double, int32_t, int64_t*, void*, size_t, cudaStream_t);
 
 }  // namespace floxels::cuda

@@ -3,7 +3,6 @@
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/empty.h>
-#include <ATen/ops/zeros.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <ATen/core/dispatch/Dispatcher.h>
 #include <torch/library.h>
@@ -11,7 +10,6 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
-#include <tuple>
 
 #include "common/env_switches.h"
 #include "common/op_args.h"
@@ -60,39 +58,8 @@ at::Tensor dbscan_cuda_input(const at::Tensor& points, double eps, int64_t min_s
   return cpu_op.call(points.cpu(), eps, min_samples).to(points.device());
 }
 
-// dbscan_in_bounds: the grid sized from the caller's bounds, nothing read back; `outside`
-// flags points the bounds do not hold (see csrc/ops.cpp). FLOXELS_CPU_DBSCAN=1: the CPU
-// kernel's labels (exact whatever the bounds), outside 0.
-std::tuple<at::Tensor, at::Tensor> dbscan_in_bounds_cuda(const at::Tensor& points, double eps, int64_t min_samples,
-                                                         at::ArrayRef<double> bounds) {
-  args::dbscan(points, eps, min_samples);
-  args::dbscan_bounds(bounds);
-  c10::cuda::CUDAGuard guard(points.device());
-  auto outside = at::zeros({1}, points.options().dtype(at::kInt));
-  const int64_t n = points.size(0);
-  if (env::cpu_dbscan() || n == 0) return {dbscan_cuda_input(points, eps, min_samples), outside};
-  auto labels = at::empty({n}, points.options().dtype(at::kLong));
-  auto p = points.contiguous();
-  const int32_t ms = int32_t(std::min<int64_t>(min_samples, n + 1));  // > n: nothing is core
-  const size_t ws_bytes = cuda::dbscan_workspace_bytes(n);
-  auto workspace = at::empty({int64_t(ws_bytes)}, p.options().dtype(at::kByte));
-  auto stream = at::cuda::getCurrentCUDAStream();
-  int status = cuda::kDbscanOk;
-  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "dbscan_in_bounds_cuda", [&] {
-    status = cuda::dbscan<scalar_t>(p.data_ptr<scalar_t>(), n, eps, ms, labels.data_ptr<int64_t>(),
-                                    workspace.data_ptr(), ws_bytes, stream, bounds.data(), outside.data_ptr<int>());
-  });
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  FLX_CHECK(status == cuda::kDbscanOk, "floxels: dbscan_in_bounds CUDA failure (status ", status,
-            "; 1 = bounds of an overflowing extent, 2 = CUDA error, 3 = bad arguments or workspace)");
-  return {labels, outside};
-}
-
 }  // namespace
 
-TORCH_LIBRARY_IMPL(floxels, CUDA, m) {
-  m.impl("dbscan", &dbscan_cuda_input);
-  m.impl("dbscan_in_bounds", &dbscan_in_bounds_cuda);
-}
+TORCH_LIBRARY_IMPL(floxels, CUDA, m) { m.impl("dbscan", &dbscan_cuda_input); }
 
 }  // namespace floxels

@@ -18,11 +18,8 @@ enum DbscanStatus : int { kDbscanOk = 0, kDbscanNonFinite = 1, kDbscanCudaError 
 // is queued on `stream`; the stream is synchronised once (to read the bounding box, which
 // sizes the grid and the sort), the labels are ready when the stream's later work runs.
 // points (n, 3) contiguous on the device, 0 < n < 2^31, eps > 0 finite, min_samples >= 1.
-// `bounds` (host, 6 finite values: min xyz, max xyz), if given, size the grid instead, with no
-// synchronisation; then `outside` (device, one int, zeroed by the caller) is set to 1 if a
-// point lies outside them or is not finite (its labels are then not DBSCAN's).
 template <typename T>
 int dbscan(const T* points, int64_t n, double eps, int32_t min_samples, int64_t* labels, void* workspace,
-           size_t workspace_bytes, cudaStream_t stream, const double* bounds = nullptr, int* outside = nullptr);
+           size_t workspace_bytes, cudaStream_t stream);
 
 }  // namespace floxels::cuda

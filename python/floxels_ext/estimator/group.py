@@ -142,28 +142,13 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
     """DBSCAN of every target, then its points sorted by (cluster, voxel) with their
     compact corners: the per-target part of :func:`prepare_group`."""
     t0 = time.perf_counter()
-    bounds = list(target_bounds)  # (min xyz, max xyz) of each non-empty target, in order
-    labels, outside = [], []
-    live = 0  # non-empty targets so far
+    labels = []
     for prep, _ in items:
         if poll is not None:
             poll()
-        P = prep.points[prep.target]
-        live += P.shape[0] > 0
-        if not (cfg.cluster_loss and P.shape[0]):
-            labels.append(None)
-            continue
-        # The target's bounds are known (staging, or point_bounds' one read for all), so on a
-        # GPU DBSCAN sizes its grid from them instead of reading its bounding box back: one
-        # host synchronisation less a target (on the CPU the same op, the same labels). Its
-        # flag says whether they held; read after the set-up's synchronisation below (never
-        # 1: the bounds are those points').
-        lo, hi = bounds[live - 1]
-        lab, out = F.dbscan_in_bounds(P, cfg.dbscan_eps, cfg.dbscan_min_samples, [*map(float, lo), *map(float, hi)])
-        labels.append(lab)
-        outside.append(out)
+        labels.append(F.dbscan(prep.points[prep.target], cfg.dbscan_eps, cfg.dbscan_min_samples)
+                      if cfg.cluster_loss and prep.points[prep.target].shape[0] else None)
     timings["dbscan"] = time.perf_counter() - t0
-    target_bounds = iter(bounds)
 
     t0 = time.perf_counter()
     problems, orders, grids = [], [], []
@@ -190,8 +175,6 @@ def _targets(cfg: FloxelsConfig, items, supports, target_bounds, timings, poll=N
                                       sights))
         orders.append(st.order)
         grids.append(g_origin)
-    if outside and int(torch.cat(outside).max()):  # the stream is past DBSCAN (the set-up read back)
-        raise RuntimeError("floxels: internal error: a target's points lie outside the bounds found for them")
     timings["setup"] = time.perf_counter() - t0
     return labels, problems, orders, grids
 

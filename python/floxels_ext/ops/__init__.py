@@ -7,7 +7,7 @@ autograd implementations, so the raw ops also work under ``torch.compile``/``opc
 from floxels_ext.ops._lib import has_cuda_kernels, ops_ns
 from floxels_ext.ops.corners import CompactCorners, compact_corners, corner_gather, corner_scatter
 from floxels_ext.ops.cluster import cluster_consistency_fwd_bwd, cluster_consistency_loss, cluster_mean
-from floxels_ext.ops.dbscan import dbscan, dbscan_in_bounds
+from floxels_ext.ops.dbscan import dbscan
 from floxels_ext.ops.dt_loss import dt_loss, dt_loss_fwd_bwd
 from floxels_ext.ops.dt_query import dt_evidence, dt_residual, dt_sample
 from floxels_ext.ops.edt import distance_transform, edt, points_to_occupancy
@@ -27,7 +27,6 @@ __all__ = [
     "dt_loss", "dt_loss_fwd_bwd",
     "dt_residual", "dt_sample", "dt_evidence", "rigid_lm", "velocity_search",
     "dbscan",
-    "dbscan_in_bounds",
     "cluster_mean", "cluster_consistency_loss", "cluster_consistency_fwd_bwd",
     "corner_gather", "corner_scatter", "compact_corners", "CompactCorners",
     "grid_for_points", "GridTooLargeError", "DEFAULT_MAX_CELLS",

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from floxels_ext.ops._checks import as_points, check_point_rows
+from floxels_ext.ops._checks import as_points
 from floxels_ext.ops._lib import ops_ns
 
 
@@ -14,11 +14,6 @@ from floxels_ext.ops._lib import ops_ns
 def _fake(points, eps, min_samples):
     # Label VALUES depend on the data, but the shape is always (N,).
     return points.new_empty((points.shape[0],), dtype=torch.int64)
-
-
-@torch.library.register_fake("floxels::dbscan_in_bounds")
-def _fake_in_bounds(points, eps, min_samples, bounds):
-    return points.new_empty((points.shape[0],), dtype=torch.int64), points.new_empty((1,), dtype=torch.int32)
 
 
 def dbscan(points: torch.Tensor, eps: float = 0.5, min_samples: int = 4) -> torch.Tensor:
@@ -41,16 +36,3 @@ def dbscan(points: torch.Tensor, eps: float = 0.5, min_samples: int = 4) -> torc
     if isinstance(min_samples, bool) or int(min_samples) != min_samples or int(min_samples) < 1:
         raise ValueError(f"min_samples must be an integer >= 1, got {min_samples}")
     return ops_ns.dbscan(points, eps, int(min_samples))
-
-
-def dbscan_in_bounds(points: torch.Tensor, eps: float, min_samples: int, bounds) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`dbscan`'s labels for points known to lie within ``bounds`` (min xyz, max xyz: six
-    finite values, e.g. the bounds ``stage_points`` returned for them), and ``outside`` (1,)
-    int32 on the points' device. On CUDA the grid is sized from the bounds, so nothing is read
-    back (:func:`dbscan` reads its bounding box: one synchronisation). ``outside`` is 1 if a
-    point lies outside the bounds or is not finite: the labels are then not DBSCAN's, and the
-    caller, which reads ``outside`` after its next synchronisation, must refuse them. (No
-    finiteness check here: it would read back what the flag reports without one.)"""
-    points = check_point_rows(points)
-    bounds = [float(v) for v in bounds]
-    return ops_ns.dbscan_in_bounds(points, float(eps), int(min_samples), bounds)

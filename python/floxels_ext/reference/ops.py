@@ -396,16 +396,6 @@ def problem_setup(points: torch.Tensor, labels: torch.Tensor | None, origin: Seq
             seg_ptr, vtx_ptr, vtx_entry, max(ncl, 0))
 
 
-def dbscan_in_bounds(points: torch.Tensor, eps: float, min_samples: int, bounds) -> tuple[torch.Tensor, torch.Tensor]:
-    """(labels, outside): :func:`dbscan`'s labels and 0 where every point lies within
-    ``bounds`` (min xyz, max xyz, inclusive), else all -1 and 1 (the op's rule)."""
-    b = torch.tensor([float(v) for v in bounds], dtype=torch.float64)
-    p = points.detach().to("cpu", torch.float64)
-    inside = bool(((p >= b[:3]) & (p <= b[3:])).all())  # NaN: outside
-    labels = dbscan(points, eps, min_samples) if inside else torch.full((p.shape[0],), -1, dtype=torch.int64)
-    return labels.to(points.device), torch.tensor([0 if inside else 1], dtype=torch.int32, device=points.device)
-
-
 def nearest_neighbor(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Index into ``y`` of the nearest row of each row of ``x``: squared distances from the
     coordinate differences, NaN as +inf, first index among ties (the op's rule)."""
