@@ -60,13 +60,16 @@ def _same(out: Path, ref: Path, summaries: bool = True) -> None:
 
 class _Spy:
     """Captures the run's ``Engines`` and can hold engine 0 back until engine 1 has taken a
-    task, so that the hand-out differs from the natural one (engine 0 first). ``slow_after``:
-    every task handed out after the first comes that many seconds late (a run that cannot end
-    before a test's interrupt lands, however loaded the machine)."""
+    task, so that the hand-out differs from the natural one (engine 0 first); engine 1 then
+    waits for engine 0's first task before its second (while tasks are queued): small tasks
+    on a GPU end faster than engine 0's 50 ms poll, and engine 1 had taken all three of a
+    test's tasks alone (the fifteenth session's CUDA suite). ``slow_after``: every task
+    handed out after the first comes that many seconds late (a run that cannot end before a
+    test's interrupt lands, however loaded the machine)."""
 
     def __init__(self, monkeypatch, engine1_first: bool = False, slow_after: float = 0.0) -> None:
         self.pools: list = []
-        self.took1 = False
+        self.took0 = self.took1 = False
         self.handed = 0
         init, take = engines_mod.Engines.__init__, engines_mod.Handout.take
         spy = self
@@ -82,9 +85,15 @@ class _Spy:
                 t = time.monotonic()
                 while not spy.took1 and not self.ended and time.monotonic() - t < 120:
                     time.sleep(0.05)
+            if engine1_first and engine == 1 and spy.took1:
+                t = time.monotonic()
+                while not spy.took0 and self.queue and not self.stopped and time.monotonic() - t < 60:
+                    time.sleep(0.01)
             k = take(self, engine, wait)
             if engine == 1 and isinstance(k, int):
                 spy.took1 = True
+            if engine == 0 and isinstance(k, int):
+                spy.took0 = True
             if isinstance(k, int):
                 spy.handed += 1
                 if spy.handed > 1 and slow_after:
