@@ -20,6 +20,15 @@ run otherwise) can be given for older commits too:
     python3 tools/ab_bench.py run --rounds 3 --benches run --benches-from-last \
         --run-args "--frames 768 --data /tmp/ab_data --no-ceiling --run-args '--preset accurate'"
 
+Before the benches, ``--pytest ARGS`` runs the last source's tests against its build, and
+``--same-flows ARGS`` runs tools/same_flows.py with every build, each compared byte for byte
+with the first's (``prepare --shared`` copies ../shared/data into .ab/shared, where the
+sources' tests and same_flows find the real scans). One call then holds the whole landing check:
+
+    python tools/ab_bench.py prepare --shared 37d68ff WORKTREE
+    python3 tools/ab_bench.py run --rounds 3 --alternate --benches speed \
+        --pytest "-m cuda -n 8 tests" --same-flows "--scenes urban crossing --beams 32 --lengths 5 11"
+
 Every change to the estimator or the pipeline lands with this table (bench/RESULTS.md).
 """
 
@@ -56,8 +65,14 @@ FIGURES = [
 ]
 
 
-def prepare(revs: list[str]) -> None:
+def prepare(revs: list[str], shared: bool = False) -> None:
     AB.mkdir(exist_ok=True)  # (.gitignore lists /.ab/)
+    if shared:  # the shared real data where every source's ROOT/../shared finds it (.ab/shared)
+        src = ROOT.parent / "shared" / "data"
+        if not src.is_dir():
+            sys.exit(f"ab_bench: error: --shared: {src} not found")
+        shutil.rmtree(AB / "shared", ignore_errors=True)
+        shutil.copytree(src, AB / "shared" / "data")
     names = []
     for rev in revs:
         if rev == "WORKTREE":
@@ -114,6 +129,7 @@ def run(args) -> int:
             print(f"build {name}: rc {rc} in {s:.0f} s", flush=True)
             if rc != 0:
                 return 1
+    failed = _checks(args, names, out)
     results: dict[str, dict[str, list]] = {n: {"speed": [], "run": [], "fresh": []} for n in names}
     benches = {"speed": ["bench/bench_speed.py", "--device", args.device, "--no-reference", "--no-cpu",
                          *shlex.split(args.speed_args)],
@@ -139,7 +155,37 @@ def run(args) -> int:
                 print(f"round {rnd + 1} {bench} {name}: rc {rc} in {time.perf_counter() - t0:.0f} s", flush=True)
         # the table after every round: a call that runs out of time keeps the rounds it finished
         _table(names, results, out, final=rnd == args.rounds - 1)
-    return 0
+    return 1 if failed else 0
+
+
+def _checks(args, names: list[str], out: Path) -> bool:
+    """Before the benches, on the builds just made: ``--pytest`` runs the last source's tests
+    against its build; ``--same-flows`` runs tools/same_flows.py with every source (its own
+    tree and build), each compared with the first's file. True if any failed or differed
+    (the benches still run: a call keeps its figures)."""
+    failed = False  # (each source's ROOT/../shared is .ab/shared: prepare --shared)
+    if args.pytest:
+        name = names[-1]
+        env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
+        with open(out / f"pytest_{name}.log", "w") as log:
+            rc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                 *shlex.split(args.pytest)], cwd=AB / name, env=env, stdout=log,
+                                stderr=subprocess.STDOUT).returncode
+        last = (out / f"pytest_{name}.log").read_text().strip().splitlines()[-1:] or ["(no output)"]
+        print(f"pytest {name}: rc {rc}: {last[0]}", flush=True)
+        failed |= rc != 0
+    if args.same_flows is not None:
+        first = out / f"same_flows_{names[0]}.npz"
+        for k, name in enumerate(names):
+            env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
+            cmd = [sys.executable, "tools/same_flows.py", "--device", args.device, *shlex.split(args.same_flows),
+                   "--out", str(out / f"same_flows_{name}.npz")] + (["--against", str(first)] if k else [])
+            with open(out / f"same_flows_{name}.log", "w") as log:
+                rc = subprocess.run(cmd, cwd=AB / name, env=env, stdout=log, stderr=subprocess.STDOUT).returncode
+            last = (out / f"same_flows_{name}.log").read_text().strip().splitlines()[-1:] or ["(no output)"]
+            print(f"same_flows {name}: rc {rc}: {last[0]}", flush=True)
+            failed |= rc != 0
+    return failed
 
 
 def _table(names: list[str], results: dict, out: Path, final: bool) -> None:
@@ -167,6 +213,8 @@ def main() -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("prepare", help="copy the sources of revisions into .ab/ (here, with git)")
     p.add_argument("revs", nargs="+", help="git revisions; WORKTREE for the working tree as it is")
+    p.add_argument("--shared", action="store_true",
+                   help="copy ../shared/data into .ab/shared (tests and same_flows read the real scans there)")
     r = sub.add_parser("run", help="build and bench every prepared source (on a GPU host)")
     r.add_argument("--out", default=os.environ.get("OUT", "/tmp/ab_out"))
     r.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
@@ -182,9 +230,15 @@ def main() -> None:
     r.add_argument("--timeout", type=int, default=200, help="seconds per bench run")
     r.add_argument("--benches-from-last", action="store_true",
                    help="time every build with the last source's bench scripts (their newer options)")
+    r.add_argument("--pytest", default="", metavar="ARGS",
+                   help="pytest's arguments, run in the last source against its build before the benches "
+                        "(e.g. \"-m cuda -n 8 tests/ops\")")
+    r.add_argument("--same-flows", default=None, metavar="ARGS",
+                   help="tools/same_flows.py's arguments, run with every build, each compared with the first's "
+                        "(\"\": its defaults)")
     args = ap.parse_args()
     if args.cmd == "prepare":
-        prepare(args.revs)
+        prepare(args.revs, args.shared)
     else:
         sys.exit(run(args))
 
