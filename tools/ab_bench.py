@@ -145,7 +145,7 @@ def run(args) -> int:
                 # an older source's scripts lack, e.g. bench_run's --data); the build is still its own
                 src = AB / (names[-1] if args.benches_from_last else name)
                 js = out / f"{bench}_{name}_{rnd}.json"
-                env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
+                env = _build_env(name)
                 t0 = time.perf_counter()
                 with open(out / f"{bench}_{name}_{rnd}.log", "w") as log:
                     rc = subprocess.run([sys.executable, *benches[bench], "--json", str(js)], cwd=src, env=env,
@@ -165,27 +165,32 @@ def _checks(args, names: list[str], out: Path) -> bool:
     (the benches still run: a call keeps its figures)."""
     failed = False  # (each source's ROOT/../shared is .ab/shared: prepare --shared)
     if args.pytest:
-        name = names[-1]
-        env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
-        with open(out / f"pytest_{name}.log", "w") as log:
-            rc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                                 *shlex.split(args.pytest)], cwd=AB / name, env=env, stdout=log,
-                                stderr=subprocess.STDOUT).returncode
-        last = (out / f"pytest_{name}.log").read_text().strip().splitlines()[-1:] or ["(no output)"]
-        print(f"pytest {name}: rc {rc}: {last[0]}", flush=True)
-        failed |= rc != 0
+        failed |= _check(out, "pytest", names[-1], ["-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                                    *shlex.split(args.pytest)])
     if args.same_flows is not None:
         first = out / f"same_flows_{names[0]}.npz"
         for k, name in enumerate(names):
-            env = dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
-            cmd = [sys.executable, "tools/same_flows.py", "--device", args.device, *shlex.split(args.same_flows),
-                   "--out", str(out / f"same_flows_{name}.npz")] + (["--against", str(first)] if k else [])
-            with open(out / f"same_flows_{name}.log", "w") as log:
-                rc = subprocess.run(cmd, cwd=AB / name, env=env, stdout=log, stderr=subprocess.STDOUT).returncode
-            last = (out / f"same_flows_{name}.log").read_text().strip().splitlines()[-1:] or ["(no output)"]
-            print(f"same_flows {name}: rc {rc}: {last[0]}", flush=True)
-            failed |= rc != 0
+            failed |= _check(out, "same_flows", name,
+                             ["tools/same_flows.py", "--device", args.device, *shlex.split(args.same_flows),
+                              "--out", str(out / f"same_flows_{name}.npz")] + (["--against", str(first)] if k else []))
     return failed
+
+
+def _check(out: Path, label: str, name: str, argv: list[str]) -> bool:
+    """Python ``argv`` in source ``name``'s tree against its build, logged to
+    ``<label>_<name>.log``; prints the rc and the log's last line; True if it failed."""
+    log_path = out / f"{label}_{name}.log"
+    with open(log_path, "w") as log:
+        rc = subprocess.run([sys.executable, *argv], cwd=AB / name, env=_build_env(name), stdout=log,
+                            stderr=subprocess.STDOUT).returncode
+    last = log_path.read_text().strip().splitlines()[-1:] or ["(no output)"]
+    print(f"{label} {name}: rc {rc}: {last[0]}", flush=True)
+    return rc != 0
+
+
+def _build_env(name: str) -> dict:
+    """The environment that imports source ``name``'s build (/tmp/ab/<name>)."""
+    return dict(os.environ, PYTHONPATH=f"/tmp/ab/{name}", PYTHONUNBUFFERED="1")
 
 
 def _table(names: list[str], results: dict, out: Path, final: bool) -> None:

@@ -504,6 +504,10 @@ MUTATIONS = [
     ("engines_start dropped by the summary's render", "python/floxels_ext/lidar/dataset/summary.py",
      'if "engines_start" in part:', "if False:", [ENGINES_T]),
 
+    # ---- C++ (csrc/kernels/solver.h: stage 3, CPU and CUDA) ----
+    ("stage 3 takes a read-ahead bias pair of another iteration", "csrc/kernels/solver.h",
+     "if (ahead_it == it) {", "if (ahead_it <= it) {", ["tests/ops/test_solver.py"]),
+
     # ---- C++ (csrc/kernels/dt_loss.h: the evidence test and the residuals, CPU and CUDA) ----
     ("evidence test gain >= threshold (46)", DT_LOSS_H, "return gain > thr;  // false for NaN",
      "return gain >= thr;  // false for NaN", [EVT]),

@@ -52,8 +52,9 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
   const double* st = P.state + p * kStateCols;
   if (vb == P.block_begin[p] && threadIdx.x < kStateCols)  // for stage 3 (vertex kernel)
     P.snap[p * kStateCols + threadIdx.x] = st[threadIdx.x];
-  __syncthreads();
+  // read before the barrier, which hides its latency (no block writes the state row in this phase)
   const bool active = st[kActive] != 0.0;  // uniform per block
+  __syncthreads();
   float loss = 0.0f;
   if (active) {
     float f[3] = {0.0f, 0.0f, 0.0f};
@@ -157,9 +158,12 @@ __device__ __forceinline__ void points_body(const KParams& P, int parity, int vb
 
 // Stage 3 then 4, a group of 8 lanes per vertex, then the vertex's terms of the next
 // iteration's cluster means. kInitMeans: only the means, of the current parameters (once
-// per call, before the first iteration).
+// per call, before the first iteration). `iter0`, if given: each problem's iteration count
+// when the call began, so that iteration `it` of the call is iter0[p] + it for a problem
+// still active (the persistent loop; stage 3 then reads Adam's bias pair ahead).
 template <bool kCluster, bool kInitMeans, bool kDebug = false>
-__device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm, int2 entries) {
+__device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb, VertexSmem& sm, int2 entries,
+                                            const int* iter0 = nullptr, int it = 0) {
   static_assert(!kDebug || kProfiling, "the traced variant exists in profiling builds only");
   const int skip = (kProfiling && kDebug) ? P.debug_skip : 0;
   double* st = sm.st;
@@ -170,17 +174,34 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
   const int e_begin = entries.x, e_end = entries.y;
   pdl_wait_previous();
   const int C3 = 3 * P.num_clusters;
+  const bool own = has_v && sub < 3;  // lanes 0-2 of a vertex's group own its x, y, z
+  const int64_t pa = 3 * int64_t(v) + sub;
+  float th = 0.0f;  // this lane's parameter
+  int npairs = 0;   // the vertex's cluster pairs
   if constexpr (!kInitMeans) {
+    if constexpr (kCluster) {  // the next means' slots, published by the stage-3 barrier below
+      sm.mkey[threadIdx.x] = -1;
+      for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0ull;
+    }
     if (P.snap[p * kStateCols + kActive] == 0.0) return;  // stopped earlier: nothing changes (uniform)
     if (threadIdx.x == 0) {
       // Stage 3, by every block from the same loss and state snapshot (so all take the same
       // decision; the others gather gradients meanwhile); the problem's first block keeps
       // the record.
+      // stage 3's bias pair, read beside the snapshot where the iteration is predicted
+      // (control_update checks) rather than after it
+      double ahead_it = -1.0, ahead_step = 0.0, ahead_bc2 = 0.0;
+      if (iter0 != nullptr) {
+        const int t = iter0[p] + it;
+        if (t >= 0 && t < P.hyper.max_iters)
+          ahead_it = t, ahead_step = P.bias[2 * int64_t(t)], ahead_bc2 = P.bias[2 * int64_t(t) + 1];
+      }
       for (int c = 0; c < kStateCols; ++c) st[c] = P.snap[p * kStateCols + c];
       const int at = (parity ? kMaxProblems : 0) + p;
       const double loss = fixed::decode_loss(P.loss_fx[at], P.loss_flag[at]);
       const bool keeper = vb == P.vblock_begin[p];
-      control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias);
+      control_update(st, loss, keeper ? P.history + int64_t(p) * P.hyper.max_iters : nullptr, P.hyper, P.bias,
+                     ahead_it, ahead_step, ahead_bc2);
       if (keeper)
         for (int c = 0; c < kStateCols; ++c) P.state[p * kStateCols + c] = st[c];
     }
@@ -218,7 +239,8 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
       // (pair_setup_kernel), so sum_e ccoef * a_e * U_c = ccoef * A_cv * U_c: a vertex has one
       // or two clusters but up to hundreds of entries, and each U_c read is a fixed-point
       // decode.
-      const int np = (has_v && !(skip & 32)) ? min(P.num_pairs[v], e_end - e_begin) : 0;
+      npairs = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
+      const int np = (skip & 32) ? 0 : npairs;
       for (int j = sub; j < np; j += kLanesPerVertex) {
         const int2 pr = P.pair[e_begin + j];
         if (unsigned(pr.x) >= unsigned(P.num_clusters)) continue;
@@ -226,26 +248,34 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
         for (int k = 0; k < 3; ++k) G[k] -= c * fixed::decode(uq[3 * pr.x + k], fixed::kUnitScale);
       }
     }
+    // Adam's row of this lane, read before the barrier: the read overlaps the wait for stage 3
+    // instead of following it (a memory round trip on the phase's critical path)
+    float am = 0.0f, av = 0.0f;
+    if (own) th = P.theta[pa], am = P.adam_m[pa], av = P.adam_v[pa];
     for (int c = 0; c < 3; ++c)
       for (int off = kLanesPerVertex / 2; off > 0; off >>= 1) G[c] += __shfl_xor_sync(0xffffffffu, G[c], off);
     __syncthreads();  // stage 3 done
     const bool step = st[kStep] != 0.0, copy = st[kCopyBest] != 0.0;
     if (!step && !copy) return;  // uniform per block
-    float* th = P.theta + 3 * int64_t(v);
-    if (has_v && copy && sub < 3) P.best[3 * int64_t(v) + sub] = th[sub];
+    if (own && copy) P.best[pa] = th;
     if (!step) return;  // uniform per block
-    if (has_v && sub < 3)
-      adam_update(th[sub], P.adam_m[3 * int64_t(v) + sub], P.adam_v[3 * int64_t(v) + sub], G[sub], P.hyper,
-                  float(st[kStepSize]), float(st[kBc2Sqrt]));
+    if (own) {
+      adam_update(th, am, av, G[sub], P.hyper, float(st[kStepSize]), float(st[kBc2Sqrt]));
+      P.theta[pa] = th, P.adam_m[pa] = am, P.adam_v[pa] = av;
+    }
   }
   if constexpr (kCluster) {
     // this vertex's (updated) parameters to every lane of its group
-    const float mine = (has_v && sub < 3) ? P.theta[3 * int64_t(v) + sub] : 0.0f;
+    if constexpr (kInitMeans) {
+      if (own) th = P.theta[pa];
+      npairs = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
+    }
+    const float mine = th;
     const int g0 = lane & ~(kLanesPerVertex - 1);
     const float t[3] = {__shfl_sync(0xffffffffu, mine, g0), __shfl_sync(0xffffffffu, mine, g0 + 1),
                         __shfl_sync(0xffffffffu, mine, g0 + 2)};
     const int next = (kInitMeans || parity) ? 0 : C3;  // the means of the next iteration
-    const int np = has_v ? min(P.num_pairs[v], e_end - e_begin) : 0;
+    const int np = npairs;
     const int mine_n = np > sub ? (np - sub + kLanesPerVertex - 1) / kLanesPerVertex : 0;
     const int rounds = (skip & 64) ? 0 : warp_max(mine_n);
     // Summed per block first: a vertex block (32 neighbouring vertices) meets few clusters,
@@ -254,9 +284,11 @@ __device__ __forceinline__ void vertex_body(const KParams& P, int parity, int vb
     // 2.8 of 24.7 us per iteration at one frame on an H100). A slot taken by another
     // cluster adds to global memory directly. Every share is converted to fixed point first
     // (parameters clamped to +-fixed::kParamLimit), integer sums after: order-independent.
-    sm.mkey[threadIdx.x] = -1;
-    for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0ull;
-    __syncthreads();
+    if constexpr (kInitMeans) {  // (the iteration's path cleared them before stage 3's barrier)
+      sm.mkey[threadIdx.x] = -1;
+      for (int c = 0; c < 3; ++c) sm.msum[3 * threadIdx.x + c] = 0ull;
+      __syncthreads();
+    }
     const unsigned wbase = threadIdx.x & ~31u;
     for (int r = 0; r < rounds; ++r) {  // warp-uniform trip count: warp_add is collective
       int slot = -1, spill = -1;

@@ -22,7 +22,7 @@ __global__ void __launch_bounds__(kThreads) points_kernel(const __grid_constant_
 }
 
 template <bool kCluster, bool kInitMeans>
-__global__ void __launch_bounds__(kThreads) vertex_kernel(const __grid_constant__ KParams P) {
+__global__ void __launch_bounds__(kThreads, 5) vertex_kernel(const __grid_constant__ KParams P) {
   __shared__ VertexSmem sm;
   pdl_allow_next();
   vertex_body<kCluster, kInitMeans>(P, P.parity, int(blockIdx.x), sm, vertex_entries(P, int(blockIdx.x)));

@@ -95,7 +95,6 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
   __shared__ PointSmem psm;
   __shared__ VertexSmem vsm;
   __shared__ PointCache pcache;
-  __shared__ int any_active;
   cg::grid_group grid = cg::this_grid();
   // a block that owns one point block keeps its points' fixed data in shared memory (each
   // thread reads only its own slot: no barrier needed)
@@ -104,16 +103,19 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
   __shared__ int2 ventries[kThreads];  // the same for the vertex block it owns, if one
   const bool vcached = vertex_blocks <= int(gridDim.x) && int(blockIdx.x) < vertex_blocks;
   if (vcached) ventries[threadIdx.x] = vertex_entries(P, int(blockIdx.x));
+  // each problem's iteration count at the call's start (see vertex_body's iter0)
+  __shared__ int iter0[kMaxProblems];
+  if (int(threadIdx.x) < P.num_problems) iter0[threadIdx.x] = int(P.state[threadIdx.x * kStateCols + kIter]);
+  __syncthreads();
   LoopTrace<trace> tr;
   tr.begin(grid);
   for (int it = 0; it < num_iters; ++it) {
-    if (threadIdx.x == 0) {
-      int a = 0;
-      for (int p = 0; p < P.num_problems; ++p) a |= P.state[p * kStateCols + kActive] != 0.0;
-      any_active = a;
-    }
-    __syncthreads();
-    if (!any_active) break;  // uniform over the grid (see above)
+    // Every thread reads the flags itself (the same rows after the same barrier): no thread-0
+    // read and block barrier before the first body. The vote tells the compiler that the exit
+    // is warp-uniform (a per-thread branch around the grid barriers cost registers: spills).
+    bool any_active = false;
+    for (int p = 0; p < P.num_problems; ++p) any_active |= P.state[p * kStateCols + kActive] != 0.0;
+    if (!__any_sync(0xffffffffu, any_active)) break;  // uniform over the grid (see above)
     const unsigned long long t0 = tr.now();
     const int parity = it & 1;
     clear_other_parity<kCluster>(P, parity);
@@ -130,7 +132,7 @@ __global__ void __launch_bounds__(kThreads, 4) loop_kernel(const __grid_constant
     const unsigned long long t2 = tr.now();
     for (int b = int(blockIdx.x); b < vertex_blocks; b += int(gridDim.x)) {
       const int2 entries = vcached ? ventries[threadIdx.x] : vertex_entries(P, b);
-      vertex_body<kCluster, false, trace>(P, parity, b, vsm, entries);
+      vertex_body<kCluster, false, trace>(P, parity, b, vsm, entries, iter0, it);
       __syncthreads();
     }
     const unsigned long long t3 = tr.now();

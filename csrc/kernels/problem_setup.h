@@ -8,6 +8,7 @@
 #include <cstdint>
 
 #include "common/cuda_compat.h"
+#include "kernels/trilinear.h"
 
 namespace floxels::setup {
 
@@ -38,19 +39,17 @@ FLX_HD int64_t cell_key(const T* p, const T* o, T spacing, const int64_t* size) 
 }
 
 // The 8 corners (x fastest, then y, then z: corner j = cz * 4 + cy * 2 + cx) of a point as
-// lattice indices `lin` and their weights `w`: i0 = min(floor(u), max(size - 2, 0)),
-// t = u - i0, corner index min(i0 + offset, size - 1), weight prod over the axes of
-// (offset ? t : 1 - t), multiplied x, then y, then z.
+// lattice indices `lin` and their weights `w`: u clamped as in `lattice`, i0 = min(floor(u),
+// max(size - 2, 0)), t = u - i0 (tri::axis_setup, shared with the trilinear ops), corner index
+// min(i0 + offset, size - 1), weight prod over the axes of (offset ? t : 1 - t), multiplied x,
+// then y, then z.
 template <typename T>
 FLX_HD void corners(const T* p, const T* o, T spacing, const int64_t* size, int64_t* lin, T* w) {
   int64_t i0[3];
   T t[3];
-  for (int a = 0; a < 3; ++a) {
-    const T u = lattice(p[a], o[a], spacing, T(size[a] - 1), false);
-    const int64_t lo_max = size[a] - 2 > 0 ? size[a] - 2 : 0;
-    const int64_t f = static_cast<int64_t>(floor(u));
-    i0[a] = f < lo_max ? f : lo_max;
-    t[a] = u - static_cast<T>(i0[a]);
+  for (int a = 0; a < 3; ++a) {  // the trilinear ops' clamp and cell, the same bits
+    bool inside;                 // (their gradient flag: not needed here)
+    tri::axis_setup(p[a], o[a], spacing, size[a], i0[a], t[a], inside);
   }
   for (int j = 0; j < kCorners; ++j) {
     const int off[3] = {j & 1, (j >> 1) & 1, (j >> 2) & 1};

@@ -90,9 +90,12 @@ FLX_HD void bias_corrections(const Hyper& h, double t, double* step_size, double
 // lowest loss is kept; stop after `patience` iterations without an improvement of
 // min_delta, or after max_iters; no Adam step after the last recorded loss. `history` may
 // be null (no record kept); `bias`, if given, holds bias_corrections for t = 1..max_iters
-// as (step_size, bc2_sqrt) pairs.
+// as (step_size, bc2_sqrt) pairs. (ahead_it, ahead_step, ahead_bc2): bias's pair of
+// iteration ahead_it, read ahead by a caller that predicted the iteration (used only if it
+// is this one; the CUDA loop thus takes the table's read off its critical path).
 FLX_HD void control_update(double* st, double loss, double* history, const Hyper& h,
-                           const double* bias = nullptr) {
+                           const double* bias = nullptr, double ahead_it = -1.0, double ahead_step = 0.0,
+                           double ahead_bc2 = 0.0) {
   if (st[kActive] == 0.0) {
     st[kStep] = 0.0;
     st[kCopyBest] = 0.0;
@@ -119,7 +122,10 @@ FLX_HD void control_update(double* st, double loss, double* history, const Hyper
   // Adam's bias corrections for step t = it + 1 (no step follows the last iteration, so a
   // table of max_iters pairs covers every step)
   if (stop) return;
-  if (bias != nullptr) {
+  if (ahead_it == it) {
+    st[kStepSize] = ahead_step;
+    st[kBc2Sqrt] = ahead_bc2;
+  } else if (bias != nullptr) {
     st[kStepSize] = bias[2 * int64_t(it)];
     st[kBc2Sqrt] = bias[2 * int64_t(it) + 1];
   } else {
