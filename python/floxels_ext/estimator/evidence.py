@@ -228,8 +228,9 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
     reach (empty directions): the band of a barrier that follows the sensor lies between a
     32-beam lidar's rings in the other scans. ``one_sided`` (the support scans all on one side of
     the target: a sequence's first or last frame) with ``points``, ``sights`` and ``offsets`` (the
-    support scans' time offsets): a following group most of whose points some scan shows hidden
-    behind the group itself, moved by its flow (estimator/sight.py's ``self_occluded_bits``), is not
+    support scans' time offsets): a following group most of whose points the scans show hidden
+    only behind the group itself, moved by its flow (estimator/sight.py's ``self_occluded_bits``:
+    in some scan, and in every scan that shows the place behind a nearer return), is not
     cut from the weak evidence that awaits the refinement (a pedestrian walking the ego's way hides
     its old place behind itself). ``weights``: the op's (normalised) weights. Groups
     are runs (as the op's); float64 prefix sums differenced at the run ends, so the same bits on
@@ -317,7 +318,13 @@ def seen_evidence(score, explained, rf, rz, labels, cells, observed, weights, *,
             if one_sided and occl is not None and points is not None and sights is not None and offsets is not None:
                 cand = above & occl & ~not_following
                 own = self_occluded_bits(points, flow, run, cand, occluded, sights, offsets)
-                not_following = not_following | (cand & (run_mean((own != 0).to(torch.float64)) >= 0.5))
+                # a point counts where every scan that hides its place hides it behind the moved
+                # group: a thick static object's own front face hides its rear in every scan, and
+                # with a flow that follows the sensor its moved rear meets that face in the nearest
+                # scan only (tuning seed 2, urban, 11 frames, first frame: 25 static points at
+                # 0.62 m/frame)
+                mine = (own != 0) & (own == occluded)
+                not_following = not_following | (cand & (run_mean(mine.to(torch.float64)) >= 0.5))
             above &= not_following
         explained = explained | rescued
     if keep_unseen:
