@@ -127,7 +127,8 @@ def problem_evidence(cfg: FloxelsConfig, problem: SolverProblem, flow: torch.Ten
                       problem.origins, problem.time_offsets, problem.weights, dt_cell=cfg.dt_cell,
                       truncation=cfg.truncation, margin=cfg.evidence_margin, ratio=cfg.evidence_ratio,
                       observed=observed, seen_mean=cfg.evidence_seen_mean, keep_unseen=cfg.evidence_keep_unseen,
-                      occluded=occluded, sensor_velocity=None if problem.sights is None or not cfg.evidence_seen_mean
+                      occluded=occluded, sights=problem.sights,
+                      sensor_velocity=None if problem.sights is None or not cfg.evidence_seen_mean
                       else sensor_velocity([None if s is None else s.sensor for s in problem.sights],
                                            problem.time_offsets))
     if cfg.evidence_far != "off":

@@ -42,8 +42,8 @@ import torch
 
 from floxels_ext.ops._small import device_values
 
-__all__ = ["Sight", "scan_sight", "observed_bits", "sensor_out_of_reach", "AZ_BIN", "EL_BIN", "SEEN_MARGIN",
-           "THROUGH_BINS", "SENSOR_REACH"]
+__all__ = ["Sight", "scan_sight", "observed_bits", "self_occluded_bits", "sensor_out_of_reach", "AZ_BIN", "EL_BIN",
+           "SEEN_MARGIN", "THROUGH_BINS", "SENSOR_REACH", "SELF_MATCH"]
 
 AZ_BIN = math.radians(0.5)   # range image bins: coarser than a 64-beam lidar's rays, so that a
 EL_BIN = math.radians(0.5)   # bin holds a return wherever the scan has one nearby
@@ -269,3 +269,51 @@ def _through(flat: torch.Tensor, tops: torch.Tensor, idx: torch.Tensor, ret: tor
     ia = local // NUM_EL
     v = flat[(idx - local + ie)[..., None] + (ia[..., None] + beside) % NUM_AZ * NUM_EL]  # (azimuth wraps around)
     return through & ((v < 0) | (v >= far[..., None])).all(dim=-1)
+
+
+_RANGE_BITS = 20   # self_occluded_bits: a moved point's range in mm below its (group, bin) key
+SELF_MATCH = 2 * SEEN_MARGIN  # m: the scan's nearest return in the bin within this of the moved group's
+
+
+def self_occluded_bits(points: torch.Tensor, flow: torch.Tensor, run: torch.Tensor, cand: torch.Tensor,
+                       occluded: torch.Tensor, sights: list[Sight | None], offsets) -> torch.Tensor:
+    """(n,) int32: bit k set where support scan k shows the point's own (unmoved) position behind
+    a nearer return (its ``occluded`` bit, :func:`observed_bits`) and that return is the point's
+    group itself, moved by its flow: in scan k's range image (its sensor, the module's bins) the
+    group's points moved by ``t_k * flow`` (``offsets``: the scans' time offsets) have one in the
+    point's direction bin at least ``SEEN_MARGIN`` nearer than the point, and the scan's nearest
+    return in that bin lies within ``SELF_MATCH`` of it (issue 47: a pedestrian walking the
+    ego's way hides its old place behind itself in the scans of the side it walks to; static
+    structure behind passing traffic is hidden by *another* object, and its own moved points
+    slide along its surface, not in front of it). Only the points of ``cand`` (bool) groups
+    (``run``: each point's group number, any int64 ids < n) are tested and build the images;
+    the others get 0. One sort of the candidates' moved points a scan (the others keyed past
+    every real key), no host synchronisation."""
+    p = points.to(torch.float32)
+    f = flow.to(torch.float32)
+    n = p.shape[0]
+    out = torch.zeros(n, dtype=torch.int32, device=p.device)
+    if n == 0:
+        return out
+    nb = NUM_AZ * NUM_EL
+    lim = (1 << _RANGE_BITS) - 1
+    gkey = run.long() * nb
+    past = torch.full_like(gkey, (n + 1) * nb << _RANGE_BITS)
+    for k, (s, t) in enumerate(zip(sights, offsets)):
+        if s is None or s.image is None:
+            continue
+        pi, pr = _bins(p - s.sensor)
+        qi, qr = _bins(p + float(t) * f - s.sensor)
+        mm = (qr * 1000.0).round().clamp(0, lim).long()
+        key = torch.where(cand, ((gkey + qi) << _RANGE_BITS) | mm, past)
+        sk, _ = torch.sort(key)
+        want = (gkey + pi) << _RANGE_BITS
+        pos = torch.searchsorted(sk, want).clamp_max(n - 1)
+        hit = sk[pos]
+        same = (hit >> _RANGE_BITS) == (want >> _RANGE_BITS)
+        r_self = (hit & lim).to(torch.float32) / 1000.0
+        near = s.near[pi]
+        mine = (cand & same & (r_self < pr - SEEN_MARGIN) & (((occluded >> k) & 1) != 0)
+                & (near >= 0) & ((near - r_self).abs() <= SELF_MATCH))
+        out |= mine.to(torch.int32) << k
+    return out
