@@ -504,6 +504,15 @@ MUTATIONS = [
     ("engines_start dropped by the summary's render", "python/floxels_ext/lidar/dataset/summary.py",
      'if "engines_start" in part:', "if False:", [ENGINES_T]),
 
+    # ---- issue 47: a one-sided window's follower hidden behind its own moved group ----
+    ("self-occluded follower: any scan hiding it counts", "python/floxels_ext/estimator/evidence.py",
+     "mine = (own != 0) & (own == occluded)", "mine = own != 0", ["tests/estimator/test_follow_occluded.py"]),
+    ("self-occluded follower: any nearer return counts", "python/floxels_ext/estimator/sight.py",
+     "& (near >= 0) & ((near - r_self).abs() <= SELF_MATCH))", "& (near >= 0))",
+     ["tests/estimator/test_follow_occluded.py"]),
+    ("self-occluded follower: the moved group need not be in front", "python/floxels_ext/estimator/sight.py",
+     "(r_self < pr - SEEN_MARGIN)", "(r_self < pr + 1e9)", ["tests/estimator/test_follow_occluded.py"]),
+
     # ---- C++ (csrc/kernels/solver.h: stage 3, CPU and CUDA) ----
     ("stage 3 takes a read-ahead bias pair of another iteration", "csrc/kernels/solver.h",
      "if (ahead_it == it) {", "if (ahead_it <= it) {", ["tests/ops/test_solver.py"]),

@@ -174,3 +174,37 @@ def test_run_evidence_tells_one_sided_windows(monkeypatch):
                               offsets, [1.0, 0.25], dt_cell=0.1, truncation=5.0,
                               observed=torch.zeros(3, dtype=torch.int32), seen_mean=True)
     assert seen == [True, True, False]
+
+
+def test_a_walker_also_hidden_by_another_object_in_one_scan_is_refused():
+    # the walker hides its old place behind itself in the first scans, but in the last scan a
+    # panel between the sensor and that place hides it: every scan that hides the place must hide
+    # it behind the moved group (the rule that keeps a thick static object's front face, met by
+    # its moved rear in the nearest scan only, from passing)
+    def world(t):
+        w = _walker_world(t)
+        if t == 4.0:
+            w = torch.cat([w, _box([-5.0, 0.0, -0.5], [0.1, 6.0, 4.0], step=0.05)])
+        return w
+
+    ev, occ, n = _judge(_box(*WALKER), [0.68, 0.0, 0.0], world)
+    assert ((occ >> 3) & 1).float().mean() >= 0.5  # the last scan hides most of the old place
+    assert not ev.hidden[:n].any() and not ev.explained[:n].any()
+
+
+def test_self_occluded_bits_need_the_moved_group_in_front():
+    # a thin wall behind the ego moving away from the sensor (-x), hidden by a static panel 0.6 m
+    # in front of it: the nearest return lies within SELF_MATCH of the moved wall, but the moved
+    # wall is behind its old place, not in front of it: not hidden by itself
+    wall = _box([-12.0, 0.0, -0.5], [0.1, 2.0, 1.0])
+    panel = _box([-11.4, 0.0, -0.5], [0.1, 3.0, 2.0], step=0.05)
+    sensor = [0.75, 0.0, 0.0]
+    sights = [scan_sight(_lidar(torch.cat([wall - torch.tensor([0.3, 0.0, 0.0]), panel, _background(1.0)]), sensor),
+                         sensor, band=False, image=True)]
+    n = wall.shape[0]
+    _, occ = observed_bits(wall, sights, occluded=True)
+    assert (occ != 0).float().mean() >= 0.5
+    flow = torch.tensor([[-0.3, 0.0, 0.0]]).expand(n, 3)
+    own = self_occluded_bits(wall, flow, torch.zeros(n, dtype=torch.int64), torch.ones(n, dtype=torch.bool), occ,
+                             sights, [1.0])
+    assert not own.any()
